@@ -1,0 +1,20 @@
+//! `translucent_tof`: recovers the true depth of translucent objects seen by a
+//! continuous-wave Time-of-Flight camera, after Shim & Lee, "Recovering
+//! Translucent Objects using a Single Time-of-Flight Depth Camera".
+//!
+//! Layers, each readable on its own:
+//! - [`physics`]: the forward model, inversion and ξ estimation (no I/O);
+//! - [`msgs`]: ROS 2 message types (CDR), shared by bags and DDS;
+//! - [`bag`]: ROS 2 MCAP bags as rosbag2 writes them;
+//! - [`image`]: sensor_msgs/Image encodings <-> physics buffers;
+//! - [`sim`]: the scene simulator;
+//! - [`pipeline`]: background latch, segmentation, recovery per frame;
+//! - [`cli`]: the subcommands.
+
+pub mod bag;
+pub mod cli;
+pub mod image;
+pub mod msgs;
+pub mod physics;
+pub mod pipeline;
+pub mod sim;

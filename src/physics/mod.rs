@@ -1,0 +1,11 @@
+//! The physics of a continuous-wave ToF pixel looking through a translucent
+//! layer (Shim & Lee): the forward model, its inversion, segmentation,
+//! calibration and the estimation of the translucency ξ.
+//!
+//! Plain numbers and image buffers in, numbers out: no ROS, no I/O, no async.
+//! Distances are millimetres, phases radians.
+#![deny(missing_docs)]
+
+pub mod buffer;
+
+pub use buffer::ImageBuf;
