@@ -9,3 +9,8 @@
 pub mod buffer;
 
 pub use buffer::ImageBuf;
+pub mod model;
+pub mod sensor;
+
+pub use model::{ForwardModel, IrMode, LayerScene, Measurement, ModelOptions, Return};
+pub use sensor::{Sensor, Waveform};

@@ -1,0 +1,311 @@
+//! The one forward model: the returns a pixel receives through a translucent
+//! layer (paper Eq. 1-3), mixed in the buckets (Eq. 5) and read by the device
+//! (Eq. 6, 11), with the IR image (Eq. 7). Every effect past the paper's
+//! baseline is an option of [`ModelOptions`]; the simulator, the inversion
+//! and the audit all call this one model.
+
+use serde::{Deserialize, Serialize};
+
+use super::sensor::{Buckets, Sensor};
+
+/// Most returns the model keeps (L1, L2 and six higher-order bounces).
+pub const MAX_BOUNCES: usize = 8;
+
+/// What the IR image reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum IrMode {
+    /// The sum of the returns' strengths (the paper's Eq. 7).
+    #[default]
+    Sum,
+    /// The demodulated amplitude `|sum_k L_k exp(i phi_k)|`, smaller when
+    /// returns disagree in phase.
+    Amplitude,
+}
+
+/// Options of the forward model. `Default` is the paper's model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelOptions {
+    /// Returns kept from Eq. 3: 2 keeps L1 and L2 (the paper); 3 adds the
+    /// first inter-reflection term, and so on up to [`MAX_BOUNCES`] (values
+    /// outside `2..=MAX_BOUNCES` are clamped).
+    pub bounces: usize,
+    /// What the IR image reports.
+    pub ir_mode: IrMode,
+    /// Power `p` of the layer's albedo term in the second return,
+    /// `L2 = Ib xi^2 X^p`: 2 in the paper's Eq. 2, 0 for light that merely
+    /// crosses the layer twice (physics.md's note on Eq. 2).
+    pub transmission_albedo_power: f64,
+    /// Offset in the IR image (ambient light, dark level), IR counts.
+    pub ambient_offset: f64,
+    /// Extra path of the light the layer returns (subsurface scattering), mm.
+    pub subsurface_delay_mm: f64,
+}
+
+impl Default for ModelOptions {
+    fn default() -> Self {
+        Self {
+            bounces: 2,
+            ir_mode: IrMode::Sum,
+            transmission_albedo_power: 2.0,
+            ambient_offset: 0.0,
+            subsurface_delay_mm: 0.0,
+        }
+    }
+}
+
+impl ModelOptions {
+    /// True for the paper's model, whose IR equation has a closed-form root (Eq. 10).
+    pub fn is_paper_baseline(&self) -> bool {
+        self.bounces == 2
+            && self.ir_mode == IrMode::Sum
+            && self.transmission_albedo_power == 2.0
+            && self.ambient_offset == 0.0
+    }
+}
+
+/// One return: its strength and its equivalent distance.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Return {
+    /// Strength in IR counts.
+    pub strength: f64,
+    /// Equivalent distance (half the travelled path) in mm.
+    pub distance_mm: f64,
+}
+
+/// The scene along one pixel's ray (physics.md §1).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LayerScene {
+    /// `df`: ray distance to the translucent foreground layer, mm.
+    pub foreground_distance_mm: f64,
+    /// `db`: ray distance to the opaque background, mm.
+    pub background_distance_mm: f64,
+    /// `xi`: translucency, 0 opaque .. 1 fully transmissive.
+    pub translucency: f64,
+    /// `X = rho_f cos(theta_f)`.
+    pub foreground_albedo_cos: f64,
+    /// `Xb = rho_b cos(theta_b)`.
+    pub background_albedo_cos: f64,
+    /// `Lin`: emitted light toward this pixel (Eq. 13), counts mm^2.
+    pub emitted_light: f64,
+}
+
+/// What the device reports for one pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measurement {
+    /// Decoded distance in `[0, R)`, mm; NaN when nothing returned.
+    pub distance_mm: f64,
+    /// IR value per [`IrMode`], counts.
+    pub ir: f64,
+    /// The mixed bucket differences (Eq. 5).
+    pub buckets: Buckets,
+    /// Total light collected (sum of strengths, no offset), counts: sets shot noise.
+    pub total_light: f64,
+}
+
+/// The forward model: a sensor and the physics options.
+#[derive(Debug, Clone)]
+pub struct ForwardModel {
+    /// The sensor's modulation, waveform and decoder.
+    pub sensor: Sensor,
+    /// Effects modelled beyond the paper's baseline.
+    pub options: ModelOptions,
+}
+
+impl ForwardModel {
+    /// The paper's model on the given sensor.
+    pub fn paper(sensor: Sensor) -> Self {
+        Self { sensor, options: ModelOptions::default() }
+    }
+
+    /// The returns through a translucent layer (Eq. 1-3), strongest terms
+    /// first; writes them into `out` and returns how many.
+    pub fn layer_returns(&self, s: &LayerScene, out: &mut [Return; MAX_BOUNCES]) -> usize {
+        let o = &self.options;
+        let (df, db, xi) = (s.foreground_distance_mm, s.background_distance_mm, s.translucency);
+        let (x, xb, lin) = (s.foreground_albedo_cos, s.background_albedo_cos, s.emitted_light);
+        // Eq. 1: first bounce, off the layer.
+        out[0] = Return {
+            strength: (1.0 - xi) * x * lin / (df * df),
+            distance_mm: df + o.subsurface_delay_mm,
+        };
+        // Eq. 2: through the layer, off the background, back through the layer.
+        let x_p = pow(x, o.transmission_albedo_power);
+        out[1] = Return { strength: xb * xi * xi * x_p * lin / (db * db), distance_mm: db };
+        // Eq. 3, terms i = 0, 1, ...: inter-reflections between the layers.
+        let n = o.bounces.clamp(2, MAX_BOUNCES);
+        let sep = db - df;
+        let mut fac = xi * xi * x_p * xb * xb * (1.0 - xi) * x;
+        for (i, slot) in out.iter_mut().enumerate().take(n).skip(2) {
+            let dist = db + (i - 1) as f64 * sep;
+            *slot = Return { strength: fac * lin / (dist * dist), distance_mm: dist };
+            fac *= (1.0 - xi) * x * xb;
+        }
+        n
+    }
+
+    /// One opaque surface: `Lin rho cos(theta) / d^2` at `d` (Eq. 1 with xi = 0).
+    pub fn opaque_return(distance_mm: f64, albedo_cos: f64, emitted_light: f64) -> Return {
+        Return { strength: albedo_cos * emitted_light / (distance_mm * distance_mm), distance_mm }
+    }
+
+    /// Mixes returns in the buckets (Eq. 5), decodes them (Eq. 6, 11) and forms
+    /// the IR value (Eq. 7, or the amplitude).
+    pub fn measure(&self, returns: &[Return]) -> Measurement {
+        let mut buckets = Buckets::default();
+        let mut total = 0.0;
+        let (mut re, mut im) = (0.0, 0.0);
+        for r in returns {
+            buckets += self.sensor.buckets(r.strength, r.distance_mm);
+            total += r.strength;
+            if self.options.ir_mode == IrMode::Amplitude {
+                let (s, c) = self.sensor.phase(r.distance_mm).sin_cos();
+                re += r.strength * c;
+                im += r.strength * s;
+            }
+        }
+        let ir = match self.options.ir_mode {
+            IrMode::Sum => total,
+            IrMode::Amplitude => re.hypot(im),
+        } + self.options.ambient_offset;
+        Measurement {
+            distance_mm: self.sensor.decode(buckets).unwrap_or(f64::NAN),
+            ir,
+            buckets,
+            total_light: total,
+        }
+    }
+
+    /// The measurement of a pixel looking through a layer at a background.
+    pub fn measure_layer(&self, s: &LayerScene) -> Measurement {
+        let mut r = [Return::default(); MAX_BOUNCES];
+        let n = self.layer_returns(s, &mut r);
+        self.measure(&r[..n])
+    }
+
+    /// The IR value the model predicts for the layer (Eq. 7), without decoding.
+    pub fn layer_ir(&self, s: &LayerScene) -> f64 {
+        let mut r = [Return::default(); MAX_BOUNCES];
+        let n = self.layer_returns(s, &mut r);
+        let ir = match self.options.ir_mode {
+            IrMode::Sum => r[..n].iter().map(|r| r.strength).sum(),
+            IrMode::Amplitude => {
+                let (mut re, mut im) = (0.0, 0.0);
+                for r in &r[..n] {
+                    let (s, c) = self.sensor.phase(r.distance_mm).sin_cos();
+                    re += r.strength * c;
+                    im += r.strength * s;
+                }
+                re.hypot(im)
+            }
+        };
+        ir + self.options.ambient_offset
+    }
+}
+
+/// `x^p` with `0^0 = 1` and integer powers fast.
+fn pow(x: f64, p: f64) -> f64 {
+    if p == 2.0 {
+        x * x
+    } else if p == 0.0 {
+        1.0
+    } else if p == 1.0 {
+        x
+    } else {
+        x.powf(p)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene(df: f64, db: f64, xi: f64, x: f64) -> LayerScene {
+        LayerScene {
+            foreground_distance_mm: df,
+            background_distance_mm: db,
+            translucency: xi,
+            foreground_albedo_cos: x,
+            background_albedo_cos: 1.0,
+            emitted_light: 1.0e10,
+        }
+    }
+
+    #[test]
+    fn paper_returns_match_eq1_and_eq2() {
+        let m = ForwardModel::paper(Sensor::sr4000());
+        let s = scene(1000.0, 2000.0, 0.65, 0.6);
+        let mut r = [Return::default(); MAX_BOUNCES];
+        assert_eq!(m.layer_returns(&s, &mut r), 2);
+        let l1 = (1.0 - 0.65) * 0.6 * 1e10 / 1e6;
+        let ib = 1e10 / 4e6;
+        let l2 = ib * 0.65 * 0.65 * 0.36;
+        assert!((r[0].strength - l1).abs() < 1e-9 && r[0].distance_mm == 1000.0);
+        assert!((r[1].strength - l2).abs() < 1e-9 && r[1].distance_mm == 2000.0);
+        let meas = m.measure_layer(&s);
+        assert!((meas.ir - (l1 + l2)).abs() < 1e-9, "Eq. 7: I = L1 + L2");
+        assert!(meas.distance_mm > 1000.0 && meas.distance_mm < 2000.0);
+    }
+
+    #[test]
+    fn higher_bounces_follow_eq3() {
+        let mut m = ForwardModel::paper(Sensor::sr4000());
+        m.options.bounces = 4;
+        let s = LayerScene { background_albedo_cos: 0.8, ..scene(1500.0, 2000.0, 0.5, 0.7) };
+        let mut r = [Return::default(); MAX_BOUNCES];
+        assert_eq!(m.layer_returns(&s, &mut r), 4);
+        for i in 0..2 {
+            let dist = 2000.0 + (i + 1) as f64 * 500.0;
+            let want = 0.25 * 0.5f64.powi(i + 1) * 0.7f64.powi(i + 3) * 0.8f64.powi(i + 2) * 1e10
+                / (dist * dist);
+            let got = r[2 + i as usize];
+            assert!((got.strength - want).abs() < 1e-9 * want, "term {i}");
+            assert_eq!(got.distance_mm, dist);
+        }
+    }
+
+    #[test]
+    fn opaque_pixel_reads_its_distance() {
+        let m = ForwardModel::paper(Sensor::sr4000());
+        let meas = m.measure(&[ForwardModel::opaque_return(2345.0, 0.5, 1e10)]);
+        assert!((meas.distance_mm - 2345.0).abs() < 1e-6);
+        let s = scene(1000.0, 2000.0, 0.0, 0.6);
+        assert!((m.measure_layer(&s).distance_mm - 1000.0).abs() < 1e-6, "xi = 0 is opaque");
+    }
+
+    #[test]
+    fn paper_law_cannot_reverse_but_double_pass_can() {
+        // physics.md's note on Eq. 2: df 800, db 3300, xi 0.91.
+        let mut m = ForwardModel::paper(Sensor::sr4000());
+        let s = scene(800.0, 3300.0, 0.91, 0.9);
+        let paper = m.measure_layer(&s).distance_mm;
+        assert!(paper < 3300.0, "paper's Eq. 2 reads {paper}");
+        m.options.transmission_albedo_power = 0.0;
+        let s = scene(800.0, 3300.0, 0.91, 0.3);
+        let double = m.measure_layer(&s).distance_mm;
+        assert!(double > 3300.0, "double pass reads {double}");
+    }
+
+    #[test]
+    fn amplitude_is_smaller_than_sum_when_phases_differ() {
+        let mut m = ForwardModel::paper(Sensor::sr4000());
+        let s = scene(1000.0, 3000.0, 0.8, 0.8);
+        let sum = m.measure_layer(&s).ir;
+        m.options.ir_mode = IrMode::Amplitude;
+        let amp = m.measure_layer(&s).ir;
+        assert!(amp < sum);
+        assert!((m.layer_ir(&s) - amp).abs() < 1e-9);
+    }
+
+    #[test]
+    fn subsurface_delay_and_ambient_shift_the_readings() {
+        let mut m = ForwardModel::paper(Sensor::sr4000());
+        let s = scene(1000.0, 2000.0, 0.0, 0.6);
+        m.options.subsurface_delay_mm = 12.0;
+        m.options.ambient_offset = 50.0;
+        let meas = m.measure_layer(&s);
+        assert!((meas.distance_mm - 1012.0).abs() < 1e-6);
+        assert!((meas.ir - meas.total_light - 50.0).abs() < 1e-9);
+    }
+}
