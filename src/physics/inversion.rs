@@ -1,0 +1,369 @@
+//! Inverting the two-layer model per translucent pixel (paper Eq. 8-11):
+//! for a hypothesised translucency ξ, the foreground distance whose predicted
+//! reading matches the observed one, within the physical bounds.
+
+use serde::{Deserialize, Serialize};
+
+use super::model::{ForwardModel, LayerScene};
+
+/// What is known at one translucent pixel (physics.md §3).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelObservation {
+    /// `d`: the reading with the object in place, ray distance, mm.
+    pub distance_mm: f64,
+    /// `I`: the IR value with the object in place, counts.
+    pub ir: f64,
+    /// `db`: the latched background's ray distance, mm.
+    pub background_distance_mm: f64,
+    /// `Ib`: the latched background's IR value, counts.
+    pub background_ir: f64,
+    /// `Lin`: emitted light toward this pixel (Eq. 13), counts mm^2.
+    pub emitted_light: f64,
+}
+
+impl PixelObservation {
+    /// `Xb = Ib db^2 / Lin`, the background's albedo times incidence cosine.
+    pub fn background_albedo_cos(&self, ambient_offset: f64) -> f64 {
+        let db = self.background_distance_mm;
+        (self.background_ir - ambient_offset).max(0.0) * db * db / self.emitted_light
+    }
+}
+
+/// Physical bounds of the search (physics.md §3).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct InversionBounds {
+    /// `d_min`: nearest foreground distance considered, mm.
+    pub min_distance_mm: f64,
+    /// Upper bound of `X = rho_f cos(theta_f)` (1 for a physical albedo).
+    pub max_albedo_cos: f64,
+    /// Step of the scan that brackets roots before they are refined, mm.
+    pub scan_step_mm: f64,
+    /// Closest the foreground may come to the background, mm (`df < db`).
+    pub min_separation_mm: f64,
+}
+
+impl Default for InversionBounds {
+    fn default() -> Self {
+        Self { min_distance_mm: 100.0, max_albedo_cos: 1.0, scan_step_mm: 20.0, min_separation_mm: 1.0 }
+    }
+}
+
+/// The recovered layer at one pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LayerEstimate {
+    /// `df`, ray distance, mm.
+    pub foreground_distance_mm: f64,
+    /// `X = rho_f cos(theta_f)` implied by the IR equation (Eq. 10).
+    pub albedo_cos: f64,
+    /// Predicted minus observed reading, wrapped, mm (0 for an exact root).
+    pub residual_mm: f64,
+    /// How many exact roots the bounds admit.
+    pub roots: u8,
+    /// No exact root within the bounds: the best fit is at a bound.
+    pub pinned: bool,
+}
+
+/// `X` for a hypothesis `(df, xi)` from the IR equation (Eq. 7-10).
+///
+/// For the paper's model this is Eq. 10's non-negative root of
+/// `xi^2 Ib X^2 + ((1-xi) Lin / df^2) X - I = 0`; with other options of the
+/// model it is found numerically. `None` when no non-negative root exists
+/// below `x_max` (the IR is too bright for any admissible albedo).
+pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> Option<f64> {
+    let o = &model.options;
+    let ir = obs.ir - o.ambient_offset;
+    if ir <= 0.0 {
+        return None;
+    }
+    if o.is_paper_baseline() {
+        let a = xi * xi * obs.background_ir;
+        let b = (1.0 - xi) * obs.emitted_light / (df * df);
+        // Eq. 10 (a = 0 gives X = I / b); the rationalised form keeps precision when a -> 0.
+        let x = 2.0 * ir / (b + (b * b + 4.0 * a * ir).sqrt());
+        return (x.is_finite() && x <= x_max).then_some(x);
+    }
+    let xb = obs.background_albedo_cos(o.ambient_offset);
+    let scene = |x: f64| LayerScene {
+        foreground_distance_mm: df,
+        background_distance_mm: obs.background_distance_mm,
+        translucency: xi,
+        foreground_albedo_cos: x,
+        background_albedo_cos: xb,
+        emitted_light: obs.emitted_light,
+    };
+    let g = |x: f64| model.layer_ir(&scene(x)) - obs.ir;
+    // Bracket the first crossing on a coarse scan (the amplitude need not be monotone in X).
+    const SCAN: usize = 16;
+    let mut lo = 0.0;
+    let mut g_lo = g(lo);
+    if g_lo > 0.0 {
+        return None;
+    }
+    for k in 1..=SCAN {
+        let hi = x_max * k as f64 / SCAN as f64;
+        let g_hi = g(hi);
+        if g_hi >= 0.0 {
+            let (mut a, mut b) = (lo, hi);
+            for _ in 0..40 {
+                let m = 0.5 * (a + b);
+                if g(m) >= 0.0 {
+                    b = m;
+                } else {
+                    a = m;
+                }
+            }
+            return Some(0.5 * (a + b));
+        }
+        lo = hi;
+        g_lo = g_hi;
+    }
+    let _ = g_lo;
+    None
+}
+
+/// The reading the model predicts for `(df, xi, X)` at this pixel (Eq. 11), mm.
+pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x: f64) -> f64 {
+    let scene = LayerScene {
+        foreground_distance_mm: df,
+        background_distance_mm: obs.background_distance_mm,
+        translucency: xi,
+        foreground_albedo_cos: x,
+        background_albedo_cos: obs.background_albedo_cos(model.options.ambient_offset),
+        emitted_light: obs.emitted_light,
+    };
+    model.measure_layer(&scene).distance_mm
+}
+
+/// One sample of the residual along `df`.
+#[derive(Clone, Copy)]
+struct Sample {
+    df: f64,
+    residual: f64,
+    x: f64,
+}
+
+/// The foreground distance of one translucent pixel for a given ξ (Eq. 8-12).
+///
+/// Scans `df` over `[d_min, db)` in `scan_step_mm` steps, brackets every sign
+/// change of the wrapped residual `f(df, xi) - d` (phase wraps are not roots),
+/// and refines each to 0.01 mm. Several roots: the one nearest `prefer_mm`
+/// when given (a neighbourhood's surface), else the one nearest the reading
+/// itself (the smallest correction). No root: the admissible sample with the
+/// smallest residual, flagged `pinned`. `None` when no `df` admits `0 < X <= max`.
+pub fn foreground_distance(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    xi: f64,
+    bounds: &InversionBounds,
+    prefer_mm: Option<f64>,
+) -> Option<LayerEstimate> {
+    let sensor = &model.sensor;
+    let range = sensor.unambiguous_range_mm();
+    let lo = bounds.min_distance_mm;
+    let hi = obs.background_distance_mm - bounds.min_separation_mm;
+    if !(hi > lo) || !obs.distance_mm.is_finite() || !obs.ir.is_finite() {
+        return None;
+    }
+    let eval = |df: f64| -> Option<Sample> {
+        let x = albedo_cos(model, obs, df, xi, bounds.max_albedo_cos)?;
+        if x <= 0.0 {
+            return None;
+        }
+        let pred = predicted_reading(model, obs, df, xi, x);
+        if !pred.is_finite() {
+            return None;
+        }
+        Some(Sample { df, residual: sensor.wrapped_difference_mm(pred, obs.distance_mm), x })
+    };
+    let n = ((hi - lo) / bounds.scan_step_mm).ceil().max(2.0) as usize;
+    let step = (hi - lo) / n as f64;
+    let mut best: Option<Sample> = None;
+    let mut chosen: Option<(Sample, f64)> = None; // (root, its distance to the preference)
+    let mut roots = 0u8;
+    let mut prev: Option<Sample> = None;
+    for k in 0..=n {
+        let cur = eval(lo + step * k as f64);
+        if let Some(c) = cur {
+            if best.is_none_or(|b| c.residual.abs() < b.residual.abs()) {
+                best = Some(c);
+            }
+            if let Some(p) = prev {
+                let crosses = (p.residual <= 0.0) != (c.residual <= 0.0);
+                if crosses && (p.residual - c.residual).abs() < range / 4.0 {
+                    if let Some(root) = refine(&eval, p, c) {
+                        roots = roots.saturating_add(1);
+                        let anchor = prefer_mm.unwrap_or(obs.distance_mm);
+                        let dist = sensor.wrapped_difference_mm(root.df, anchor).abs();
+                        if chosen.is_none_or(|(_, d)| dist < d) {
+                            chosen = Some((root, dist));
+                        }
+                    }
+                }
+            }
+        }
+        prev = cur;
+    }
+    let (s, pinned) = match chosen {
+        Some((root, _)) => (root, false),
+        None => (best?, true),
+    };
+    Some(LayerEstimate {
+        foreground_distance_mm: s.df,
+        albedo_cos: s.x,
+        residual_mm: s.residual,
+        roots,
+        pinned,
+    })
+}
+
+/// Illinois (modified regula falsi) refinement of a bracketed root to 0.01 mm.
+fn refine(eval: &impl Fn(f64) -> Option<Sample>, mut a: Sample, mut b: Sample) -> Option<Sample> {
+    let mut side = 0i8;
+    let (mut fa, mut fb) = (a.residual, b.residual);
+    for _ in 0..40 {
+        let t = if (fb - fa).abs() > 0.0 { fb / (fb - fa) } else { 0.5 };
+        let df = (b.df - t * (b.df - a.df)).clamp(a.df.min(b.df), a.df.max(b.df));
+        let c = eval(df)?;
+        if c.residual.abs() < 1e-6 || (b.df - a.df).abs() < 0.01 {
+            return Some(c);
+        }
+        if (c.residual <= 0.0) == (fb <= 0.0) {
+            b = c;
+            fb = c.residual;
+            if side == 1 {
+                fa *= 0.5;
+            }
+            side = 1;
+        } else {
+            a = c;
+            fa = c.residual;
+            if side == -1 {
+                fb *= 0.5;
+            }
+            side = -1;
+        }
+    }
+    Some(if a.residual.abs() < b.residual.abs() { a } else { b })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::physics::model::{IrMode, ModelOptions};
+    use crate::physics::sensor::{Sensor, Waveform};
+
+    fn observe(model: &ForwardModel, df: f64, db: f64, xi: f64, x: f64, xb: f64) -> PixelObservation {
+        let lin = 1.5e10;
+        let s = LayerScene {
+            foreground_distance_mm: df,
+            background_distance_mm: db,
+            translucency: xi,
+            foreground_albedo_cos: x,
+            background_albedo_cos: xb,
+            emitted_light: lin,
+        };
+        let m = model.measure_layer(&s);
+        let bg = model.measure(&[ForwardModel::opaque_return(db, xb, lin)]);
+        PixelObservation {
+            distance_mm: m.distance_mm,
+            ir: m.ir,
+            background_distance_mm: db,
+            background_ir: bg.ir,
+            emitted_light: lin,
+        }
+    }
+
+    #[test]
+    fn eq10_root_satisfies_the_ir_equation() {
+        let m = ForwardModel::paper(Sensor::sr4000());
+        let obs = observe(&m, 1000.0, 2000.0, 0.65, 0.6, 1.0);
+        let x = albedo_cos(&m, &obs, 1000.0, 0.65, 1.0).unwrap();
+        assert!((x - 0.6).abs() < 1e-12);
+        // xi = 0: X = I / b exactly.
+        let x0 = albedo_cos(&m, &obs, 1000.0, 0.0, 10.0).unwrap();
+        assert!((x0 - obs.ir * 1e6 / obs.emitted_light).abs() < 1e-12);
+    }
+
+    #[test]
+    fn numeric_albedo_matches_closed_form() {
+        let paper = ForwardModel::paper(Sensor::sr4000());
+        let mut amp = paper.clone();
+        amp.options.ambient_offset = 1e-9; // forces the numeric path, same physics
+        let obs = observe(&paper, 1200.0, 2500.0, 0.5, 0.7, 0.9);
+        let a = albedo_cos(&paper, &obs, 1200.0, 0.5, 1.0).unwrap();
+        let b = albedo_cos(&amp, &obs, 1200.0, 0.5, 1.0).unwrap();
+        assert!((a - b).abs() < 1e-6, "{a} vs {b}");
+    }
+
+    #[test]
+    fn recovers_the_true_layer_at_the_true_xi() {
+        let cases = [
+            (Waveform::Sinusoid, 1000.0, 2000.0, 0.65, 0.6),
+            (Waveform::Sinusoid, 500.0, 2000.0, 0.94, 0.8),
+            (Waveform::Sinusoid, 1750.0, 2000.0, 0.94, 0.8),
+            (Waveform::Triangle, 900.0, 3300.0, 0.72, 0.5),
+            (Waveform::Sinusoid, 700.0, 3300.0, 0.91, 0.9),
+        ];
+        for (w, df, db, xi, x) in cases {
+            let m = ForwardModel::paper(Sensor::new(30e6, w));
+            let obs = observe(&m, df, db, xi, x, 1.0);
+            let est = foreground_distance(&m, &obs, xi, &InversionBounds::default(), None).unwrap();
+            assert!(!est.pinned, "{w:?} {df}");
+            assert!((est.foreground_distance_mm - df).abs() < 0.05, "{w:?} df {df}: {est:?}");
+            assert!((est.albedo_cos - x).abs() < 1e-3);
+        }
+    }
+
+    #[test]
+    fn recovers_with_model_options() {
+        let opts = ModelOptions {
+            bounces: 4,
+            ir_mode: IrMode::Amplitude,
+            transmission_albedo_power: 0.0,
+            ambient_offset: 30.0,
+            subsurface_delay_mm: 5.0,
+        };
+        let m = ForwardModel { sensor: Sensor::sr4000(), options: opts };
+        let obs = observe(&m, 1300.0, 2600.0, 0.6, 0.5, 0.9);
+        let est = foreground_distance(&m, &obs, 0.6, &InversionBounds::default(), None).unwrap();
+        assert!((est.foreground_distance_mm - 1300.0).abs() < 0.05, "{est:?}");
+    }
+
+    #[test]
+    fn every_xi_fits_one_pixel_exactly() {
+        // physics.md §3: one frame's residuals alone do not determine xi.
+        let m = ForwardModel::paper(Sensor::sr4000());
+        let obs = observe(&m, 1000.0, 2000.0, 0.65, 0.6, 1.0);
+        let mut depths = vec![];
+        for xi in [0.0, 0.3, 0.5, 0.65, 0.8] {
+            let est = foreground_distance(&m, &obs, xi, &InversionBounds::default(), None).unwrap();
+            assert!(est.residual_mm.abs() < 0.05 && !est.pinned, "xi {xi}: {est:?}");
+            depths.push(est.foreground_distance_mm);
+        }
+        assert!((depths[3] - 1000.0).abs() < 0.05);
+        assert!((depths[0] - 1000.0).abs() > 15.0, "a wrong xi recovers another depth");
+    }
+
+    #[test]
+    fn no_admissible_root_is_pinned_or_none() {
+        let m = ForwardModel::paper(Sensor::sr4000());
+        let mut obs = observe(&m, 1000.0, 2000.0, 0.65, 0.6, 1.0);
+        obs.distance_mm = 2300.0; // behind the background: no two-layer mix reads there
+        if let Some(est) = foreground_distance(&m, &obs, 0.3, &InversionBounds::default(), None) {
+            assert!(est.pinned);
+        }
+        obs.ir = -1.0;
+        assert!(foreground_distance(&m, &obs, 0.3, &InversionBounds::default(), None).is_none());
+    }
+
+    #[test]
+    fn depth_reversal_inverts_with_double_pass_law() {
+        let mut m = ForwardModel::paper(Sensor::sr4000());
+        m.options.transmission_albedo_power = 0.0;
+        let obs = observe(&m, 800.0, 3300.0, 0.91, 0.3, 1.0);
+        assert!(obs.distance_mm > 3300.0);
+        let est = foreground_distance(&m, &obs, 0.91, &InversionBounds::default(), None).unwrap();
+        assert!((est.foreground_distance_mm - 800.0).abs() < 0.05, "{est:?}");
+    }
+}
