@@ -21,3 +21,6 @@ pub mod emitted_light;
 pub mod segmentation;
 pub mod surface;
 pub use camera::Intrinsics;
+pub mod translucency;
+pub use translucency::{XiEstimate, XiMethod};
+pub mod noise;

@@ -1,0 +1,545 @@
+//! Estimating the translucency ξ that the data determine (physics.md §3).
+//!
+//! One frame's residuals alone do not pick ξ: every ξ fits each pixel. What
+//! carries it, and what this module offers:
+//! - [`calibrate`]: known foreground distances (the paper's Sec. V-A protocol);
+//! - [`one_material`]: the ξ under which the albedo the inversion implies is
+//!   the same over the object's pixels and over frames;
+//! - [`eq12_residual`]: the paper's Eq. 12 residual sum, kept for comparison
+//!   (its profile is flat: it reports how flat).
+//!
+//! Each works on per-frame [`FrameProfile`]s computed once on a fixed ξ grid,
+//! so pooling a new frame costs one frame's work.
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use super::buffer::ImageBuf;
+use super::inversion::{albedo_cos, foreground_distance, predicted_reading, InversionBounds, PixelObservation};
+use super::model::ForwardModel;
+use super::surface::local_planes;
+
+/// How ξ was chosen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum XiMethod {
+    /// Given by the user (`--xi`, parameter `xi`), e.g. from `calibrate-xi`.
+    Fixed,
+    /// Fitted to frames with known foreground distances (paper Sec. V-A).
+    Calibrated,
+    /// The ξ that makes the object one material (albedo constant over pixels and frames).
+    OneMaterial,
+    /// The paper's Eq. 12 residual sum (degenerate: for comparison only).
+    Eq12Residual,
+}
+
+impl XiMethod {
+    /// The name used in parameters and reports.
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            XiMethod::Fixed => "fixed",
+            XiMethod::Calibrated => "calibrated",
+            XiMethod::OneMaterial => "one_material",
+            XiMethod::Eq12Residual => "eq12_residual",
+        }
+    }
+}
+
+/// An estimate of ξ with the interval the data support.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct XiEstimate {
+    /// The estimate.
+    pub xi: f64,
+    /// Interval `[lo, hi]` (about 95 %) the data support.
+    pub interval: [f64; 2],
+    /// How it was chosen.
+    pub method: XiMethod,
+    /// Frames pooled.
+    pub frames: usize,
+    /// Pixels used (summed over frames).
+    pub pixels: usize,
+    /// The objective over the ξ grid, `(xi, value)`, lower is better.
+    pub profile: Vec<(f64, f64)>,
+    /// A sentence on what the data could and could not tell.
+    pub note: String,
+}
+
+impl XiEstimate {
+    /// A user-given ξ.
+    pub fn fixed(xi: f64) -> Self {
+        Self {
+            xi,
+            interval: [xi, xi],
+            method: XiMethod::Fixed,
+            frames: 0,
+            pixels: 0,
+            profile: vec![],
+            note: "given by the user".into(),
+        }
+    }
+
+    /// Half the interval's width.
+    pub fn half_width(&self) -> f64 {
+        0.5 * (self.interval[1] - self.interval[0])
+    }
+}
+
+/// The ξ hypotheses every profile is evaluated on: 0.02 steps to 0.8, then
+/// 0.01 steps to 0.99 (highly translucent materials need the finer steps).
+pub fn xi_grid() -> Vec<f64> {
+    let mut g: Vec<f64> = (0..40).map(|k| k as f64 * 0.02).collect();
+    g.extend((80..=99).map(|k| k as f64 * 0.01));
+    g
+}
+
+/// Settings of the ξ estimation.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct XiSettings {
+    /// Most pixels a frame contributes (a regular lattice over the object).
+    pub max_pixels_per_frame: usize,
+    /// Radius, in image pixels, of the local planes that give the normals.
+    pub normal_radius_px: usize,
+    /// Groups (by measured distance) a frame is split into.
+    pub groups_per_frame: usize,
+    /// Fewest pixels in a group.
+    pub min_group_pixels: usize,
+}
+
+impl Default for XiSettings {
+    fn default() -> Self {
+        Self { max_pixels_per_frame: 1500, normal_radius_px: 12, groups_per_frame: 3, min_group_pixels: 40 }
+    }
+}
+
+/// The pixels of one frame that ξ estimation uses: a lattice over the object.
+#[derive(Debug, Clone)]
+pub struct FrameSample {
+    /// Observations on the lattice (None off the object).
+    pub observations: ImageBuf<Option<PixelObservation>>,
+    /// Unit rays of the lattice pixels.
+    pub rays: ImageBuf<Vector3<f64>>,
+    /// True foreground ray distance where known (calibration), mm.
+    pub truth_mm: Option<ImageBuf<f64>>,
+    /// Lattice stride in image pixels.
+    pub stride: usize,
+}
+
+impl FrameSample {
+    /// Takes every `stride`-th pixel in both directions, with the stride chosen
+    /// so at most `max_pixels` observations remain.
+    pub fn from_image(
+        observations: &ImageBuf<Option<PixelObservation>>,
+        rays: &ImageBuf<Vector3<f64>>,
+        truth_mm: Option<&ImageBuf<f64>>,
+        max_pixels: usize,
+    ) -> Self {
+        let n = observations.data.iter().filter(|o| o.is_some()).count().max(1);
+        let stride = ((n as f64 / max_pixels.max(1) as f64).sqrt().ceil() as usize).max(1);
+        let (w, h) = ((observations.width).div_ceil(stride), (observations.height).div_ceil(stride));
+        let pick = |img_w: usize, k: usize| (k / w) * stride * img_w + (k % w) * stride;
+        let obs = (0..w * h).map(|k| observations.data[pick(observations.width, k)]).collect();
+        let ray = (0..w * h).map(|k| rays.data[pick(rays.width, k)]).collect();
+        let truth = truth_mm.map(|t| ImageBuf { width: w, height: h, data: (0..w * h).map(|k| t.data[pick(t.width, k)]).collect() });
+        Self {
+            observations: ImageBuf { width: w, height: h, data: obs },
+            rays: ImageBuf { width: w, height: h, data: ray },
+            truth_mm: truth,
+            stride,
+        }
+    }
+
+    /// Observations present.
+    pub fn pixel_count(&self) -> usize {
+        self.observations.data.iter().filter(|o| o.is_some()).count()
+    }
+}
+
+/// Robust summary of `log rho` in one group of pixels at one ξ.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct GroupStat {
+    /// Median of `log rho_f`.
+    pub median: f64,
+    /// Standard error of that median (from the MAD).
+    pub std_error: f64,
+    /// Pixels with a valid albedo.
+    pub count: usize,
+}
+
+/// A frame's statistics at every ξ of [`xi_grid`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameProfile {
+    /// Per ξ: the groups' albedo statistics (one-material objective).
+    pub groups: Vec<Vec<GroupStat>>,
+    /// Per ξ: share of pixels pinned at a bound or without any admissible root.
+    pub pinned_fraction: Vec<f64>,
+    /// Per ξ: Eq. 12's summed squared residual, mm^2.
+    pub eq12: Vec<f64>,
+    /// Per ξ: noise-weighted squared error against the known distances (calibration), and its weight sum.
+    pub truth_sse: Vec<(f64, f64)>,
+    /// Pixels in the sample.
+    pub pixels: usize,
+}
+
+/// Computes one frame's profile on the grid (the expensive part, done once per frame).
+pub fn frame_profile(model: &ForwardModel, bounds: &InversionBounds, sample: &FrameSample, settings: &XiSettings) -> FrameProfile {
+    let grid = xi_grid();
+    let obs = &sample.observations;
+    let (w, h) = (obs.width, obs.height);
+    // Groups by the measured distance (independent of ξ): quantile bins.
+    let mut ds: Vec<f64> = obs.data.iter().flatten().map(|o| o.distance_mm).collect();
+    ds.sort_by(f64::total_cmp);
+    let n_groups = settings.groups_per_frame.min(ds.len() / settings.min_group_pixels.max(1)).max(1);
+    let edges: Vec<f64> = (1..n_groups).map(|k| ds[k * ds.len() / n_groups]).collect();
+    let group_of = |d: f64| edges.iter().filter(|&&e| d >= e).count();
+    let radius = (settings.normal_radius_px / sample.stride).max(2);
+    let mut out = FrameProfile { groups: vec![], pinned_fraction: vec![], eq12: vec![], truth_sse: vec![], pixels: ds.len() };
+    let mut points = ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
+    let mut xs = vec![f64::NAN; w * h];
+    let mask = ImageBuf { width: w, height: h, data: obs.data.iter().map(|o| o.is_some()).collect() };
+    for &xi in &grid {
+        let mut pinned = 0usize;
+        let mut eq12 = 0.0;
+        let mut sse = (0.0, 0.0);
+        for i in 0..w * h {
+            points.data[i] = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
+            xs[i] = f64::NAN;
+            let Some(o) = obs.data[i] else { continue };
+            match foreground_distance(model, &o, xi, bounds, None) {
+                Some(est) => {
+                    eq12 += est.residual_mm * est.residual_mm;
+                    if est.pinned {
+                        pinned += 1;
+                    } else {
+                        points.data[i] = sample.rays.data[i] * est.foreground_distance_mm;
+                        xs[i] = est.albedo_cos;
+                    }
+                }
+                None => {
+                    pinned += 1;
+                    eq12 += (o.distance_mm - o.background_distance_mm).powi(2);
+                }
+            }
+            if let Some(t) = sample.truth_mm.as_ref().map(|t| t.data[i]).filter(|t| t.is_finite()) {
+                sse = add_truth_error(model, &o, t, xi, bounds, sse);
+            }
+        }
+        // Normals from the smooth-surface prior: local planes over the recovered layer.
+        let planes = local_planes(&points, &mask, radius, 8);
+        let mut per_group: Vec<Vec<f64>> = vec![vec![]; n_groups];
+        for i in 0..w * h {
+            let (Some(o), Some(p)) = (obs.data[i], planes.data[i]) else { continue };
+            if !xs[i].is_finite() {
+                continue;
+            }
+            let cos = p.incidence_cos(&sample.rays.data[i]);
+            if cos > 0.05 {
+                per_group[group_of(o.distance_mm)].push((xs[i] / cos).ln());
+            }
+        }
+        out.groups.push(per_group.into_iter().map(|v| group_stat(v, settings.min_group_pixels)).collect());
+        out.pinned_fraction.push(pinned as f64 / ds.len().max(1) as f64);
+        out.eq12.push(eq12);
+        out.truth_sse.push(sse);
+    }
+    out
+}
+
+/// Adds one pixel's noise-weighted error against a known foreground distance.
+fn add_truth_error(model: &ForwardModel, o: &PixelObservation, truth: f64, xi: f64, bounds: &InversionBounds, acc: (f64, f64)) -> (f64, f64) {
+    if !(truth > bounds.min_distance_mm && truth < o.background_distance_mm) {
+        return acc;
+    }
+    let Some(x) = albedo_cos(model, o, truth, xi, bounds.max_albedo_cos) else {
+        // No admissible albedo explains the IR at this ξ: the worst error the wrap allows.
+        let r = model.sensor.unambiguous_range_mm() / 2.0;
+        return (acc.0 + r * r, acc.1 + 1.0);
+    };
+    let pred = predicted_reading(model, o, truth, xi, x);
+    let r = model.sensor.wrapped_difference_mm(pred, o.distance_mm);
+    // Shot-noise weight: phase noise ~ sqrt(total light) / |mixed amplitude|.
+    let w = noise_weight(model, o, truth, xi, x);
+    (acc.0 + w * r * r, acc.1 + w)
+}
+
+/// `1 / var(d)` up to a constant, for shot noise: `|A + iB|^2 / total light`.
+fn noise_weight(model: &ForwardModel, o: &PixelObservation, df: f64, xi: f64, x: f64) -> f64 {
+    let scene = super::model::LayerScene {
+        foreground_distance_mm: df,
+        background_distance_mm: o.background_distance_mm,
+        translucency: xi,
+        foreground_albedo_cos: x,
+        background_albedo_cos: o.background_albedo_cos(model.options.ambient_offset),
+        emitted_light: o.emitted_light,
+    };
+    let m = model.measure_layer(&scene);
+    let amp2 = m.buckets.a * m.buckets.a + m.buckets.b * m.buckets.b;
+    if m.total_light > 0.0 {
+        amp2 / m.total_light
+    } else {
+        0.0
+    }
+}
+
+fn group_stat(mut v: Vec<f64>, min_count: usize) -> GroupStat {
+    if v.len() < min_count.max(3) {
+        return GroupStat { median: f64::NAN, std_error: f64::NAN, count: v.len() };
+    }
+    v.sort_by(f64::total_cmp);
+    let med = median_sorted(&v);
+    let mut dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
+    dev.sort_by(f64::total_cmp);
+    let sigma = 1.4826 * median_sorted(&dev);
+    let se = 1.2533 * sigma.max(1e-6) / (v.len() as f64).sqrt();
+    GroupStat { median: med, std_error: se, count: v.len() }
+}
+
+fn median_sorted(v: &[f64]) -> f64 {
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// ξ values a method may pick: those at which no more pixels are pinned at a
+/// bound than at the best ξ, give or take sampling noise (pinned pixels drop
+/// out of the albedo statistics, so a ξ that pins many must not win by it).
+fn eligible(profiles: &[FrameProfile]) -> Vec<bool> {
+    let grid = xi_grid();
+    let total: usize = profiles.iter().map(|p| p.pixels).sum();
+    let frac: Vec<f64> = (0..grid.len())
+        .map(|k| profiles.iter().map(|p| p.pinned_fraction[k] * p.pixels as f64).sum::<f64>() / total.max(1) as f64)
+        .collect();
+    let best = frac.iter().copied().fold(f64::INFINITY, f64::min);
+    let tol = 0.05f64.max(3.0 * (best * (1.0 - best) / total.max(1) as f64).sqrt());
+    frac.iter().map(|&f| f <= best + tol).collect()
+}
+
+/// The one-material objective at each ξ: the groups' median log-albedos
+/// compared with their pooled mean, weighted by their standard errors
+/// (`Q = sum_g (m_g - m)^2 / se_g^2`, about chi-square with G - 1 degrees of
+/// freedom at the true ξ). Returns `(Q, groups)` per ξ.
+fn one_material_objective(profiles: &[FrameProfile]) -> Vec<(f64, usize)> {
+    let grid = xi_grid();
+    (0..grid.len())
+        .map(|k| {
+            let gs: Vec<GroupStat> = profiles.iter().flat_map(|p| p.groups[k].iter().copied()).filter(|g| g.median.is_finite()).collect();
+            if gs.len() < 2 {
+                return (f64::NAN, gs.len());
+            }
+            let wsum: f64 = gs.iter().map(|g| 1.0 / (g.std_error * g.std_error)).sum();
+            let mean = gs.iter().map(|g| g.median / (g.std_error * g.std_error)).sum::<f64>() / wsum;
+            let q = gs.iter().map(|g| ((g.median - mean) / g.std_error).powi(2)).sum();
+            (q, gs.len())
+        })
+        .collect()
+}
+
+/// ξ as one material (physics.md §3, item 2), pooled over the frames given.
+///
+/// The interval is where `Q` rises by less than 3.84 times the overdispersion
+/// `max(1, Q_min / (G - 2))` above its minimum (a profile-likelihood interval
+/// that widens when the groups scatter more than their errors say), widened
+/// by half a grid step. With fewer than three groups it is the whole
+/// admissible range: the data cannot tell.
+pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
+    let grid = xi_grid();
+    let ok = eligible(profiles);
+    let obj = one_material_objective(profiles);
+    let q: Vec<f64> = obj.iter().zip(&ok).map(|(&(q, _), &e)| if e { q } else { f64::NAN }).collect();
+    let (kmin, qmin) = argmin(&q)?;
+    let groups = obj[kmin].1;
+    let pixels = profiles.iter().map(|p| p.pixels).sum();
+    let profile: Vec<(f64, f64)> = grid.iter().copied().zip(q.iter().copied()).collect();
+    let xi = refine_minimum(&grid, &q, kmin);
+    if groups < 3 {
+        let (lo, hi) = admissible_range(&grid, &q);
+        return Some(XiEstimate {
+            xi,
+            interval: [lo, hi],
+            method: XiMethod::OneMaterial,
+            frames: profiles.len(),
+            pixels,
+            profile,
+            note: format!("{groups} pixel group(s): too few to compare albedos; the data do not determine xi"),
+        });
+    }
+    let phi = (qmin / (groups as f64 - 2.0)).max(1.0);
+    let interval = threshold_interval(&grid, &q, kmin, qmin + 3.84 * phi);
+    Some(XiEstimate {
+        xi: xi.clamp(interval[0], interval[1]),
+        interval,
+        method: XiMethod::OneMaterial,
+        frames: profiles.len(),
+        pixels,
+        profile,
+        note: format!("albedo consistency over {groups} groups in {} frame(s); overdispersion {phi:.2}", profiles.len()),
+    })
+}
+
+/// ξ fitted to frames with known foreground distances (paper Sec. V-A):
+/// the noise-weighted squared error between predicted and observed readings
+/// at the true distances, summed over frames. The interval is the larger of
+/// the profile interval (`Δ SSE <= 3.84 σ²`) and the scatter of the frames'
+/// own best ξ (`t · sd / sqrt(frames)`), so frame-to-frame systematics widen it.
+pub fn calibrate(profiles: &[FrameProfile]) -> Option<XiEstimate> {
+    let grid = xi_grid();
+    let sse: Vec<f64> = (0..grid.len())
+        .map(|k| profiles.iter().map(|p| p.truth_sse[k].0).sum::<f64>())
+        .collect();
+    let wsum: f64 = profiles.iter().map(|p| p.truth_sse[0].1).sum();
+    if !(wsum > 0.0) {
+        return None;
+    }
+    let (kmin, smin) = argmin(&sse)?;
+    let xi = refine_minimum(&grid, &sse, kmin);
+    let n = profiles.iter().map(|p| p.pixels).sum::<usize>().max(2);
+    let sigma2 = smin / (n as f64 - 1.0);
+    let mut interval = threshold_interval(&grid, &sse, kmin, smin + 3.84 * sigma2);
+    let per_frame: Vec<f64> = profiles
+        .iter()
+        .filter_map(|p| {
+            let s: Vec<f64> = p.truth_sse.iter().map(|t| t.0).collect();
+            let (k, _) = argmin(&s)?;
+            (p.truth_sse[k].1 > 0.0).then(|| refine_minimum(&grid, &s, k))
+        })
+        .collect();
+    if per_frame.len() >= 2 {
+        let m = per_frame.iter().sum::<f64>() / per_frame.len() as f64;
+        let sd = (per_frame.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (per_frame.len() - 1) as f64).sqrt();
+        let half = student_t975(per_frame.len() - 1) * sd / (per_frame.len() as f64).sqrt();
+        interval = [interval[0].min(xi - half).max(0.0), interval[1].max(xi + half).min(1.0)];
+    }
+    Some(XiEstimate {
+        xi,
+        interval,
+        method: XiMethod::Calibrated,
+        frames: profiles.len(),
+        pixels: n,
+        profile: grid.iter().copied().zip(sse.iter().map(|s| s / wsum)).collect(),
+        note: format!("fitted to known foreground distances in {} frame(s)", profiles.len()),
+    })
+}
+
+/// The paper's Eq. 12: per ξ, the summed squared residual of the per-pixel
+/// best fits. Degenerate (every ξ fits each pixel): the interval is every ξ
+/// within 5 % of the minimum, and the note reports the profile's relative range.
+pub fn eq12_residual(profiles: &[FrameProfile]) -> Option<XiEstimate> {
+    let grid = xi_grid();
+    let r: Vec<f64> = (0..grid.len()).map(|k| profiles.iter().map(|p| p.eq12[k]).sum()).collect();
+    let (kmin, rmin) = argmin(&r)?;
+    let pixels = profiles.iter().map(|p| p.pixels).sum::<usize>().max(1);
+    let interval = threshold_interval(&grid, &r, kmin, rmin * 1.05 + 1e-6 * pixels as f64);
+    let flatness = eq12_flatness(&r);
+    Some(XiEstimate {
+        xi: grid[kmin],
+        interval,
+        method: XiMethod::Eq12Residual,
+        frames: profiles.len(),
+        pixels,
+        profile: grid.iter().copied().zip(r.iter().map(|v| (v / pixels as f64).sqrt())).collect(),
+        note: format!("Eq. 12 residual RMS spans {flatness:.3} mm over xi in [0, 0.9]: every xi fits (physics.md §3)"),
+    })
+}
+
+/// The spread of the Eq. 12 residual RMS (mm) over ξ in [0, 0.9].
+pub fn eq12_flatness(r: &[f64]) -> f64 {
+    let grid = xi_grid();
+    let vals: Vec<f64> = grid.iter().zip(r).filter(|(x, _)| **x <= 0.9).map(|(_, v)| v.sqrt()).collect();
+    let max = vals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let min = vals.iter().copied().fold(f64::INFINITY, f64::min);
+    max - min
+}
+
+fn argmin(v: &[f64]) -> Option<(usize, f64)> {
+    v.iter().copied().enumerate().filter(|(_, x)| x.is_finite()).min_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// Parabolic interpolation of the minimum between the grid's neighbours.
+fn refine_minimum(grid: &[f64], v: &[f64], k: usize) -> f64 {
+    if k == 0 || k + 1 >= grid.len() || !v[k - 1].is_finite() || !v[k + 1].is_finite() {
+        return grid[k];
+    }
+    let (x0, x1, x2) = (grid[k - 1], grid[k], grid[k + 1]);
+    let (y0, y1, y2) = (v[k - 1], v[k], v[k + 1]);
+    let den = (x0 - x1) * (x0 - x2) * (x1 - x2);
+    let a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den;
+    let b = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den;
+    if a <= 0.0 {
+        return x1;
+    }
+    (-b / (2.0 * a)).clamp(x0, x2)
+}
+
+/// The connected run of grid points around `k` with value `<= level`, extended
+/// by linear interpolation to the crossing and by half a grid step.
+fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2] {
+    let below = |j: usize| v[j].is_finite() && v[j] <= level;
+    let mut lo = k;
+    while lo > 0 && below(lo - 1) {
+        lo -= 1;
+    }
+    let mut hi = k;
+    while hi + 1 < grid.len() && below(hi + 1) {
+        hi += 1;
+    }
+    let cross = |a: usize, b: usize| -> f64 {
+        if !v[b].is_finite() {
+            return grid[a];
+        }
+        let t = ((level - v[a]) / (v[b] - v[a])).clamp(0.0, 1.0);
+        grid[a] + t * (grid[b] - grid[a])
+    };
+    let lo_x = if lo > 0 { cross(lo, lo - 1) - 0.005 } else { 0.0 };
+    let hi_x = if hi + 1 < grid.len() { cross(hi, hi + 1) + 0.005 } else { 1.0 };
+    [lo_x.max(0.0), hi_x.min(1.0)]
+}
+
+fn admissible_range(grid: &[f64], v: &[f64]) -> (f64, f64) {
+    let ok: Vec<f64> = grid.iter().zip(v).filter(|(_, x)| x.is_finite()).map(|(g, _)| *g).collect();
+    (ok.first().copied().unwrap_or(0.0), ok.last().map(|&x| if x >= 0.99 { 1.0 } else { x }).unwrap_or(1.0))
+}
+
+/// Two-sided 97.5 % quantile of Student's t.
+fn student_t975(dof: usize) -> f64 {
+    const T: [f64; 10] = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228];
+    match dof {
+        0 => f64::INFINITY,
+        1..=10 => T[dof - 1],
+        11..=20 => 2.086 + (2.228 - 2.086) * (20 - dof) as f64 / 10.0,
+        21..=30 => 2.042 + (2.086 - 2.042) * (30 - dof) as f64 / 10.0,
+        _ => 1.96 + 0.08 * 30.0 / dof as f64,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parabola_minimum_is_found_between_grid_points() {
+        let grid = xi_grid();
+        let v: Vec<f64> = grid.iter().map(|x| (x - 0.437).powi(2)).collect();
+        let (k, _) = argmin(&v).unwrap();
+        assert!((refine_minimum(&grid, &v, k) - 0.437).abs() < 1e-9);
+        let iv = threshold_interval(&grid, &v, k, 0.01);
+        assert!((iv[0] - (0.337 - 0.005)).abs() < 0.003 && (iv[1] - (0.537 + 0.005)).abs() < 0.003, "{iv:?}");
+    }
+
+    #[test]
+    fn t_quantiles() {
+        assert!((student_t975(1) - 12.706).abs() < 1e-9);
+        assert!((student_t975(1000) - 1.96).abs() < 0.01);
+    }
+
+    #[test]
+    fn group_stats_are_robust() {
+        let mut v: Vec<f64> = (0..100).map(|k| (k as f64 - 49.5) * 0.001).collect();
+        v.push(50.0);
+        let g = group_stat(v, 10);
+        assert!(g.median.abs() < 0.001 && g.std_error < 0.01 && g.count == 101);
+        assert!(group_stat(vec![1.0, 2.0], 10).median.is_nan());
+    }
+}

@@ -1,0 +1,326 @@
+//! Scene files (`SCENE.toml`): a camera, a background plane, and stages of
+//! translucent objects, rendered by [`super::render`].
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::physics::ModelOptions;
+
+/// What is wrong with a scene file.
+#[derive(Debug, Error)]
+pub enum SceneError {
+    /// The TOML did not parse into a scene.
+    #[error("{path}: {source}")]
+    Parse {
+        /// The file.
+        path: String,
+        /// What the parser said.
+        source: toml::de::Error,
+    },
+    /// A value is out of its range.
+    #[error("{path}: {what}")]
+    Invalid {
+        /// The file.
+        path: String,
+        /// Which value and why.
+        what: String,
+    },
+    /// The file could not be read.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The OS error.
+        source: std::io::Error,
+    },
+}
+
+/// A whole scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// A label.
+    #[serde(default)]
+    pub name: String,
+    /// Seed of the noise.
+    #[serde(default)]
+    pub seed: u64,
+    /// The camera.
+    #[serde(default)]
+    pub camera: CameraSpec,
+    /// The illumination.
+    #[serde(default)]
+    pub emitter: EmitterSpec,
+    /// The noise.
+    #[serde(default)]
+    pub noise: NoiseSpec,
+    /// The physics that renders the truth (the forward model's options).
+    #[serde(default)]
+    pub physics: ModelOptions,
+    /// The opaque background.
+    pub background: BackgroundSpec,
+    /// Object stages, rendered after the background frames, in order.
+    #[serde(default, rename = "stage")]
+    pub stages: Vec<StageSpec>,
+}
+
+/// The ToF camera (SR4000 by default).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CameraSpec {
+    /// Columns.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// Horizontal field of view, degrees.
+    pub hfov_deg: f64,
+    /// Vertical field of view, degrees.
+    pub vfov_deg: f64,
+    /// Modulation frequency, Hz.
+    pub modulation_frequency_hz: f64,
+    /// `sinusoid`, `triangle` or `harmonics`.
+    pub waveform: String,
+    /// Relative 3rd and 5th harmonic amplitudes when `waveform = "harmonics"`.
+    pub harmonics: [f64; 2],
+    /// Frames per second.
+    pub frame_rate_hz: f64,
+    /// `16UC1` (mm) or `32FC1` (m).
+    pub depth_encoding: String,
+    /// `16UC1`, `mono16`, `mono8` or `32FC1`.
+    pub ir_encoding: String,
+    /// Frame id of the images.
+    pub frame_id: String,
+    /// Namespace of the topics.
+    pub namespace: String,
+    /// Stamp of the first frame, seconds.
+    pub start_time_s: f64,
+}
+
+impl Default for CameraSpec {
+    fn default() -> Self {
+        Self {
+            width: 176,
+            height: 144,
+            hfov_deg: 44.0,
+            vfov_deg: 35.0,
+            modulation_frequency_hz: 30.0e6,
+            waveform: "sinusoid".into(),
+            harmonics: [0.0, 0.0],
+            frame_rate_hz: 10.0,
+            depth_encoding: "16UC1".into(),
+            ir_encoding: "16UC1".into(),
+            frame_id: "tof_optical_frame".into(),
+            namespace: "/tof".into(),
+            start_time_s: 1_700_000_000.0,
+        }
+    }
+}
+
+/// The emitted light `Lin`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EmitterSpec {
+    /// `Lin` on the optical axis, counts mm^2 (a white wall at d reads `Lin / d^2`).
+    pub peak_emitted_light: f64,
+    /// Fraction by which `Lin` falls at the image corners (radial, quadratic).
+    pub vignetting: f64,
+}
+
+impl Default for EmitterSpec {
+    fn default() -> Self {
+        Self { peak_emitted_light: 1.5e10, vignetting: 0.3 }
+    }
+}
+
+/// Shot noise, set by the depth noise at a reference wall.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct NoiseSpec {
+    /// Depth noise (1 sigma, mm) of an opaque wall at the reference, on the axis.
+    pub depth_noise_mm: f64,
+    /// The reference wall's distance, mm.
+    pub reference_distance_mm: f64,
+    /// The reference wall's albedo.
+    pub reference_albedo: f64,
+    /// Read noise, counts of equivalent light.
+    pub read_noise: f64,
+}
+
+impl Default for NoiseSpec {
+    fn default() -> Self {
+        Self { depth_noise_mm: 10.0, reference_distance_mm: 2000.0, reference_albedo: 1.0, read_noise: 0.0 }
+    }
+}
+
+/// The opaque background plane.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BackgroundSpec {
+    /// Distance along the optical axis, mm.
+    pub distance_mm: f64,
+    /// Albedo, 0..1.
+    #[serde(default = "one")]
+    pub albedo: f64,
+    /// Rotation about the camera's x axis, degrees.
+    #[serde(default)]
+    pub tilt_x_deg: f64,
+    /// Rotation about the camera's y axis, degrees.
+    #[serde(default)]
+    pub tilt_y_deg: f64,
+    /// Frames of the background alone, before the objects.
+    #[serde(default = "ten")]
+    pub frames: usize,
+}
+
+fn one() -> f64 {
+    1.0
+}
+fn ten() -> usize {
+    10
+}
+
+/// A group of frames with the same objects in place.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StageSpec {
+    /// Frames in this stage.
+    #[serde(default = "one_usize")]
+    pub frames: usize,
+    /// The translucent objects.
+    #[serde(default)]
+    pub objects: Vec<ObjectSpec>,
+}
+
+fn one_usize() -> usize {
+    1
+}
+
+/// A translucent object.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObjectSpec {
+    /// `plane` (a rectangle) or `cylinder` (axis along the camera's y).
+    pub shape: String,
+    /// Centre in the camera's optical frame (x right, y down, z forward), mm.
+    pub center_mm: [f64; 3],
+    /// Plane: width and height, mm.
+    #[serde(default)]
+    pub size_mm: [f64; 2],
+    /// Plane: rotation about the camera's x axis, degrees.
+    #[serde(default)]
+    pub tilt_x_deg: f64,
+    /// Plane: rotation about the camera's y axis, degrees.
+    #[serde(default)]
+    pub tilt_y_deg: f64,
+    /// Cylinder: radius, mm.
+    #[serde(default)]
+    pub radius_mm: f64,
+    /// Cylinder: height along y, mm.
+    #[serde(default)]
+    pub height_mm: f64,
+    /// Translucency ξ.
+    pub xi: f64,
+    /// Albedo `rho_f`.
+    pub albedo: f64,
+}
+
+impl Scene {
+    /// Parses and validates a scene; `path` names the source in errors.
+    pub fn from_toml(text: &str, path: &str) -> Result<Self, SceneError> {
+        let scene: Scene = toml::from_str(text).map_err(|source| SceneError::Parse { path: path.into(), source })?;
+        scene.validate().map_err(|what| SceneError::Invalid { path: path.into(), what })?;
+        Ok(scene)
+    }
+
+    /// Reads a scene file.
+    pub fn load(path: &std::path::Path) -> Result<Self, SceneError> {
+        let p = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io { path: p.clone(), source })?;
+        Self::from_toml(&text, &p)
+    }
+
+    /// Checks every value's range; the error names the value.
+    pub fn validate(&self) -> Result<(), String> {
+        let c = &self.camera;
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        if c.width == 0 || c.height == 0 || c.width * c.height > 4096 * 4096 {
+            return Err(format!("camera size {}x{} is not usable", c.width, c.height));
+        }
+        if !(c.hfov_deg > 0.0 && c.hfov_deg < 170.0 && c.vfov_deg > 0.0 && c.vfov_deg < 170.0) {
+            return Err("camera field of view must be in (0, 170) degrees".into());
+        }
+        if !pos(c.modulation_frequency_hz) || !pos(c.frame_rate_hz) {
+            return Err("camera modulation_frequency_hz and frame_rate_hz must be positive".into());
+        }
+        if !["sinusoid", "triangle", "harmonics"].contains(&c.waveform.as_str()) {
+            return Err(format!("camera.waveform {:?}: expected sinusoid, triangle or harmonics", c.waveform));
+        }
+        if !pos(self.emitter.peak_emitted_light) || !(0.0..1.0).contains(&self.emitter.vignetting) {
+            return Err("emitter: peak_emitted_light > 0 and vignetting in [0, 1) required".into());
+        }
+        let n = &self.noise;
+        if !(n.depth_noise_mm >= 0.0) || !pos(n.reference_distance_mm) || !pos(n.reference_albedo) || !(n.read_noise >= 0.0) {
+            return Err("noise: depth_noise_mm >= 0, reference_distance_mm > 0, reference_albedo > 0, read_noise >= 0 required".into());
+        }
+        let b = &self.background;
+        if !pos(b.distance_mm) || !(b.albedo > 0.0 && b.albedo <= 1.0) {
+            return Err("background: distance_mm > 0 and albedo in (0, 1] required".into());
+        }
+        for (si, s) in self.stages.iter().enumerate() {
+            for (oi, o) in s.objects.iter().enumerate() {
+                let at = format!("stage {} object {}", si + 1, oi + 1);
+                if !(0.0..=1.0).contains(&o.xi) || !(o.albedo > 0.0 && o.albedo <= 1.0) {
+                    return Err(format!("{at}: xi in [0, 1] and albedo in (0, 1] required"));
+                }
+                match o.shape.as_str() {
+                    "plane" if pos(o.size_mm[0]) && pos(o.size_mm[1]) => {}
+                    "cylinder" if pos(o.radius_mm) && pos(o.height_mm) => {}
+                    "plane" => return Err(format!("{at}: a plane needs size_mm = [w, h] > 0")),
+                    "cylinder" => return Err(format!("{at}: a cylinder needs radius_mm and height_mm > 0")),
+                    other => return Err(format!("{at}: shape {other:?}: expected plane or cylinder")),
+                }
+                if !(o.center_mm[2] > 0.0) {
+                    return Err(format!("{at}: center_mm z must be in front of the camera"));
+                }
+            }
+        }
+        if !(2..=crate::physics::model::MAX_BOUNCES).contains(&self.physics.bounces) {
+            return Err(format!("physics.bounces must be in 2..={}", crate::physics::model::MAX_BOUNCES));
+        }
+        Ok(())
+    }
+
+    /// Background frames plus every stage's frames.
+    pub fn frame_count(&self) -> usize {
+        self.background.frames + self.stages.iter().map(|s| s.frames).sum::<usize>()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn minimal_scene_parses_with_sr4000_defaults() {
+        let s = Scene::from_toml(
+            "[background]\ndistance_mm = 2000\n[[stage]]\nframes = 2\n[[stage.objects]]\nshape = \"plane\"\ncenter_mm = [0, 0, 1000]\nsize_mm = [300, 200]\nxi = 0.65\nalbedo = 0.6\n",
+            "t.toml",
+        )
+        .unwrap();
+        assert_eq!((s.camera.width, s.camera.height), (176, 144));
+        assert_eq!(s.frame_count(), 12);
+        assert_eq!(s.physics, ModelOptions::default());
+    }
+
+    #[test]
+    fn bad_values_are_named() {
+        let e = Scene::from_toml("[background]\ndistance_mm = -5\n", "x.toml").unwrap_err().to_string();
+        assert!(e.contains("x.toml") && e.contains("background"), "{e}");
+        let e = Scene::from_toml("[background]\ndistance_mm = 5\n[[stage]]\n[[stage.objects]]\nshape = \"cone\"\ncenter_mm = [0,0,1]\nxi = 0.5\nalbedo = 0.5\n", "x.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("cone"), "{e}");
+        let e = Scene::from_toml("[background]\ndistance_mm = 5\ncolour = 3\n", "x.toml").unwrap_err().to_string();
+        assert!(e.contains("colour"), "{e}");
+    }
+}
