@@ -1,1 +1,671 @@
-//! placeholder
+//! The processing pipeline shared by `replay` and the node: latch a
+//! background, segment the pixels that changed, estimate ξ, invert the
+//! two-layer model per pixel and apply the smooth-surface prior.
+//!
+//! Buffers in, buffers out: no ROS, no files.
+
+use nalgebra::Vector3;
+use serde::Serialize;
+use thiserror::Error;
+
+use crate::physics::emitted_light::{emitted_light_from_plane, EmittedLightError};
+use crate::physics::segmentation::{changed_pixels, remove_small_regions, DEFAULT_THRESHOLD_MM};
+use crate::physics::surface::local_planes;
+use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
+use crate::physics::{
+    foreground_distance, ForwardModel, ImageBuf, Intrinsics, InversionBounds, PixelObservation,
+    Sensor, XiEstimate, XiMethod,
+};
+
+/// Why a frame or a latch could not be processed.
+#[derive(Debug, Error)]
+pub enum PipelineError {
+    /// Depth and IR images differ in size, or differ from the camera's.
+    #[error("size mismatch: {what} is {got_w}x{got_h}, expected {want_w}x{want_h}")]
+    SizeMismatch {
+        /// Which image.
+        what: &'static str,
+        /// Its width.
+        got_w: usize,
+        /// Its height.
+        got_h: usize,
+        /// The expected width.
+        want_w: usize,
+        /// The expected height.
+        want_h: usize,
+    },
+    /// No background has been latched.
+    #[error("no background latched: latch one (the first frames of the recording, or the latch service) before the object is placed")]
+    NoBackground,
+    /// The background frames hold too few valid readings.
+    #[error(
+        "the background has {valid} valid pixels of {total}: too few (NaN/0 depth everywhere?)"
+    )]
+    BackgroundInvalid {
+        /// Valid pixels.
+        valid: usize,
+        /// All pixels.
+        total: usize,
+    },
+    /// The emitted-light map could not be derived.
+    #[error("emitted light (Eq. 13): {0}")]
+    EmittedLight(#[from] EmittedLightError),
+    /// A given Lin calibration does not match the camera.
+    #[error("the Lin calibration is {got_w}x{got_h} but the camera is {want_w}x{want_h}")]
+    LinSize {
+        /// Calibration width.
+        got_w: usize,
+        /// Calibration height.
+        got_h: usize,
+        /// Camera width.
+        want_w: usize,
+        /// Camera height.
+        want_h: usize,
+    },
+}
+
+/// How ξ is chosen.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum XiChoice {
+    /// A given ξ (parameter `xi`).
+    Fixed(f64),
+    /// Estimated from the data by this method.
+    Estimate(XiMethod),
+}
+
+/// Settings of the pipeline (the node's parameters).
+#[derive(Debug, Clone)]
+pub struct PipelineConfig {
+    /// `threshold_mm`: segmentation threshold.
+    pub threshold_mm: f64,
+    /// Changed regions smaller than this are noise, not objects.
+    pub min_region_pixels: usize,
+    /// How ξ is chosen.
+    pub xi: XiChoice,
+    /// The forward model (sensor and physics options).
+    pub model: ForwardModel,
+    /// Bounds of the inversion.
+    pub bounds: InversionBounds,
+    /// Albedo assumed for the background when `Lin` is derived from it.
+    pub background_albedo: f64,
+    /// A calibrated `Lin` map (Eq. 13-14), if any.
+    pub lin_calibration: Option<ImageBuf<f64>>,
+    /// Radius (pixels) of the smooth-surface prior on the recovered layer; 0 = off.
+    pub prior_radius_px: usize,
+    /// ξ estimation settings.
+    pub xi_settings: XiSettings,
+}
+
+impl Default for PipelineConfig {
+    fn default() -> Self {
+        Self {
+            threshold_mm: DEFAULT_THRESHOLD_MM,
+            min_region_pixels: 12,
+            xi: XiChoice::Estimate(XiMethod::OneMaterial),
+            model: ForwardModel::paper(Sensor::sr4000()),
+            bounds: InversionBounds::default(),
+            background_albedo: 1.0,
+            lin_calibration: None,
+            prior_radius_px: 4,
+            xi_settings: XiSettings::default(),
+        }
+    }
+}
+
+/// One depth + IR pair.
+#[derive(Debug, Clone)]
+pub struct DepthFrame {
+    /// Stamp, ns.
+    pub stamp_ns: u64,
+    /// z-depth, mm, NaN invalid.
+    pub z_mm: ImageBuf<f32>,
+    /// IR, counts.
+    pub ir: ImageBuf<f32>,
+}
+
+/// Averages frames into a background (the latch).
+#[derive(Debug, Clone)]
+pub struct BackgroundLatch {
+    n: Vec<u32>,
+    sum_d: Vec<f64>,
+    sum_d2: Vec<f64>,
+    sum_ir: Vec<f64>,
+    frames: usize,
+    width: usize,
+    height: usize,
+}
+
+/// A latched background.
+#[derive(Debug, Clone)]
+pub struct Background {
+    /// `db`: ray distance, mm (NaN invalid).
+    pub distance_mm: ImageBuf<f64>,
+    /// `Ib`, counts.
+    pub ir: ImageBuf<f64>,
+    /// Per-pixel standard deviation of the readings over the latch, mm.
+    pub noise_mm: ImageBuf<f64>,
+    /// `Lin`.
+    pub emitted_light: ImageBuf<f64>,
+    /// Where `Lin` came from, in words.
+    pub lin_source: String,
+    /// Frames averaged.
+    pub frames: usize,
+    /// Valid pixels.
+    pub valid_pixels: usize,
+    /// Median per-pixel noise, mm.
+    pub median_noise_mm: f64,
+}
+
+impl BackgroundLatch {
+    /// An empty latch for images of this size.
+    pub fn new(width: usize, height: usize) -> Self {
+        let n = width * height;
+        Self {
+            n: vec![0; n],
+            sum_d: vec![0.0; n],
+            sum_d2: vec![0.0; n],
+            sum_ir: vec![0.0; n],
+            frames: 0,
+            width,
+            height,
+        }
+    }
+
+    /// Frames added so far.
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// Adds a frame (ray distances via the camera's intrinsics).
+    pub fn push(
+        &mut self,
+        frame: &DepthFrame,
+        intrinsics: &Intrinsics,
+    ) -> Result<(), PipelineError> {
+        check_size(frame, intrinsics)?;
+        for row in 0..self.height {
+            for col in 0..self.width {
+                let i = row * self.width + col;
+                let z = frame.z_mm.data[i] as f64;
+                let ir = frame.ir.data[i] as f64;
+                if z.is_finite() && z > 0.0 && ir.is_finite() && ir > 0.0 {
+                    let d = z * intrinsics.ray_scale(col, row);
+                    self.n[i] += 1;
+                    self.sum_d[i] += d;
+                    self.sum_d2[i] += d * d;
+                    self.sum_ir[i] += ir;
+                }
+            }
+        }
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// The averaged background, with `Lin` from the calibration if given,
+    /// else from the background itself as a plane of `background_albedo`.
+    pub fn finish(
+        &self,
+        intrinsics: &Intrinsics,
+        config: &PipelineConfig,
+    ) -> Result<Background, PipelineError> {
+        let total = self.width * self.height;
+        let need = (self.frames as u32).div_ceil(2).max(1);
+        let mut d = ImageBuf::filled(self.width, self.height, f64::NAN);
+        let mut ir = ImageBuf::filled(self.width, self.height, f64::NAN);
+        let mut sd = ImageBuf::filled(self.width, self.height, f64::NAN);
+        let mut valid = 0;
+        for i in 0..total {
+            let n = self.n[i];
+            if n >= need {
+                let m = self.sum_d[i] / n as f64;
+                d.data[i] = m;
+                ir.data[i] = self.sum_ir[i] / n as f64;
+                if n > 1 {
+                    sd.data[i] = ((self.sum_d2[i] / n as f64 - m * m).max(0.0) * n as f64
+                        / (n - 1) as f64)
+                        .sqrt();
+                }
+                valid += 1;
+            }
+        }
+        if valid < (total / 20).max(10) {
+            return Err(PipelineError::BackgroundInvalid { valid, total });
+        }
+        let (lin, lin_source) = match &config.lin_calibration {
+            Some(lin) => {
+                if lin.width != self.width || lin.height != self.height {
+                    return Err(PipelineError::LinSize {
+                        got_w: lin.width,
+                        got_h: lin.height,
+                        want_w: self.width,
+                        want_h: self.height,
+                    });
+                }
+                (lin.clone(), "calibration file (Eq. 13-14)".to_string())
+            }
+            None => {
+                let (lin, plane) = emitted_light_from_plane(
+                    &d,
+                    &ir,
+                    &intrinsics.unit_ray_map(),
+                    config.background_albedo,
+                )?;
+                let src = format!(
+                    "derived from the latched background as a white plane of albedo {} (no calibration file; plane fit RMS {:.1} mm)",
+                    config.background_albedo, plane.rms_mm
+                );
+                (lin, src)
+            }
+        };
+        let mut noises: Vec<f64> = sd.data.iter().copied().filter(|v| v.is_finite()).collect();
+        noises.sort_by(f64::total_cmp);
+        let median_noise_mm = noises.get(noises.len() / 2).copied().unwrap_or(f64::NAN);
+        Ok(Background {
+            distance_mm: d,
+            ir,
+            noise_mm: sd,
+            emitted_light: lin,
+            lin_source,
+            frames: self.frames,
+            valid_pixels: valid,
+            median_noise_mm,
+        })
+    }
+}
+
+fn check_size(frame: &DepthFrame, k: &Intrinsics) -> Result<(), PipelineError> {
+    for (what, w, h) in [
+        ("depth", frame.z_mm.width, frame.z_mm.height),
+        ("IR", frame.ir.width, frame.ir.height),
+    ] {
+        if w != k.width || h != k.height {
+            return Err(PipelineError::SizeMismatch {
+                what,
+                got_w: w,
+                got_h: h,
+                want_w: k.width,
+                want_h: k.height,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// A frame's translucent pixels and what is known at each.
+#[derive(Debug, Clone)]
+pub struct Observed {
+    /// Stamp, ns.
+    pub stamp_ns: u64,
+    /// Reading as ray distance, mm.
+    pub distance_mm: ImageBuf<f64>,
+    /// Pixels segmented as translucent.
+    pub mask: ImageBuf<bool>,
+    /// Observations at those pixels (None where `Lin` or the background is missing).
+    pub observations: ImageBuf<Option<PixelObservation>>,
+    /// Segmented pixels.
+    pub translucent_pixels: usize,
+}
+
+/// The outputs of one frame.
+#[derive(Debug, Clone)]
+pub struct FrameOutput {
+    /// Stamp, ns.
+    pub stamp_ns: u64,
+    /// Translucent mask.
+    pub mask: ImageBuf<bool>,
+    /// Corrected z-depth, mm: recovered at translucent pixels (NaN where recovery
+    /// failed), the input elsewhere.
+    pub corrected_z_mm: ImageBuf<f32>,
+    /// ξ used.
+    pub xi: XiEstimate,
+    /// Segmented pixels.
+    pub translucent_pixels: usize,
+    /// Pixels with a recovered depth.
+    pub recovered_pixels: usize,
+    /// Pixels whose per-pixel inversion had no exact root (before the prior).
+    pub pinned_pixels: usize,
+    /// RMS of the per-pixel model residual, mm.
+    pub fit_residual_mm: f64,
+}
+
+/// The pipeline's state: camera, background and the pooled ξ evidence.
+#[derive(Debug, Clone)]
+pub struct Pipeline {
+    /// Settings.
+    pub config: PipelineConfig,
+    /// Camera.
+    pub intrinsics: Intrinsics,
+    rays: ImageBuf<Vector3<f64>>,
+    background: Option<Background>,
+    profiles: Vec<FrameProfile>,
+    estimate: Option<XiEstimate>,
+}
+
+impl Pipeline {
+    /// A pipeline for a camera; no background yet.
+    pub fn new(config: PipelineConfig, intrinsics: Intrinsics) -> Self {
+        let rays = intrinsics.unit_ray_map();
+        Self {
+            config,
+            intrinsics,
+            rays,
+            background: None,
+            profiles: vec![],
+            estimate: None,
+        }
+    }
+
+    /// Sets the latched background (and forgets ξ evidence tied to the old one).
+    pub fn set_background(&mut self, bg: Background) {
+        self.background = Some(bg);
+        self.profiles.clear();
+        self.estimate = None;
+    }
+
+    /// Forgets the background.
+    pub fn clear_background(&mut self) {
+        self.background = None;
+        self.profiles.clear();
+        self.estimate = None;
+    }
+
+    /// The latched background.
+    pub fn background(&self) -> Option<&Background> {
+        self.background.as_ref()
+    }
+
+    /// Segments a frame and gathers what the inversion needs.
+    pub fn observe(&self, frame: &DepthFrame) -> Result<Observed, PipelineError> {
+        check_size(frame, &self.intrinsics)?;
+        let bg = self
+            .background
+            .as_ref()
+            .ok_or(PipelineError::NoBackground)?;
+        let k = &self.intrinsics;
+        let mut d = ImageBuf::filled(k.width, k.height, f64::NAN);
+        for row in 0..k.height {
+            for col in 0..k.width {
+                let i = row * k.width + col;
+                let z = frame.z_mm.data[i] as f64;
+                if z.is_finite() && z > 0.0 {
+                    d.data[i] = z * k.ray_scale(col, row);
+                }
+            }
+        }
+        let raw = changed_pixels(&d, &bg.distance_mm, self.config.threshold_mm);
+        let (mask, _) = remove_small_regions(&raw, self.config.min_region_pixels);
+        let observations = ImageBuf {
+            width: k.width,
+            height: k.height,
+            data: (0..k.width * k.height)
+                .map(|i| {
+                    let ir = frame.ir.data[i] as f64;
+                    let o = PixelObservation {
+                        distance_mm: d.data[i],
+                        ir,
+                        background_distance_mm: bg.distance_mm.data[i],
+                        background_ir: bg.ir.data[i],
+                        emitted_light: bg.emitted_light.data[i],
+                    };
+                    let ok = mask.data[i]
+                        && ir.is_finite()
+                        && ir > 0.0
+                        && o.background_ir > 0.0
+                        && o.emitted_light.is_finite()
+                        && o.emitted_light > 0.0;
+                    ok.then_some(o)
+                })
+                .collect(),
+        };
+        let translucent_pixels = mask.data.iter().filter(|&&m| m).count();
+        Ok(Observed {
+            stamp_ns: frame.stamp_ns,
+            distance_mm: d,
+            mask,
+            observations,
+            translucent_pixels,
+        })
+    }
+
+    /// Adds a frame's evidence about ξ (no-op for a fixed ξ) and re-estimates.
+    pub fn add_xi_evidence(&mut self, obs: &Observed) {
+        let XiChoice::Estimate(method) = self.config.xi else {
+            return;
+        };
+        let sample = FrameSample::from_image(
+            &obs.observations,
+            &self.rays,
+            None,
+            self.config.xi_settings.max_pixels_per_frame,
+        );
+        if sample.pixel_count() < self.config.xi_settings.min_group_pixels {
+            return;
+        }
+        let profile = translucency::frame_profile(
+            &self.config.model,
+            &self.config.bounds,
+            &sample,
+            &self.config.xi_settings,
+        );
+        self.profiles.push(profile);
+        let est = match method {
+            XiMethod::Eq12Residual => translucency::eq12_residual(&self.profiles),
+            _ => translucency::one_material(&self.profiles),
+        };
+        if est.is_some() {
+            self.estimate = est;
+        }
+    }
+
+    /// The current ξ: the fixed one, or the pooled estimate so far.
+    pub fn xi(&self) -> Option<XiEstimate> {
+        match self.config.xi {
+            XiChoice::Fixed(x) => Some(XiEstimate::fixed(x)),
+            XiChoice::Estimate(_) => self.estimate.clone(),
+        }
+    }
+
+    /// Per-pixel inversion at `xi`, then the smooth-surface prior.
+    pub fn recover(&self, frame: &DepthFrame, obs: &Observed, xi: &XiEstimate) -> FrameOutput {
+        let k = &self.intrinsics;
+        let n = k.width * k.height;
+        let nan = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
+        let mut points = ImageBuf::filled(k.width, k.height, nan);
+        let mut df = vec![f64::NAN; n];
+        let mut pinned = 0;
+        let mut res2 = 0.0;
+        let mut fitted = 0usize;
+        for i in 0..n {
+            let Some(o) = obs.observations.data[i] else {
+                continue;
+            };
+            if let Some(est) =
+                foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None)
+            {
+                res2 += est.residual_mm * est.residual_mm;
+                fitted += 1;
+                if est.pinned {
+                    pinned += 1;
+                } else {
+                    df[i] = est.foreground_distance_mm;
+                    points.data[i] = self.rays.data[i] * est.foreground_distance_mm;
+                }
+            } else {
+                pinned += 1;
+            }
+        }
+        if self.config.prior_radius_px > 0 {
+            let planes = local_planes(&points, &obs.mask, self.config.prior_radius_px, 6);
+            // Pixels without their own root but inside the object take the neighbourhood's surface too.
+            for i in 0..n {
+                if !obs.mask.data[i] {
+                    continue;
+                }
+                let plane = planes.data[i].or_else(|| {
+                    if obs.observations.data[i].is_some() {
+                        nearest_plane(&planes, i, self.config.prior_radius_px)
+                    } else {
+                        None
+                    }
+                });
+                if let Some(t) = plane.and_then(|p| p.ray_distance(&self.rays.data[i])) {
+                    if let Some(o) = obs.observations.data[i] {
+                        if t > self.config.bounds.min_distance_mm && t < o.background_distance_mm {
+                            df[i] = t;
+                        }
+                    }
+                }
+            }
+        }
+        let mut corrected = frame.z_mm.clone();
+        let mut recovered = 0;
+        for row in 0..k.height {
+            for col in 0..k.width {
+                let i = row * k.width + col;
+                if obs.mask.data[i] {
+                    corrected.data[i] = if df[i].is_finite() {
+                        recovered += 1;
+                        (df[i] / k.ray_scale(col, row)) as f32
+                    } else {
+                        f32::NAN
+                    };
+                }
+            }
+        }
+        FrameOutput {
+            stamp_ns: frame.stamp_ns,
+            mask: obs.mask.clone(),
+            corrected_z_mm: corrected,
+            xi: xi.clone(),
+            translucent_pixels: obs.translucent_pixels,
+            recovered_pixels: recovered,
+            pinned_pixels: pinned,
+            fit_residual_mm: if fitted > 0 {
+                (res2 / fitted as f64).sqrt()
+            } else {
+                f64::NAN
+            },
+        }
+    }
+
+    /// Online processing (the node): observe, add ξ evidence, recover with the pooled ξ.
+    /// `None` for ξ when it is to be estimated and no frame has carried evidence yet.
+    pub fn process(&mut self, frame: &DepthFrame) -> Result<Option<FrameOutput>, PipelineError> {
+        let obs = self.observe(frame)?;
+        self.add_xi_evidence(&obs);
+        Ok(self.xi().map(|xi| self.recover(frame, &obs, &xi)))
+    }
+
+    /// Frames of ξ evidence pooled.
+    pub fn xi_frames(&self) -> usize {
+        self.profiles.len()
+    }
+
+    /// The Eq. 12 comparison over the pooled frames: `(profile, flatness_mm)`.
+    pub fn eq12_comparison(&self) -> Option<(Vec<(f64, f64)>, f64)> {
+        let est = translucency::eq12_residual(&self.profiles)?;
+        let r: Vec<f64> = (0..translucency::xi_grid().len())
+            .map(|k| self.profiles.iter().map(|p| p.eq12[k]).sum())
+            .collect();
+        Some((est.profile, translucency::eq12_flatness(&r)))
+    }
+}
+
+fn nearest_plane(
+    planes: &ImageBuf<Option<crate::physics::surface::Plane>>,
+    i: usize,
+    radius: usize,
+) -> Option<crate::physics::surface::Plane> {
+    let (w, h) = (planes.width, planes.height);
+    let (c, r) = ((i % w) as isize, (i / w) as isize);
+    let rad = radius as isize;
+    let mut best: Option<(isize, crate::physics::surface::Plane)> = None;
+    for dr in -rad..=rad {
+        for dc in -rad..=rad {
+            let (cc, rr) = (c + dc, r + dr);
+            if cc < 0 || rr < 0 || cc >= w as isize || rr >= h as isize {
+                continue;
+            }
+            if let Some(p) = planes.data[rr as usize * w + cc as usize] {
+                let d2 = dr * dr + dc * dc;
+                if best.is_none_or(|(b, _)| d2 < b) {
+                    best = Some((d2, p));
+                }
+            }
+        }
+    }
+    best.map(|b| b.1)
+}
+
+/// Finds where the scene changes: the first frame whose readings differ from
+/// the mean of the frames before it by more than `threshold_mm` over a region
+/// of at least `min_region_pixels` (and 0.2 % of the image). `None` if never.
+pub fn detect_scene_change(
+    frames: &[ImageBuf<f32>],
+    threshold_mm: f64,
+    min_region_pixels: usize,
+) -> Option<SceneChange> {
+    let first = frames.first()?;
+    let n = first.len();
+    let mut sum = vec![0.0f64; n];
+    let mut cnt = vec![0u32; n];
+    let need = min_region_pixels.max(n / 500);
+    for (k, f) in frames.iter().enumerate() {
+        if f.len() != n {
+            return None;
+        }
+        if k > 0 {
+            let mut changed = ImageBuf::filled(f.width, f.height, false);
+            for i in 0..n {
+                let z = f.data[i] as f64;
+                if cnt[i] > 0 && z.is_finite() && z > 0.0 {
+                    changed.data[i] = (z - sum[i] / cnt[i] as f64).abs() > threshold_mm;
+                }
+            }
+            let (clean, _) = remove_small_regions(&changed, min_region_pixels);
+            let count = clean.data.iter().filter(|&&c| c).count();
+            if count >= need {
+                return Some(SceneChange {
+                    frame: k,
+                    changed_pixels: count,
+                });
+            }
+        }
+        for i in 0..n {
+            let z = f.data[i] as f64;
+            if z.is_finite() && z > 0.0 {
+                sum[i] += z;
+                cnt[i] += 1;
+            }
+        }
+    }
+    None
+}
+
+/// Where the scene changed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SceneChange {
+    /// Index of the first frame with the object.
+    pub frame: usize,
+    /// Pixels that changed in it.
+    pub changed_pixels: usize,
+}
+
+/// RMS z error (mm) of `z` against `truth` over `mask` pixels with finite truth
+/// and a finite estimate; `(rmse, pixels)`.
+pub fn rmse_against_truth(
+    z: &ImageBuf<f32>,
+    truth: &ImageBuf<f32>,
+    mask: &ImageBuf<bool>,
+) -> Option<(f64, usize)> {
+    let mut s = 0.0;
+    let mut n = 0;
+    for i in 0..z.len() {
+        if mask.data[i] && truth.data[i].is_finite() && z.data[i].is_finite() {
+            let e = (z.data[i] - truth.data[i]) as f64;
+            s += e * e;
+            n += 1;
+        }
+    }
+    (n > 0).then(|| ((s / n as f64).sqrt(), n))
+}

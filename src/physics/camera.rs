@@ -27,7 +27,14 @@ impl Intrinsics {
     pub fn from_fov(width: usize, height: usize, hfov_deg: f64, vfov_deg: f64) -> Self {
         let fx = width as f64 / 2.0 / (hfov_deg.to_radians() / 2.0).tan();
         let fy = height as f64 / 2.0 / (vfov_deg.to_radians() / 2.0).tan();
-        Self { width, height, fx, fy, cx: (width as f64 - 1.0) / 2.0, cy: (height as f64 - 1.0) / 2.0 }
+        Self {
+            width,
+            height,
+            fx,
+            fy,
+            cx: (width as f64 - 1.0) / 2.0,
+            cy: (height as f64 - 1.0) / 2.0,
+        }
     }
 
     /// The SR4000 of the paper: 176 x 144 pixels, 44 x 35 degrees.
@@ -39,8 +46,20 @@ impl Intrinsics {
     /// `None` when the focal lengths are not positive and finite.
     pub fn from_k(width: usize, height: usize, k: &[f64; 9]) -> Option<Self> {
         let (fx, fy, cx, cy) = (k[0], k[4], k[2], k[5]);
-        let ok = fx.is_finite() && fy.is_finite() && fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite();
-        ok.then_some(Self { width, height, fx, fy, cx, cy })
+        let ok = fx.is_finite()
+            && fy.is_finite()
+            && fx > 0.0
+            && fy > 0.0
+            && cx.is_finite()
+            && cy.is_finite();
+        ok.then_some(Self {
+            width,
+            height,
+            fx,
+            fy,
+            cx,
+            cy,
+        })
     }
 
     /// Row-major `K`.
@@ -50,7 +69,11 @@ impl Intrinsics {
 
     /// The ray through pixel `(col, row)` with z = 1 (optical frame: x right, y down, z forward).
     pub fn ray(&self, col: usize, row: usize) -> Vector3<f64> {
-        Vector3::new((col as f64 - self.cx) / self.fx, (row as f64 - self.cy) / self.fy, 1.0)
+        Vector3::new(
+            (col as f64 - self.cx) / self.fx,
+            (row as f64 - self.cy) / self.fy,
+            1.0,
+        )
     }
 
     /// Unit ray through pixel `(col, row)`.
@@ -71,7 +94,11 @@ impl Intrinsics {
                 data.push(self.ray_scale(col, row));
             }
         }
-        ImageBuf { width: self.width, height: self.height, data }
+        ImageBuf {
+            width: self.width,
+            height: self.height,
+            data,
+        }
     }
 
     /// Unit rays for every pixel.
@@ -82,14 +109,27 @@ impl Intrinsics {
                 data.push(self.unit_ray(col, row));
             }
         }
-        ImageBuf { width: self.width, height: self.height, data }
+        ImageBuf {
+            width: self.width,
+            height: self.height,
+            data,
+        }
     }
 }
 
 /// Converts a z-depth image (mm, NaN invalid) to ray distances (mm).
 pub fn z_to_ray_distance(z_mm: &ImageBuf<f32>, scale: &ImageBuf<f64>) -> ImageBuf<f64> {
-    let data = z_mm.data.iter().zip(&scale.data).map(|(&z, &s)| z as f64 * s).collect();
-    ImageBuf { width: z_mm.width, height: z_mm.height, data }
+    let data = z_mm
+        .data
+        .iter()
+        .zip(&scale.data)
+        .map(|(&z, &s)| z as f64 * s)
+        .collect();
+    ImageBuf {
+        width: z_mm.width,
+        height: z_mm.height,
+        data,
+    }
 }
 
 #[cfg(test)]

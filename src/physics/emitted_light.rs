@@ -52,7 +52,11 @@ pub fn emitted_light_from_plane(
         .collect();
     let needed = (total / 10).max(10);
     if pts.len() < needed {
-        return Err(EmittedLightError::TooFewPixels { valid: pts.len(), total, needed });
+        return Err(EmittedLightError::TooFewPixels {
+            valid: pts.len(),
+            total,
+            needed,
+        });
     }
     let plane = fit_plane_robust(&pts, 3.0, 5.0, 3).ok_or(EmittedLightError::NoPlane)?;
     let cut = (4.0 * plane.rms_mm).max(20.0);
@@ -62,7 +66,11 @@ pub fn emitted_light_from_plane(
         .zip(&ir.data)
         .zip(&unit_rays.data)
         .map(|((&d, &i), u)| {
-            let on_plane = d.is_finite() && d > 0.0 && i.is_finite() && i > 0.0 && (plane.normal.dot(&(u * d)) - plane.offset).abs() <= cut;
+            let on_plane = d.is_finite()
+                && d > 0.0
+                && i.is_finite()
+                && i > 0.0
+                && (plane.normal.dot(&(u * d)) - plane.offset).abs() <= cut;
             if on_plane {
                 i * d * d / (albedo * plane.incidence_cos(u))
             } else {
@@ -70,13 +78,28 @@ pub fn emitted_light_from_plane(
             }
         })
         .collect();
-    Ok((ImageBuf { width: ray_distance_mm.width, height: ray_distance_mm.height, data }, plane))
+    Ok((
+        ImageBuf {
+            width: ray_distance_mm.width,
+            height: ray_distance_mm.height,
+            data,
+        },
+        plane,
+    ))
 }
 
 /// Eq. 14: `Lin` scales linearly with exposure time.
-pub fn scale_for_exposure(lin: &ImageBuf<f64>, calibrated_exposure_s: f64, exposure_s: f64) -> ImageBuf<f64> {
+pub fn scale_for_exposure(
+    lin: &ImageBuf<f64>,
+    calibrated_exposure_s: f64,
+    exposure_s: f64,
+) -> ImageBuf<f64> {
     let k = exposure_s / calibrated_exposure_s;
-    ImageBuf { width: lin.width, height: lin.height, data: lin.data.iter().map(|v| v * k).collect() }
+    ImageBuf {
+        width: lin.width,
+        height: lin.height,
+        data: lin.data.iter().map(|v| v * k).collect(),
+    }
 }
 
 #[cfg(test)]
@@ -117,6 +140,9 @@ mod tests {
         let d = ImageBuf::filled(40, 30, f64::NAN);
         let ir = ImageBuf::filled(40, 30, 1.0);
         let e = emitted_light_from_plane(&d, &ir, &k.unit_ray_map(), 1.0).unwrap_err();
-        assert!(matches!(e, EmittedLightError::TooFewPixels { valid: 0, .. }));
+        assert!(matches!(
+            e,
+            EmittedLightError::TooFewPixels { valid: 0, .. }
+        ));
     }
 }

@@ -45,7 +45,12 @@ pub struct InversionBounds {
 
 impl Default for InversionBounds {
     fn default() -> Self {
-        Self { min_distance_mm: 100.0, max_albedo_cos: 1.0, scan_step_mm: 20.0, min_separation_mm: 1.0 }
+        Self {
+            min_distance_mm: 100.0,
+            max_albedo_cos: 1.0,
+            scan_step_mm: 20.0,
+            min_separation_mm: 1.0,
+        }
     }
 }
 
@@ -70,7 +75,13 @@ pub struct LayerEstimate {
 /// `xi^2 Ib X^2 + ((1-xi) Lin / df^2) X - I = 0`; with other options of the
 /// model it is found numerically. `None` when no non-negative root exists
 /// below `x_max` (the IR is too bright for any admissible albedo).
-pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> Option<f64> {
+pub fn albedo_cos(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    df: f64,
+    xi: f64,
+    x_max: f64,
+) -> Option<f64> {
     let o = &model.options;
     let ir = obs.ir - o.ambient_offset;
     if ir <= 0.0 {
@@ -123,7 +134,13 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
 }
 
 /// The reading the model predicts for `(df, xi, X)` at this pixel (Eq. 11), mm.
-pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x: f64) -> f64 {
+pub fn predicted_reading(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    df: f64,
+    xi: f64,
+    x: f64,
+) -> f64 {
     let scene = LayerScene {
         foreground_distance_mm: df,
         background_distance_mm: obs.background_distance_mm,
@@ -174,7 +191,11 @@ pub fn foreground_distance(
         if !pred.is_finite() {
             return None;
         }
-        Some(Sample { df, residual: sensor.wrapped_difference_mm(pred, obs.distance_mm), x })
+        Some(Sample {
+            df,
+            residual: sensor.wrapped_difference_mm(pred, obs.distance_mm),
+            x,
+        })
     };
     let n = ((hi - lo) / bounds.scan_step_mm).ceil().max(2.0) as usize;
     let step = (hi - lo) / n as f64;
@@ -222,7 +243,11 @@ fn refine(eval: &impl Fn(f64) -> Option<Sample>, mut a: Sample, mut b: Sample) -
     let mut side = 0i8;
     let (mut fa, mut fb) = (a.residual, b.residual);
     for _ in 0..40 {
-        let t = if (fb - fa).abs() > 0.0 { fb / (fb - fa) } else { 0.5 };
+        let t = if (fb - fa).abs() > 0.0 {
+            fb / (fb - fa)
+        } else {
+            0.5
+        };
         let df = (b.df - t * (b.df - a.df)).clamp(a.df.min(b.df), a.df.max(b.df));
         let c = eval(df)?;
         if c.residual.abs() < 1e-6 || (b.df - a.df).abs() < 0.01 {
@@ -244,7 +269,11 @@ fn refine(eval: &impl Fn(f64) -> Option<Sample>, mut a: Sample, mut b: Sample) -
             side = -1;
         }
     }
-    Some(if a.residual.abs() < b.residual.abs() { a } else { b })
+    Some(if a.residual.abs() < b.residual.abs() {
+        a
+    } else {
+        b
+    })
 }
 
 #[cfg(test)]
@@ -253,7 +282,14 @@ mod tests {
     use crate::physics::model::{IrMode, ModelOptions};
     use crate::physics::sensor::{Sensor, Waveform};
 
-    fn observe(model: &ForwardModel, df: f64, db: f64, xi: f64, x: f64, xb: f64) -> PixelObservation {
+    fn observe(
+        model: &ForwardModel,
+        df: f64,
+        db: f64,
+        xi: f64,
+        x: f64,
+        xb: f64,
+    ) -> PixelObservation {
         let lin = 1.5e10;
         let s = LayerScene {
             foreground_distance_mm: df,
@@ -310,7 +346,10 @@ mod tests {
             let obs = observe(&m, df, db, xi, x, 1.0);
             let est = foreground_distance(&m, &obs, xi, &InversionBounds::default(), None).unwrap();
             assert!(!est.pinned, "{w:?} {df}");
-            assert!((est.foreground_distance_mm - df).abs() < 0.05, "{w:?} df {df}: {est:?}");
+            assert!(
+                (est.foreground_distance_mm - df).abs() < 0.05,
+                "{w:?} df {df}: {est:?}"
+            );
             assert!((est.albedo_cos - x).abs() < 1e-3);
         }
     }
@@ -324,10 +363,16 @@ mod tests {
             ambient_offset: 30.0,
             subsurface_delay_mm: 5.0,
         };
-        let m = ForwardModel { sensor: Sensor::sr4000(), options: opts };
+        let m = ForwardModel {
+            sensor: Sensor::sr4000(),
+            options: opts,
+        };
         let obs = observe(&m, 1300.0, 2600.0, 0.6, 0.5, 0.9);
         let est = foreground_distance(&m, &obs, 0.6, &InversionBounds::default(), None).unwrap();
-        assert!((est.foreground_distance_mm - 1300.0).abs() < 0.05, "{est:?}");
+        assert!(
+            (est.foreground_distance_mm - 1300.0).abs() < 0.05,
+            "{est:?}"
+        );
     }
 
     #[test]
@@ -338,11 +383,17 @@ mod tests {
         let mut depths = vec![];
         for xi in [0.0, 0.3, 0.5, 0.65, 0.8] {
             let est = foreground_distance(&m, &obs, xi, &InversionBounds::default(), None).unwrap();
-            assert!(est.residual_mm.abs() < 0.05 && !est.pinned, "xi {xi}: {est:?}");
+            assert!(
+                est.residual_mm.abs() < 0.05 && !est.pinned,
+                "xi {xi}: {est:?}"
+            );
             depths.push(est.foreground_distance_mm);
         }
         assert!((depths[3] - 1000.0).abs() < 0.05);
-        assert!((depths[0] - 1000.0).abs() > 15.0, "a wrong xi recovers another depth");
+        assert!(
+            (depths[0] - 1000.0).abs() > 15.0,
+            "a wrong xi recovers another depth"
+        );
     }
 
     #[test]

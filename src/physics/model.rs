@@ -116,15 +116,26 @@ pub struct ForwardModel {
 impl ForwardModel {
     /// The paper's model on the given sensor.
     pub fn paper(sensor: Sensor) -> Self {
-        Self { sensor, options: ModelOptions::default() }
+        Self {
+            sensor,
+            options: ModelOptions::default(),
+        }
     }
 
     /// The returns through a translucent layer (Eq. 1-3), strongest terms
     /// first; writes them into `out` and returns how many.
     pub fn layer_returns(&self, s: &LayerScene, out: &mut [Return; MAX_BOUNCES]) -> usize {
         let o = &self.options;
-        let (df, db, xi) = (s.foreground_distance_mm, s.background_distance_mm, s.translucency);
-        let (x, xb, lin) = (s.foreground_albedo_cos, s.background_albedo_cos, s.emitted_light);
+        let (df, db, xi) = (
+            s.foreground_distance_mm,
+            s.background_distance_mm,
+            s.translucency,
+        );
+        let (x, xb, lin) = (
+            s.foreground_albedo_cos,
+            s.background_albedo_cos,
+            s.emitted_light,
+        );
         // Eq. 1: first bounce, off the layer.
         out[0] = Return {
             strength: (1.0 - xi) * x * lin / (df * df),
@@ -132,14 +143,20 @@ impl ForwardModel {
         };
         // Eq. 2: through the layer, off the background, back through the layer.
         let x_p = pow(x, o.transmission_albedo_power);
-        out[1] = Return { strength: xb * xi * xi * x_p * lin / (db * db), distance_mm: db };
+        out[1] = Return {
+            strength: xb * xi * xi * x_p * lin / (db * db),
+            distance_mm: db,
+        };
         // Eq. 3, terms i = 0, 1, ...: inter-reflections between the layers.
         let n = o.bounces.clamp(2, MAX_BOUNCES);
         let sep = db - df;
         let mut fac = xi * xi * x_p * xb * xb * (1.0 - xi) * x;
         for (i, slot) in out.iter_mut().enumerate().take(n).skip(2) {
             let dist = db + (i - 1) as f64 * sep;
-            *slot = Return { strength: fac * lin / (dist * dist), distance_mm: dist };
+            *slot = Return {
+                strength: fac * lin / (dist * dist),
+                distance_mm: dist,
+            };
             fac *= (1.0 - xi) * x * xb;
         }
         n
@@ -147,7 +164,10 @@ impl ForwardModel {
 
     /// One opaque surface: `Lin rho cos(theta) / d^2` at `d` (Eq. 1 with xi = 0).
     pub fn opaque_return(distance_mm: f64, albedo_cos: f64, emitted_light: f64) -> Return {
-        Return { strength: albedo_cos * emitted_light / (distance_mm * distance_mm), distance_mm }
+        Return {
+            strength: albedo_cos * emitted_light / (distance_mm * distance_mm),
+            distance_mm,
+        }
     }
 
     /// Mixes returns in the buckets (Eq. 5), decodes them (Eq. 6, 11) and forms
@@ -252,7 +272,10 @@ mod tests {
     fn higher_bounces_follow_eq3() {
         let mut m = ForwardModel::paper(Sensor::sr4000());
         m.options.bounces = 4;
-        let s = LayerScene { background_albedo_cos: 0.8, ..scene(1500.0, 2000.0, 0.5, 0.7) };
+        let s = LayerScene {
+            background_albedo_cos: 0.8,
+            ..scene(1500.0, 2000.0, 0.5, 0.7)
+        };
         let mut r = [Return::default(); MAX_BOUNCES];
         assert_eq!(m.layer_returns(&s, &mut r), 4);
         for i in 0..2 {
@@ -271,7 +294,10 @@ mod tests {
         let meas = m.measure(&[ForwardModel::opaque_return(2345.0, 0.5, 1e10)]);
         assert!((meas.distance_mm - 2345.0).abs() < 1e-6);
         let s = scene(1000.0, 2000.0, 0.0, 0.6);
-        assert!((m.measure_layer(&s).distance_mm - 1000.0).abs() < 1e-6, "xi = 0 is opaque");
+        assert!(
+            (m.measure_layer(&s).distance_mm - 1000.0).abs() < 1e-6,
+            "xi = 0 is opaque"
+        );
     }
 
     #[test]

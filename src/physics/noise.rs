@@ -21,7 +21,10 @@ impl ShotNoise {
     pub fn calibrated(sensor: &Sensor, strength: f64, sigma_mm: f64, read_noise: f64) -> Self {
         let sigma_phase = sigma_mm * std::f64::consts::TAU / sensor.unambiguous_range_mm();
         let sigma_bucket = sigma_phase * strength;
-        Self { coefficient: sigma_bucket / (strength + read_noise * read_noise).sqrt(), read_noise }
+        Self {
+            coefficient: sigma_bucket / (strength + read_noise * read_noise).sqrt(),
+            read_noise,
+        }
     }
 
     /// Standard deviation of each bucket difference for this much light.
@@ -33,7 +36,10 @@ impl ShotNoise {
     /// standard normal draws `z`.
     pub fn apply(&self, sensor: &Sensor, m: &Measurement, z: [f64; 3]) -> (f64, f64) {
         let s = self.bucket_sigma(m.total_light);
-        let b = Buckets { a: m.buckets.a + s * z[0], b: m.buckets.b + s * z[1] };
+        let b = Buckets {
+            a: m.buckets.a + s * z[0],
+            b: m.buckets.b + s * z[1],
+        };
         let d = sensor.decode(b).unwrap_or(f64::NAN);
         (d, m.ir + s * z[2])
     }
@@ -66,6 +72,9 @@ mod tests {
         let sigma = (acc / n).sqrt();
         assert!((sigma - 10.0).abs() < 0.2, "{sigma}");
         // Four times less light: twice the noise.
-        assert!((noise.bucket_sigma(strength / 4.0) / strength * 4.0) > 1.9 * noise.bucket_sigma(strength) / strength);
+        assert!(
+            (noise.bucket_sigma(strength / 4.0) / strength * 4.0)
+                > 1.9 * noise.bucket_sigma(strength) / strength
+        );
     }
 }

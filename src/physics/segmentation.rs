@@ -7,14 +7,22 @@ use super::buffer::ImageBuf;
 pub const DEFAULT_THRESHOLD_MM: f64 = 30.0;
 
 /// `|d - db| > threshold_mm` where both readings are valid (finite, > 0).
-pub fn changed_pixels(distance_mm: &ImageBuf<f64>, background_mm: &ImageBuf<f64>, threshold_mm: f64) -> ImageBuf<bool> {
+pub fn changed_pixels(
+    distance_mm: &ImageBuf<f64>,
+    background_mm: &ImageBuf<f64>,
+    threshold_mm: f64,
+) -> ImageBuf<bool> {
     let data = distance_mm
         .data
         .iter()
         .zip(&background_mm.data)
         .map(|(&d, &db)| valid(d) && valid(db) && (d - db).abs() > threshold_mm)
         .collect();
-    ImageBuf { width: distance_mm.width, height: distance_mm.height, data }
+    ImageBuf {
+        width: distance_mm.width,
+        height: distance_mm.height,
+        data,
+    }
 }
 
 fn valid(d: f64) -> bool {

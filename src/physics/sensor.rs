@@ -92,7 +92,12 @@ impl Sensor {
             Waveform::Harmonics { .. } => Some(Arc::new(build_decode_table(&waveform))),
             _ => None,
         };
-        Self { modulation_frequency_hz, waveform, range_mm, decode_table }
+        Self {
+            modulation_frequency_hz,
+            waveform,
+            range_mm,
+            decode_table,
+        }
     }
 
     /// The MESA SR4000 of the paper: 30 MHz, sinusoidal correlation.
@@ -116,7 +121,10 @@ impl Sensor {
         match self.waveform {
             Waveform::Sinusoid => {
                 let (s, c) = phi.sin_cos();
-                Buckets { a: strength * c, b: strength * s }
+                Buckets {
+                    a: strength * c,
+                    b: strength * s,
+                }
             }
             w => Buckets {
                 a: strength * w.correlation(phi),
@@ -195,7 +203,11 @@ fn build_decode_table(w: &Waveform) -> Vec<f64> {
         }
         let (p0, f0) = fwd[j];
         let (p1, f1) = fwd[j + 1];
-        let t = if p1 > p0 { ((target - p0) / (p1 - p0)).clamp(0.0, 1.0) } else { 0.0 };
+        let t = if p1 > p0 {
+            ((target - p0) / (p1 - p0)).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         table.push(f0 + t * (f1 - f0));
     }
     table
@@ -209,7 +221,13 @@ mod tests {
         vec![
             Sensor::sr4000(),
             Sensor::new(30e6, Waveform::Triangle),
-            Sensor::new(30e6, Waveform::Harmonics { third: -0.08, fifth: 0.02 }),
+            Sensor::new(
+                30e6,
+                Waveform::Harmonics {
+                    third: -0.08,
+                    fifth: 0.02,
+                },
+            ),
             Sensor::new(20e6, Waveform::Sinusoid),
         ]
     }

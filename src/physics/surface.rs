@@ -48,7 +48,14 @@ pub fn fit_plane_weighted(points: &[(Vector3<f64>, f64)]) -> Option<Plane> {
         cov += d * d.transpose() * *w;
     }
     let eig = SymmetricEigen::new(cov / wsum);
-    let (imin, _) = eig.eigenvalues.iter().enumerate().fold((0, f64::INFINITY), |b, (i, &v)| if v < b.1 { (i, v) } else { b });
+    let (imin, _) = eig
+        .eigenvalues
+        .iter()
+        .enumerate()
+        .fold(
+            (0, f64::INFINITY),
+            |b, (i, &v)| if v < b.1 { (i, v) } else { b },
+        );
     let mut n: Vector3<f64> = eig.eigenvectors.column(imin).into_owned();
     // The two larger eigenvalues must span a plane, not a line.
     let mut ev: Vec<f64> = eig.eigenvalues.iter().copied().collect();
@@ -61,18 +68,31 @@ pub fn fit_plane_weighted(points: &[(Vector3<f64>, f64)]) -> Option<Plane> {
     }
     let offset = n.dot(&c);
     let rms = (ev[0].max(0.0)).sqrt();
-    Some(Plane { normal: n, offset, rms_mm: rms, count: points.len() })
+    Some(Plane {
+        normal: n,
+        offset,
+        rms_mm: rms,
+        count: points.len(),
+    })
 }
 
 /// A plane fit that drops points farther than `k` times the RMS (and at
 /// least `floor_mm`) from the previous fit, `passes` times.
-pub fn fit_plane_robust(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: usize) -> Option<Plane> {
+pub fn fit_plane_robust(
+    points: &[Vector3<f64>],
+    k: f64,
+    floor_mm: f64,
+    passes: usize,
+) -> Option<Plane> {
     let mut kept: Vec<(Vector3<f64>, f64)> = points.iter().map(|p| (*p, 1.0)).collect();
     let mut plane = fit_plane_weighted(&kept)?;
     for _ in 0..passes {
         let cut = (k * plane.rms_mm).max(floor_mm);
-        let next: Vec<(Vector3<f64>, f64)> =
-            points.iter().filter(|p| (plane.normal.dot(p) - plane.offset).abs() <= cut).map(|p| (*p, 1.0)).collect();
+        let next: Vec<(Vector3<f64>, f64)> = points
+            .iter()
+            .filter(|p| (plane.normal.dot(p) - plane.offset).abs() <= cut)
+            .map(|p| (*p, 1.0))
+            .collect();
         if next.len() == kept.len() || next.len() < 3 {
             break;
         }
@@ -82,18 +102,102 @@ pub fn fit_plane_robust(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: 
     Some(plane)
 }
 
+/// A plane through points whose noise lies along the camera's rays (depth
+/// noise): ordinary least squares of the inverse depth `1/z = alpha x/z +
+/// beta y/z + gamma`, exact for a plane (`(alpha, beta, gamma) . p = 1`), with
+/// residuals weighted to millimetres of z. Unlike an orthogonal fit it stays
+/// right when the depth noise is as large as the window (a small window on a
+/// noisy layer). Points farther than `k` times the RMS (at least `floor_mm`)
+/// are dropped and the fit repeated, `passes` times.
+pub fn fit_plane_along_rays(
+    points: &[Vector3<f64>],
+    k: f64,
+    floor_mm: f64,
+    passes: usize,
+) -> Option<Plane> {
+    let mut keep: Vec<bool> = points
+        .iter()
+        .map(|p| p.z > 0.0 && p.iter().all(|v| v.is_finite()))
+        .collect();
+    let mut plane = None;
+    for pass in 0..=passes {
+        let mut ata = Matrix3::zeros();
+        let mut atb = Vector3::zeros();
+        let mut n = 0;
+        for (p, _) in points.iter().zip(&keep).filter(|(_, k)| **k) {
+            let z2 = p.z * p.z;
+            let w = z2 * z2; // d(1/z) = dz / z^2: weight so residuals are in z units
+            let row = Vector3::new(p.x / p.z, p.y / p.z, 1.0);
+            ata += row * row.transpose() * w;
+            atb += row * (w / p.z);
+            n += 1;
+        }
+        if n < 3 {
+            return plane;
+        }
+        let coef = ata.cholesky()?.solve(&atb);
+        let norm = coef.norm();
+        if !(norm > 0.0) || !coef.iter().all(|v| v.is_finite()) {
+            return plane;
+        }
+        // coef . p = 1; orient the unit normal toward the camera.
+        let (normal, offset) = if coef.z > 0.0 {
+            (-coef / norm, -1.0 / norm)
+        } else {
+            (coef / norm, 1.0 / norm)
+        };
+        let resid = |p: &Vector3<f64>| {
+            (p.z - 1.0 / (coef.x * p.x / p.z + coef.y * p.y / p.z + coef.z)).abs()
+        };
+        let ss: f64 = points
+            .iter()
+            .zip(&keep)
+            .filter(|(_, k)| **k)
+            .map(|(p, _)| resid(p).powi(2))
+            .sum();
+        let rms = (ss / n as f64).sqrt();
+        plane = Some(Plane {
+            normal,
+            offset,
+            rms_mm: rms,
+            count: n,
+        });
+        if pass == passes {
+            break;
+        }
+        let cut = (k * rms).max(floor_mm);
+        let mut changed = false;
+        for (p, kp) in points.iter().zip(keep.iter_mut()) {
+            if *kp && resid(p) > cut {
+                *kp = false;
+                changed = true;
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    plane
+}
+
 /// Local planes over a `(2 radius + 1)^2` window: for every pixel where
-/// `points` is finite and `mask` holds, a robust plane through the masked
-/// neighbours' points (`None` with fewer than `min_points`). The smooth-surface
-/// prior: replace a noisy per-pixel depth by its neighbourhood's plane.
-pub fn local_planes(points: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>, radius: usize, min_points: usize) -> ImageBuf<Option<Plane>> {
+/// `points` is finite and `mask` holds, a robust plane (fitted along the rays)
+/// through the masked neighbours' points (`None` with fewer than
+/// `min_points`). The smooth-surface prior: a noisy per-pixel depth is
+/// replaced by its neighbourhood's plane.
+pub fn local_planes(
+    points: &ImageBuf<Vector3<f64>>,
+    mask: &ImageBuf<bool>,
+    radius: usize,
+    min_points: usize,
+) -> ImageBuf<Option<Plane>> {
     let (w, h) = (points.width, points.height);
     let mut out = ImageBuf::filled(w, h, None);
     let mut window = Vec::with_capacity((2 * radius + 1).pow(2));
     for row in 0..h {
         for col in 0..w {
             let i = row * w + col;
-            if !mask.data[i] || !points.data[i].x.is_finite() {
+            if !mask.data[i] {
                 continue;
             }
             window.clear();
@@ -106,7 +210,7 @@ pub fn local_planes(points: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>, radi
                 }
             }
             if window.len() >= min_points.max(3) {
-                out.data[i] = fit_plane_robust(&window, 2.5, 1.0, 2);
+                out.data[i] = fit_plane_along_rays(&window, 2.5, 1.0, 2);
             }
         }
     }
@@ -139,8 +243,33 @@ mod tests {
     }
 
     #[test]
+    fn fit_along_rays_survives_depth_noise_larger_than_the_window() {
+        // A 20 mm wide patch at 500 mm with +-15 mm depth noise along the rays:
+        // an orthogonal fit tips over, the inverse-depth fit does not.
+        let n_true = Vector3::new(0.1, 0.0, -1.0).normalize();
+        let offset = n_true.dot(&Vector3::new(0.0, 0.0, 500.0));
+        let mut pts = vec![];
+        let mut k = 0u32;
+        for i in -4..=4 {
+            for j in -4..=4 {
+                let u = Vector3::new(i as f64 * 0.005, j as f64 * 0.005, 1.0).normalize();
+                let t = offset / n_true.dot(&u);
+                k = k.wrapping_mul(1103515245).wrapping_add(12345);
+                let noise = ((k >> 16) % 31) as f64 - 15.0;
+                pts.push(u * (t + noise));
+            }
+        }
+        let p = fit_plane_along_rays(&pts, 3.0, 1.0, 2).unwrap();
+        let centre = Vector3::new(0.0, 0.0, 1.0);
+        assert!((p.ray_distance(&centre).unwrap() - offset / n_true.dot(&centre)).abs() < 4.0);
+        assert!(p.normal.z < -0.9, "{:?}", p.normal);
+    }
+
+    #[test]
     fn collinear_points_have_no_plane() {
-        let pts: Vec<_> = (0..10).map(|i| Vector3::new(i as f64, 0.0, 1000.0)).collect();
+        let pts: Vec<_> = (0..10)
+            .map(|i| Vector3::new(i as f64, 0.0, 1000.0))
+            .collect();
         assert!(fit_plane_robust(&pts, 3.0, 1.0, 1).is_none());
     }
 }

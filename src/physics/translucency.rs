@@ -15,7 +15,9 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::buffer::ImageBuf;
-use super::inversion::{albedo_cos, foreground_distance, predicted_reading, InversionBounds, PixelObservation};
+use super::inversion::{
+    albedo_cos, foreground_distance, predicted_reading, InversionBounds, PixelObservation,
+};
 use super::model::ForwardModel;
 use super::surface::local_planes;
 
@@ -108,7 +110,12 @@ pub struct XiSettings {
 
 impl Default for XiSettings {
     fn default() -> Self {
-        Self { max_pixels_per_frame: 1500, normal_radius_px: 12, groups_per_frame: 3, min_group_pixels: 40 }
+        Self {
+            max_pixels_per_frame: 1500,
+            normal_radius_px: 12,
+            groups_per_frame: 3,
+            min_group_pixels: 40,
+        }
     }
 }
 
@@ -134,16 +141,38 @@ impl FrameSample {
         truth_mm: Option<&ImageBuf<f64>>,
         max_pixels: usize,
     ) -> Self {
-        let n = observations.data.iter().filter(|o| o.is_some()).count().max(1);
+        let n = observations
+            .data
+            .iter()
+            .filter(|o| o.is_some())
+            .count()
+            .max(1);
         let stride = ((n as f64 / max_pixels.max(1) as f64).sqrt().ceil() as usize).max(1);
-        let (w, h) = ((observations.width).div_ceil(stride), (observations.height).div_ceil(stride));
+        let (w, h) = (
+            (observations.width).div_ceil(stride),
+            (observations.height).div_ceil(stride),
+        );
         let pick = |img_w: usize, k: usize| (k / w) * stride * img_w + (k % w) * stride;
-        let obs = (0..w * h).map(|k| observations.data[pick(observations.width, k)]).collect();
+        let obs = (0..w * h)
+            .map(|k| observations.data[pick(observations.width, k)])
+            .collect();
         let ray = (0..w * h).map(|k| rays.data[pick(rays.width, k)]).collect();
-        let truth = truth_mm.map(|t| ImageBuf { width: w, height: h, data: (0..w * h).map(|k| t.data[pick(t.width, k)]).collect() });
+        let truth = truth_mm.map(|t| ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|k| t.data[pick(t.width, k)]).collect(),
+        });
         Self {
-            observations: ImageBuf { width: w, height: h, data: obs },
-            rays: ImageBuf { width: w, height: h, data: ray },
+            observations: ImageBuf {
+                width: w,
+                height: h,
+                data: obs,
+            },
+            rays: ImageBuf {
+                width: w,
+                height: h,
+                data: ray,
+            },
             truth_mm: truth,
             stride,
         }
@@ -151,7 +180,11 @@ impl FrameSample {
 
     /// Observations present.
     pub fn pixel_count(&self) -> usize {
-        self.observations.data.iter().filter(|o| o.is_some()).count()
+        self.observations
+            .data
+            .iter()
+            .filter(|o| o.is_some())
+            .count()
     }
 }
 
@@ -182,21 +215,39 @@ pub struct FrameProfile {
 }
 
 /// Computes one frame's profile on the grid (the expensive part, done once per frame).
-pub fn frame_profile(model: &ForwardModel, bounds: &InversionBounds, sample: &FrameSample, settings: &XiSettings) -> FrameProfile {
+pub fn frame_profile(
+    model: &ForwardModel,
+    bounds: &InversionBounds,
+    sample: &FrameSample,
+    settings: &XiSettings,
+) -> FrameProfile {
     let grid = xi_grid();
     let obs = &sample.observations;
     let (w, h) = (obs.width, obs.height);
     // Groups by the measured distance (independent of ξ): quantile bins.
     let mut ds: Vec<f64> = obs.data.iter().flatten().map(|o| o.distance_mm).collect();
     ds.sort_by(f64::total_cmp);
-    let n_groups = settings.groups_per_frame.min(ds.len() / settings.min_group_pixels.max(1)).max(1);
+    let n_groups = settings
+        .groups_per_frame
+        .min(ds.len() / settings.min_group_pixels.max(1))
+        .max(1);
     let edges: Vec<f64> = (1..n_groups).map(|k| ds[k * ds.len() / n_groups]).collect();
     let group_of = |d: f64| edges.iter().filter(|&&e| d >= e).count();
     let radius = (settings.normal_radius_px / sample.stride).max(2);
-    let mut out = FrameProfile { groups: vec![], pinned_fraction: vec![], eq12: vec![], truth_sse: vec![], pixels: ds.len() };
+    let mut out = FrameProfile {
+        groups: vec![],
+        pinned_fraction: vec![],
+        eq12: vec![],
+        truth_sse: vec![],
+        pixels: ds.len(),
+    };
     let mut points = ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
     let mut xs = vec![f64::NAN; w * h];
-    let mask = ImageBuf { width: w, height: h, data: obs.data.iter().map(|o| o.is_some()).collect() };
+    let mask = ImageBuf {
+        width: w,
+        height: h,
+        data: obs.data.iter().map(|o| o.is_some()).collect(),
+    };
     for &xi in &grid {
         let mut pinned = 0usize;
         let mut eq12 = 0.0;
@@ -220,7 +271,12 @@ pub fn frame_profile(model: &ForwardModel, bounds: &InversionBounds, sample: &Fr
                     eq12 += (o.distance_mm - o.background_distance_mm).powi(2);
                 }
             }
-            if let Some(t) = sample.truth_mm.as_ref().map(|t| t.data[i]).filter(|t| t.is_finite()) {
+            if let Some(t) = sample
+                .truth_mm
+                .as_ref()
+                .map(|t| t.data[i])
+                .filter(|t| t.is_finite())
+            {
                 sse = add_truth_error(model, &o, t, xi, bounds, sse);
             }
         }
@@ -228,7 +284,9 @@ pub fn frame_profile(model: &ForwardModel, bounds: &InversionBounds, sample: &Fr
         let planes = local_planes(&points, &mask, radius, 8);
         let mut per_group: Vec<Vec<f64>> = vec![vec![]; n_groups];
         for i in 0..w * h {
-            let (Some(o), Some(p)) = (obs.data[i], planes.data[i]) else { continue };
+            let (Some(o), Some(p)) = (obs.data[i], planes.data[i]) else {
+                continue;
+            };
             if !xs[i].is_finite() {
                 continue;
             }
@@ -237,8 +295,14 @@ pub fn frame_profile(model: &ForwardModel, bounds: &InversionBounds, sample: &Fr
                 per_group[group_of(o.distance_mm)].push((xs[i] / cos).ln());
             }
         }
-        out.groups.push(per_group.into_iter().map(|v| group_stat(v, settings.min_group_pixels)).collect());
-        out.pinned_fraction.push(pinned as f64 / ds.len().max(1) as f64);
+        out.groups.push(
+            per_group
+                .into_iter()
+                .map(|v| group_stat(v, settings.min_group_pixels))
+                .collect(),
+        );
+        out.pinned_fraction
+            .push(pinned as f64 / ds.len().max(1) as f64);
         out.eq12.push(eq12);
         out.truth_sse.push(sse);
     }
@@ -246,7 +310,14 @@ pub fn frame_profile(model: &ForwardModel, bounds: &InversionBounds, sample: &Fr
 }
 
 /// Adds one pixel's noise-weighted error against a known foreground distance.
-fn add_truth_error(model: &ForwardModel, o: &PixelObservation, truth: f64, xi: f64, bounds: &InversionBounds, acc: (f64, f64)) -> (f64, f64) {
+fn add_truth_error(
+    model: &ForwardModel,
+    o: &PixelObservation,
+    truth: f64,
+    xi: f64,
+    bounds: &InversionBounds,
+    acc: (f64, f64),
+) -> (f64, f64) {
     if !(truth > bounds.min_distance_mm && truth < o.background_distance_mm) {
         return acc;
     }
@@ -283,7 +354,11 @@ fn noise_weight(model: &ForwardModel, o: &PixelObservation, df: f64, xi: f64, x:
 
 fn group_stat(mut v: Vec<f64>, min_count: usize) -> GroupStat {
     if v.len() < min_count.max(3) {
-        return GroupStat { median: f64::NAN, std_error: f64::NAN, count: v.len() };
+        return GroupStat {
+            median: f64::NAN,
+            std_error: f64::NAN,
+            count: v.len(),
+        };
     }
     v.sort_by(f64::total_cmp);
     let med = median_sorted(&v);
@@ -291,7 +366,11 @@ fn group_stat(mut v: Vec<f64>, min_count: usize) -> GroupStat {
     dev.sort_by(f64::total_cmp);
     let sigma = 1.4826 * median_sorted(&dev);
     let se = 1.2533 * sigma.max(1e-6) / (v.len() as f64).sqrt();
-    GroupStat { median: med, std_error: se, count: v.len() }
+    GroupStat {
+        median: med,
+        std_error: se,
+        count: v.len(),
+    }
 }
 
 fn median_sorted(v: &[f64]) -> f64 {
@@ -310,7 +389,13 @@ fn eligible(profiles: &[FrameProfile]) -> Vec<bool> {
     let grid = xi_grid();
     let total: usize = profiles.iter().map(|p| p.pixels).sum();
     let frac: Vec<f64> = (0..grid.len())
-        .map(|k| profiles.iter().map(|p| p.pinned_fraction[k] * p.pixels as f64).sum::<f64>() / total.max(1) as f64)
+        .map(|k| {
+            profiles
+                .iter()
+                .map(|p| p.pinned_fraction[k] * p.pixels as f64)
+                .sum::<f64>()
+                / total.max(1) as f64
+        })
         .collect();
     let best = frac.iter().copied().fold(f64::INFINITY, f64::min);
     let tol = 0.05f64.max(3.0 * (best * (1.0 - best) / total.max(1) as f64).sqrt());
@@ -325,13 +410,24 @@ fn one_material_objective(profiles: &[FrameProfile]) -> Vec<(f64, usize)> {
     let grid = xi_grid();
     (0..grid.len())
         .map(|k| {
-            let gs: Vec<GroupStat> = profiles.iter().flat_map(|p| p.groups[k].iter().copied()).filter(|g| g.median.is_finite()).collect();
+            let gs: Vec<GroupStat> = profiles
+                .iter()
+                .flat_map(|p| p.groups[k].iter().copied())
+                .filter(|g| g.median.is_finite())
+                .collect();
             if gs.len() < 2 {
                 return (f64::NAN, gs.len());
             }
             let wsum: f64 = gs.iter().map(|g| 1.0 / (g.std_error * g.std_error)).sum();
-            let mean = gs.iter().map(|g| g.median / (g.std_error * g.std_error)).sum::<f64>() / wsum;
-            let q = gs.iter().map(|g| ((g.median - mean) / g.std_error).powi(2)).sum();
+            let mean = gs
+                .iter()
+                .map(|g| g.median / (g.std_error * g.std_error))
+                .sum::<f64>()
+                / wsum;
+            let q = gs
+                .iter()
+                .map(|g| ((g.median - mean) / g.std_error).powi(2))
+                .sum();
             (q, gs.len())
         })
         .collect()
@@ -348,7 +444,11 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let grid = xi_grid();
     let ok = eligible(profiles);
     let obj = one_material_objective(profiles);
-    let q: Vec<f64> = obj.iter().zip(&ok).map(|(&(q, _), &e)| if e { q } else { f64::NAN }).collect();
+    let q: Vec<f64> = obj
+        .iter()
+        .zip(&ok)
+        .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
+        .collect();
     let (kmin, qmin) = argmin(&q)?;
     let groups = obj[kmin].1;
     let pixels = profiles.iter().map(|p| p.pixels).sum();
@@ -363,7 +463,9 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
             frames: profiles.len(),
             pixels,
             profile,
-            note: format!("{groups} pixel group(s): too few to compare albedos; the data do not determine xi"),
+            note: format!(
+                "{groups} pixel group(s): too few to compare albedos; the data do not determine xi"
+            ),
         });
     }
     let phi = (qmin / (groups as f64 - 2.0)).max(1.0);
@@ -375,7 +477,10 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         frames: profiles.len(),
         pixels,
         profile,
-        note: format!("albedo consistency over {groups} groups in {} frame(s); overdispersion {phi:.2}", profiles.len()),
+        note: format!(
+            "albedo consistency over {groups} groups in {} frame(s); overdispersion {phi:.2}",
+            profiles.len()
+        ),
     })
 }
 
@@ -408,9 +513,14 @@ pub fn calibrate(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         .collect();
     if per_frame.len() >= 2 {
         let m = per_frame.iter().sum::<f64>() / per_frame.len() as f64;
-        let sd = (per_frame.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (per_frame.len() - 1) as f64).sqrt();
+        let sd = (per_frame.iter().map(|x| (x - m).powi(2)).sum::<f64>()
+            / (per_frame.len() - 1) as f64)
+            .sqrt();
         let half = student_t975(per_frame.len() - 1) * sd / (per_frame.len() as f64).sqrt();
-        interval = [interval[0].min(xi - half).max(0.0), interval[1].max(xi + half).min(1.0)];
+        interval = [
+            interval[0].min(xi - half).max(0.0),
+            interval[1].max(xi + half).min(1.0),
+        ];
     }
     Some(XiEstimate {
         xi,
@@ -418,8 +528,15 @@ pub fn calibrate(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         method: XiMethod::Calibrated,
         frames: profiles.len(),
         pixels: n,
-        profile: grid.iter().copied().zip(sse.iter().map(|s| s / wsum)).collect(),
-        note: format!("fitted to known foreground distances in {} frame(s)", profiles.len()),
+        profile: grid
+            .iter()
+            .copied()
+            .zip(sse.iter().map(|s| s / wsum))
+            .collect(),
+        note: format!(
+            "fitted to known foreground distances in {} frame(s)",
+            profiles.len()
+        ),
     })
 }
 
@@ -428,7 +545,9 @@ pub fn calibrate(profiles: &[FrameProfile]) -> Option<XiEstimate> {
 /// within 5 % of the minimum, and the note reports the profile's relative range.
 pub fn eq12_residual(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let grid = xi_grid();
-    let r: Vec<f64> = (0..grid.len()).map(|k| profiles.iter().map(|p| p.eq12[k]).sum()).collect();
+    let r: Vec<f64> = (0..grid.len())
+        .map(|k| profiles.iter().map(|p| p.eq12[k]).sum())
+        .collect();
     let (kmin, rmin) = argmin(&r)?;
     let pixels = profiles.iter().map(|p| p.pixels).sum::<usize>().max(1);
     let interval = threshold_interval(&grid, &r, kmin, rmin * 1.05 + 1e-6 * pixels as f64);
@@ -447,14 +566,23 @@ pub fn eq12_residual(profiles: &[FrameProfile]) -> Option<XiEstimate> {
 /// The spread of the Eq. 12 residual RMS (mm) over ξ in [0, 0.9].
 pub fn eq12_flatness(r: &[f64]) -> f64 {
     let grid = xi_grid();
-    let vals: Vec<f64> = grid.iter().zip(r).filter(|(x, _)| **x <= 0.9).map(|(_, v)| v.sqrt()).collect();
+    let vals: Vec<f64> = grid
+        .iter()
+        .zip(r)
+        .filter(|(x, _)| **x <= 0.9)
+        .map(|(_, v)| v.sqrt())
+        .collect();
     let max = vals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     let min = vals.iter().copied().fold(f64::INFINITY, f64::min);
     max - min
 }
 
 fn argmin(v: &[f64]) -> Option<(usize, f64)> {
-    v.iter().copied().enumerate().filter(|(_, x)| x.is_finite()).min_by(|a, b| a.1.total_cmp(&b.1))
+    v.iter()
+        .copied()
+        .enumerate()
+        .filter(|(_, x)| x.is_finite())
+        .min_by(|a, b| a.1.total_cmp(&b.1))
 }
 
 /// Parabolic interpolation of the minimum between the grid's neighbours.
@@ -492,19 +620,39 @@ fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2]
         let t = ((level - v[a]) / (v[b] - v[a])).clamp(0.0, 1.0);
         grid[a] + t * (grid[b] - grid[a])
     };
-    let lo_x = if lo > 0 { cross(lo, lo - 1) - 0.005 } else { 0.0 };
-    let hi_x = if hi + 1 < grid.len() { cross(hi, hi + 1) + 0.005 } else { 1.0 };
+    let lo_x = if lo > 0 {
+        cross(lo, lo - 1) - 0.005
+    } else {
+        0.0
+    };
+    let hi_x = if hi + 1 < grid.len() {
+        cross(hi, hi + 1) + 0.005
+    } else {
+        1.0
+    };
     [lo_x.max(0.0), hi_x.min(1.0)]
 }
 
 fn admissible_range(grid: &[f64], v: &[f64]) -> (f64, f64) {
-    let ok: Vec<f64> = grid.iter().zip(v).filter(|(_, x)| x.is_finite()).map(|(g, _)| *g).collect();
-    (ok.first().copied().unwrap_or(0.0), ok.last().map(|&x| if x >= 0.99 { 1.0 } else { x }).unwrap_or(1.0))
+    let ok: Vec<f64> = grid
+        .iter()
+        .zip(v)
+        .filter(|(_, x)| x.is_finite())
+        .map(|(g, _)| *g)
+        .collect();
+    (
+        ok.first().copied().unwrap_or(0.0),
+        ok.last()
+            .map(|&x| if x >= 0.99 { 1.0 } else { x })
+            .unwrap_or(1.0),
+    )
 }
 
 /// Two-sided 97.5 % quantile of Student's t.
 fn student_t975(dof: usize) -> f64 {
-    const T: [f64; 10] = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228];
+    const T: [f64; 10] = [
+        12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
+    ];
     match dof {
         0 => f64::INFINITY,
         1..=10 => T[dof - 1],
@@ -525,7 +673,10 @@ mod tests {
         let (k, _) = argmin(&v).unwrap();
         assert!((refine_minimum(&grid, &v, k) - 0.437).abs() < 1e-9);
         let iv = threshold_interval(&grid, &v, k, 0.01);
-        assert!((iv[0] - (0.337 - 0.005)).abs() < 0.003 && (iv[1] - (0.537 + 0.005)).abs() < 0.003, "{iv:?}");
+        assert!(
+            (iv[0] - (0.337 - 0.005)).abs() < 0.003 && (iv[1] - (0.537 + 0.005)).abs() < 0.003,
+            "{iv:?}"
+        );
     }
 
     #[test]

@@ -30,7 +30,10 @@ pub fn scene_sensor(scene: &Scene) -> Sensor {
     let c = &scene.camera;
     let w = match c.waveform.as_str() {
         "triangle" => Waveform::Triangle,
-        "harmonics" => Waveform::Harmonics { third: c.harmonics[0], fifth: c.harmonics[1] },
+        "harmonics" => Waveform::Harmonics {
+            third: c.harmonics[0],
+            fifth: c.harmonics[1],
+        },
         _ => Waveform::Sinusoid,
     };
     Sensor::new(c.modulation_frequency_hz, w)
@@ -53,7 +56,11 @@ pub fn emitted_light_map(scene: &Scene) -> ImageBuf<f64> {
             data.push(scene.emitter.peak_emitted_light * (1.0 - scene.emitter.vignetting * r2));
         }
     }
-    ImageBuf { width: k.width, height: k.height, data }
+    ImageBuf {
+        width: k.width,
+        height: k.height,
+        data,
+    }
 }
 
 /// A hit: distance along the unit ray and `|cos|` of incidence.
@@ -67,7 +74,12 @@ fn tilt(x_deg: f64, y_deg: f64) -> Rotation3<f64> {
     Rotation3::from_euler_angles(x_deg.to_radians(), y_deg.to_radians(), 0.0)
 }
 
-fn hit_plane(u: &Vector3<f64>, center: Vector3<f64>, rot: &Rotation3<f64>, half: Option<[f64; 2]>) -> Option<Hit> {
+fn hit_plane(
+    u: &Vector3<f64>,
+    center: Vector3<f64>,
+    rot: &Rotation3<f64>,
+    half: Option<[f64; 2]>,
+) -> Option<Hit> {
     let n = rot * Vector3::new(0.0, 0.0, -1.0);
     let den = n.dot(u);
     if den.abs() < 1e-9 {
@@ -105,12 +117,20 @@ fn hit_cylinder(u: &Vector3<f64>, o: &ObjectSpec) -> Option<Hit> {
         return None;
     }
     let n = Vector3::new(p.x - c.x, 0.0, p.z - c.z) / o.radius_mm;
-    Some(Hit { t, cos: n.dot(u).abs() })
+    Some(Hit {
+        t,
+        cos: n.dot(u).abs(),
+    })
 }
 
 fn hit_object(u: &Vector3<f64>, o: &ObjectSpec) -> Option<Hit> {
     match o.shape.as_str() {
-        "plane" => hit_plane(u, Vector3::from(o.center_mm), &tilt(o.tilt_x_deg, o.tilt_y_deg), Some([o.size_mm[0] / 2.0, o.size_mm[1] / 2.0])),
+        "plane" => hit_plane(
+            u,
+            Vector3::from(o.center_mm),
+            &tilt(o.tilt_x_deg, o.tilt_y_deg),
+            Some([o.size_mm[0] / 2.0, o.size_mm[1] / 2.0]),
+        ),
         "cylinder" => hit_cylinder(u, o),
         _ => None,
     }
@@ -118,13 +138,20 @@ fn hit_object(u: &Vector3<f64>, o: &ObjectSpec) -> Option<Hit> {
 
 /// Renders every frame of the scene: background frames, then each stage's.
 /// `on_frame` receives each frame as it is made (for progress and writing).
-pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result<(), String>) -> Result<(), String> {
+pub fn render(
+    scene: &Scene,
+    mut on_frame: impl FnMut(usize, SimFrame) -> Result<(), String>,
+) -> Result<(), String> {
     let k = scene_intrinsics(scene);
     let sensor = scene_sensor(scene);
-    let model = ForwardModel { sensor: sensor.clone(), options: scene.physics.clone() };
+    let model = ForwardModel {
+        sensor: sensor.clone(),
+        options: scene.physics.clone(),
+    };
     let lin = emitted_light_map(scene);
     let n = &scene.noise;
-    let ref_strength = n.reference_albedo * scene.emitter.peak_emitted_light / n.reference_distance_mm.powi(2);
+    let ref_strength =
+        n.reference_albedo * scene.emitter.peak_emitted_light / n.reference_distance_mm.powi(2);
     let noise = ShotNoise::calibrated(&sensor, ref_strength, n.depth_noise_mm, n.read_noise);
     let mut rng = ChaCha8Rng::seed_from_u64(scene.seed);
     let rays = k.unit_ray_map();
@@ -132,7 +159,11 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
     let b = &scene.background;
     let bg_rot = tilt(b.tilt_x_deg, b.tilt_y_deg);
     let bg_center = Vector3::new(0.0, 0.0, b.distance_mm);
-    let background: Vec<Option<Hit>> = rays.data.iter().map(|u| hit_plane(u, bg_center, &bg_rot, None)).collect();
+    let background: Vec<Option<Hit>> = rays
+        .data
+        .iter()
+        .map(|u| hit_plane(u, bg_center, &bg_rot, None))
+        .collect();
     let period_ns = 1e9 / scene.camera.frame_rate_hz;
     let start_ns = (scene.camera.start_time_s * 1e9) as u64;
     let mut stages: Vec<(&[ObjectSpec], bool)> = vec![(&[], true); b.frames];
@@ -161,22 +192,51 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
                     background_albedo_cos: b.albedo * bh.cos,
                     emitted_light: lin.data[i],
                 })),
-                (None, Some(bh)) => Some(model.measure(&[ForwardModel::opaque_return(bh.t, b.albedo * bh.cos, lin.data[i])])),
+                (None, Some(bh)) => Some(model.measure(&[ForwardModel::opaque_return(
+                    bh.t,
+                    b.albedo * bh.cos,
+                    lin.data[i],
+                )])),
                 // A layer with nothing behind it: its first return alone.
-                (Some((h, o)), None) => Some(model.measure(&[ForwardModel::opaque_return(h.t, (1.0 - o.xi) * o.albedo * h.cos, lin.data[i])])),
+                (Some((h, o)), None) => Some(model.measure(&[ForwardModel::opaque_return(
+                    h.t,
+                    (1.0 - o.xi) * o.albedo * h.cos,
+                    lin.data[i],
+                )])),
                 (None, None) => None,
             };
-            let z: [f64; 3] = [rng.sample(StandardNormal), rng.sample(StandardNormal), rng.sample(StandardNormal)];
-            let (d, v) = meas.map(|m| noise.apply(&sensor, &m, z)).unwrap_or((f64::NAN, 0.0));
+            let z: [f64; 3] = [
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+            ];
+            let (d, v) = meas
+                .map(|m| noise.apply(&sensor, &m, z))
+                .unwrap_or((f64::NAN, 0.0));
             depth.push((d / scale.data[i]) as f32);
             ir.push(v.max(0.0) as f32);
-            truth.push(fg.map(|(h, _)| (h.t / scale.data[i]) as f32).unwrap_or(f32::NAN));
+            truth.push(
+                fg.map(|(h, _)| (h.t / scale.data[i]) as f32)
+                    .unwrap_or(f32::NAN),
+            );
         }
         let frame = SimFrame {
             stamp_ns: start_ns + (index as f64 * period_ns).round() as u64,
-            depth_z_mm: ImageBuf { width: k.width, height: k.height, data: depth },
-            ir: ImageBuf { width: k.width, height: k.height, data: ir },
-            truth_z_mm: ImageBuf { width: k.width, height: k.height, data: truth },
+            depth_z_mm: ImageBuf {
+                width: k.width,
+                height: k.height,
+                data: depth,
+            },
+            ir: ImageBuf {
+                width: k.width,
+                height: k.height,
+                data: ir,
+            },
+            truth_z_mm: ImageBuf {
+                width: k.width,
+                height: k.height,
+                data: truth,
+            },
             background_only,
         };
         on_frame(index, frame)?;
@@ -235,7 +295,10 @@ mod tests {
         let mut v = vec![];
         for r in 62..82 {
             for c in 78..98 {
-                v.push(f.depth_z_mm.data[r * k.width + c] as f64 * k.ray_scale(c, r) - 2000.0 * k.ray_scale(c, r));
+                v.push(
+                    f.depth_z_mm.data[r * k.width + c] as f64 * k.ray_scale(c, r)
+                        - 2000.0 * k.ray_scale(c, r),
+                );
             }
         }
         let sd = (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();

@@ -128,7 +128,10 @@ pub struct EmitterSpec {
 
 impl Default for EmitterSpec {
     fn default() -> Self {
-        Self { peak_emitted_light: 1.5e10, vignetting: 0.3 }
+        Self {
+            peak_emitted_light: 1.5e10,
+            vignetting: 0.3,
+        }
     }
 }
 
@@ -148,7 +151,12 @@ pub struct NoiseSpec {
 
 impl Default for NoiseSpec {
     fn default() -> Self {
-        Self { depth_noise_mm: 10.0, reference_distance_mm: 2000.0, reference_albedo: 1.0, read_noise: 0.0 }
+        Self {
+            depth_noise_mm: 10.0,
+            reference_distance_mm: 2000.0,
+            reference_albedo: 1.0,
+            read_noise: 0.0,
+        }
     }
 }
 
@@ -227,15 +235,24 @@ pub struct ObjectSpec {
 impl Scene {
     /// Parses and validates a scene; `path` names the source in errors.
     pub fn from_toml(text: &str, path: &str) -> Result<Self, SceneError> {
-        let scene: Scene = toml::from_str(text).map_err(|source| SceneError::Parse { path: path.into(), source })?;
-        scene.validate().map_err(|what| SceneError::Invalid { path: path.into(), what })?;
+        let scene: Scene = toml::from_str(text).map_err(|source| SceneError::Parse {
+            path: path.into(),
+            source,
+        })?;
+        scene.validate().map_err(|what| SceneError::Invalid {
+            path: path.into(),
+            what,
+        })?;
         Ok(scene)
     }
 
     /// Reads a scene file.
     pub fn load(path: &std::path::Path) -> Result<Self, SceneError> {
         let p = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io { path: p.clone(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+            path: p.clone(),
+            source,
+        })?;
         Self::from_toml(&text, &p)
     }
 
@@ -244,7 +261,10 @@ impl Scene {
         let c = &self.camera;
         let pos = |v: f64| v.is_finite() && v > 0.0;
         if c.width == 0 || c.height == 0 || c.width * c.height > 4096 * 4096 {
-            return Err(format!("camera size {}x{} is not usable", c.width, c.height));
+            return Err(format!(
+                "camera size {}x{} is not usable",
+                c.width, c.height
+            ));
         }
         if !(c.hfov_deg > 0.0 && c.hfov_deg < 170.0 && c.vfov_deg > 0.0 && c.vfov_deg < 170.0) {
             return Err("camera field of view must be in (0, 170) degrees".into());
@@ -253,13 +273,20 @@ impl Scene {
             return Err("camera modulation_frequency_hz and frame_rate_hz must be positive".into());
         }
         if !["sinusoid", "triangle", "harmonics"].contains(&c.waveform.as_str()) {
-            return Err(format!("camera.waveform {:?}: expected sinusoid, triangle or harmonics", c.waveform));
+            return Err(format!(
+                "camera.waveform {:?}: expected sinusoid, triangle or harmonics",
+                c.waveform
+            ));
         }
         if !pos(self.emitter.peak_emitted_light) || !(0.0..1.0).contains(&self.emitter.vignetting) {
             return Err("emitter: peak_emitted_light > 0 and vignetting in [0, 1) required".into());
         }
         let n = &self.noise;
-        if !(n.depth_noise_mm >= 0.0) || !pos(n.reference_distance_mm) || !pos(n.reference_albedo) || !(n.read_noise >= 0.0) {
+        if !(n.depth_noise_mm >= 0.0)
+            || !pos(n.reference_distance_mm)
+            || !pos(n.reference_albedo)
+            || !(n.read_noise >= 0.0)
+        {
             return Err("noise: depth_noise_mm >= 0, reference_distance_mm > 0, reference_albedo > 0, read_noise >= 0 required".into());
         }
         let b = &self.background;
@@ -276,8 +303,14 @@ impl Scene {
                     "plane" if pos(o.size_mm[0]) && pos(o.size_mm[1]) => {}
                     "cylinder" if pos(o.radius_mm) && pos(o.height_mm) => {}
                     "plane" => return Err(format!("{at}: a plane needs size_mm = [w, h] > 0")),
-                    "cylinder" => return Err(format!("{at}: a cylinder needs radius_mm and height_mm > 0")),
-                    other => return Err(format!("{at}: shape {other:?}: expected plane or cylinder")),
+                    "cylinder" => {
+                        return Err(format!(
+                            "{at}: a cylinder needs radius_mm and height_mm > 0"
+                        ))
+                    }
+                    other => {
+                        return Err(format!("{at}: shape {other:?}: expected plane or cylinder"))
+                    }
                 }
                 if !(o.center_mm[2] > 0.0) {
                     return Err(format!("{at}: center_mm z must be in front of the camera"));
@@ -285,7 +318,10 @@ impl Scene {
             }
         }
         if !(2..=crate::physics::model::MAX_BOUNCES).contains(&self.physics.bounces) {
-            return Err(format!("physics.bounces must be in 2..={}", crate::physics::model::MAX_BOUNCES));
+            return Err(format!(
+                "physics.bounces must be in 2..={}",
+                crate::physics::model::MAX_BOUNCES
+            ));
         }
         Ok(())
     }
@@ -314,13 +350,17 @@ mod tests {
 
     #[test]
     fn bad_values_are_named() {
-        let e = Scene::from_toml("[background]\ndistance_mm = -5\n", "x.toml").unwrap_err().to_string();
+        let e = Scene::from_toml("[background]\ndistance_mm = -5\n", "x.toml")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("x.toml") && e.contains("background"), "{e}");
         let e = Scene::from_toml("[background]\ndistance_mm = 5\n[[stage]]\n[[stage.objects]]\nshape = \"cone\"\ncenter_mm = [0,0,1]\nxi = 0.5\nalbedo = 0.5\n", "x.toml")
             .unwrap_err()
             .to_string();
         assert!(e.contains("cone"), "{e}");
-        let e = Scene::from_toml("[background]\ndistance_mm = 5\ncolour = 3\n", "x.toml").unwrap_err().to_string();
+        let e = Scene::from_toml("[background]\ndistance_mm = 5\ncolour = 3\n", "x.toml")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("colour"), "{e}");
     }
 }
