@@ -1,0 +1,185 @@
+//! `calibrate-xi` (paper Sec. V-A) and `calibrate-lin` (Eq. 13-14).
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use serde_json::json;
+
+use crate::physics::emitted_light::emitted_light_from_plane;
+use crate::physics::translucency::{self, FrameSample};
+use crate::physics::ImageBuf;
+use crate::pipeline::{BackgroundLatch, PipelineConfig};
+
+use super::common::{write_atomic, LinFile, ModelArgs, OutputArgs, TopicArgs, LIN_FORMAT};
+use super::recording::load;
+use super::replay::{latched_pipeline, pipeline_config};
+
+/// Arguments of `calibrate-xi`.
+#[derive(Debug, Args)]
+pub struct CalibrateXiArgs {
+    /// A recording of the material at known distances, with `ground_truth/depth`.
+    pub bag: PathBuf,
+    /// The first N paired frames are the background (default: detect where the scene changes).
+    #[arg(long)]
+    pub background_frames: Option<usize>,
+    /// Segmentation threshold, mm.
+    #[arg(long, default_value_t = 30.0)]
+    pub threshold_mm: f64,
+    /// Albedo assumed for the background when Lin is derived from it.
+    #[arg(long, default_value_t = 1.0)]
+    pub background_albedo: f64,
+    /// Emitted-light calibration from calibrate-lin.
+    #[arg(long)]
+    pub lin_calibration: Option<PathBuf>,
+    /// Exposure of this recording, s (Eq. 14).
+    #[arg(long)]
+    pub exposure_s: Option<f64>,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    #[command(flatten)]
+    pub topics: TopicArgs,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+/// Runs `calibrate-xi`.
+pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
+    let config = pipeline_config(&a.model, a.threshold_mm, a.background_albedo, a.lin_calibration.as_ref(), a.exposure_s)?;
+    let rec = load(&a.bag, &a.topics)?;
+    if rec.topics.ground_truth.is_none() || rec.truth.is_empty() {
+        bail!(
+            "bag {}: calibrate-xi needs known foreground distances, and the bag has no ground_truth/depth images (sensor_msgs/Image, 32FC1 z in metres)",
+            a.bag.display()
+        );
+    }
+    let bg = rec.background_frames(a.background_frames, config.threshold_mm, config.min_region_pixels)?;
+    let settings = config.xi_settings;
+    let pipe = latched_pipeline(&rec, config, bg.count)?;
+    let k = rec.intrinsics;
+    let rays = k.unit_ray_map();
+    let scale = k.ray_scale_map();
+    let objects = &rec.frames[bg.count..];
+    let pb = a.output.progress(objects.len() as u64, "fitting xi");
+    let mut profiles = vec![];
+    let mut used = vec![];
+    for f in objects {
+        pb.inc(1);
+        let Some(truth) = rec.truth.get(&f.stamp_ns) else { continue };
+        let obs = pipe.observe(f)?;
+        let truth_ray = ImageBuf {
+            width: k.width,
+            height: k.height,
+            data: truth.data.iter().zip(&scale.data).map(|(&z, &s)| z as f64 * s).collect(),
+        };
+        let sample = FrameSample::from_image(&obs.observations, &rays, Some(&truth_ray), settings.max_pixels_per_frame);
+        let with_truth = sample
+            .observations
+            .data
+            .iter()
+            .zip(sample.truth_mm.as_ref().map(|t| t.data.as_slice()).unwrap_or(&[]))
+            .filter(|(o, t)| o.is_some() && t.is_finite())
+            .count();
+        if with_truth < 10 {
+            continue;
+        }
+        profiles.push(translucency::frame_profile(&pipe.config.model, &pipe.config.bounds, &sample, &settings));
+        used.push(f.stamp_ns);
+    }
+    pb.finish_and_clear();
+    if profiles.is_empty() {
+        bail!(
+            "bag {}: no frame has translucent pixels with ground truth (the truth must overlap the pixels that moved by more than {} mm)",
+            a.bag.display(),
+            pipe.config.threshold_mm
+        );
+    }
+    let est = translucency::calibrate(&profiles).context("no pixel carried a usable error against the truth")?;
+    let report = json!({
+        "bag": a.bag.display().to_string(),
+        "xi": est.xi,
+        "xi_interval": est.interval,
+        "xi_method": est.method.as_str(),
+        "frames": used.len(),
+        "background_frames": bg.count,
+        "background_choice": bg.how,
+        "lin_source": pipe.background().map(|b| b.lin_source.clone()),
+        "pixels": est.pixels,
+        "profile": est.profile,
+        "note": est.note,
+    });
+    a.output.summary(&format!(
+        "xi = {:.3} [{:.3}, {:.3}] fitted to {} frame(s) with known distances ({} pixels)\nuse it with: replay --xi {:.3}   (node: -p xi:={:.3})",
+        est.xi, est.interval[0], est.interval[1], used.len(), est.pixels, est.xi, est.xi
+    ));
+    a.output.write_json(&report)
+}
+
+/// Arguments of `calibrate-lin`.
+#[derive(Debug, Args)]
+pub struct CalibrateLinArgs {
+    /// A recording of a white (or known-albedo) opaque plane filling the view.
+    pub bag: PathBuf,
+    /// Where to write the calibration (JSON).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+    /// Albedo of the plane.
+    #[arg(long, default_value_t = 1.0)]
+    pub albedo: f64,
+    /// Exposure of the recording, s (kept for Eq. 14 scaling).
+    #[arg(long)]
+    pub exposure_s: Option<f64>,
+    /// Average only the first N frames (default: all).
+    #[arg(long)]
+    pub frames: Option<usize>,
+    #[command(flatten)]
+    pub topics: TopicArgs,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+/// Runs `calibrate-lin`.
+pub fn run_lin(a: CalibrateLinArgs) -> Result<()> {
+    let rec = load(&a.bag, &a.topics)?;
+    let k = rec.intrinsics;
+    let n = a.frames.unwrap_or(rec.frames.len()).min(rec.frames.len());
+    if n == 0 {
+        bail!("--frames must be at least 1");
+    }
+    let mut latch = BackgroundLatch::new(k.width, k.height);
+    for f in &rec.frames[..n] {
+        latch.push(f, &k)?;
+    }
+    // The plane is averaged like a background; Lin comes from it as a plane of the given albedo.
+    let config = PipelineConfig { background_albedo: a.albedo, ..PipelineConfig::default() };
+    let bg = latch.finish(&k, &config).context("averaging the calibration plane")?;
+    let (lin, plane) = emitted_light_from_plane(&bg.distance_mm, &bg.ir, &k.unit_ray_map(), a.albedo).context("fitting the calibration plane")?;
+    let seen = lin.data.iter().filter(|v| v.is_finite()).count();
+    let file = LinFile {
+        format: LIN_FORMAT.into(),
+        width: lin.width,
+        height: lin.height,
+        albedo: a.albedo,
+        exposure_s: a.exposure_s,
+        plane_rms_mm: plane.rms_mm,
+        lin: lin.data.iter().map(|v| v.is_finite().then_some(*v)).collect(),
+    };
+    write_atomic(&a.out, serde_json::to_string(&file)?.as_bytes())?;
+    let report = json!({
+        "bag": a.bag.display().to_string(),
+        "out": a.out.display().to_string(),
+        "frames": n,
+        "pixels": seen,
+        "plane_rms_mm": plane.rms_mm,
+        "plane_normal": [plane.normal.x, plane.normal.y, plane.normal.z],
+        "plane_distance_mm": plane.offset.abs(),
+    });
+    a.output.summary(&format!(
+        "Lin from {n} frame(s) of a plane {:.0} mm away (fit RMS {:.1} mm): {seen} of {} pixels; wrote {}",
+        plane.offset.abs(),
+        plane.rms_mm,
+        lin.len(),
+        a.out.display()
+    ));
+    a.output.write_json(&report)
+}

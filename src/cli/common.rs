@@ -1,0 +1,228 @@
+//! Options and plumbing shared by the subcommands.
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use serde::{Deserialize, Serialize};
+
+use crate::bag::TopicOverrides;
+use crate::physics::{ForwardModel, ImageBuf, IrMode, ModelOptions, Sensor, Waveform};
+
+/// Topic overrides (`--depth-topic`, `--ir-topic`, `--info-topic`).
+#[derive(Debug, Clone, Args, Default)]
+pub struct TopicArgs {
+    /// Depth image topic (default: found by type and name).
+    #[arg(long)]
+    pub depth_topic: Option<String>,
+    /// IR image topic (default: found by type and name).
+    #[arg(long)]
+    pub ir_topic: Option<String>,
+    /// CameraInfo topic (default: found by type and name).
+    #[arg(long)]
+    pub info_topic: Option<String>,
+}
+
+impl TopicArgs {
+    /// As the bag layer's overrides.
+    pub fn overrides(&self) -> TopicOverrides {
+        TopicOverrides { depth: self.depth_topic.clone(), ir: self.ir_topic.clone(), info: self.info_topic.clone() }
+    }
+}
+
+/// The sensor and the physics (`--physics`, `--waveform`, ...).
+#[derive(Debug, Clone, Args)]
+pub struct ModelArgs {
+    /// Extra effects to model (a physics TOML file, as `audit` writes).
+    #[arg(long)]
+    pub physics: Option<PathBuf>,
+    /// Modulation frequency, Hz.
+    #[arg(long, default_value_t = 30.0e6)]
+    pub modulation_frequency_hz: f64,
+    /// Correlation waveform: sinusoid or triangle (a physics file may give harmonics).
+    #[arg(long, default_value = "sinusoid")]
+    pub waveform: String,
+    /// What the IR image reports: sum (paper Eq. 7) or amplitude.
+    #[arg(long)]
+    pub ir_mode: Option<String>,
+}
+
+/// A physics file: the forward model's options beyond the paper's baseline.
+/// Every key is optional; absent keys keep the paper's value.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhysicsFile {
+    /// Returns kept from Eq. 3 (2 = the paper).
+    pub bounces: Option<usize>,
+    /// `sum` or `amplitude`.
+    pub ir_mode: Option<IrMode>,
+    /// Power of X in the second return (2 = the paper, 0 = double pass).
+    pub transmission_albedo_power: Option<f64>,
+    /// IR offset, counts.
+    pub ambient_offset: Option<f64>,
+    /// Extra path of the layer's return, mm.
+    pub subsurface_delay_mm: Option<f64>,
+    /// `sinusoid`, `triangle` or `harmonics`.
+    pub waveform: Option<String>,
+    /// Relative 3rd and 5th harmonics when `waveform = "harmonics"`.
+    pub harmonics: Option<[f64; 2]>,
+}
+
+impl PhysicsFile {
+    /// Reads and checks a physics file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading physics file {}", path.display()))?;
+        let f: PhysicsFile = toml::from_str(&text).with_context(|| format!("physics file {}", path.display()))?;
+        if let Some(b) = f.bounces {
+            if !(2..=crate::physics::model::MAX_BOUNCES).contains(&b) {
+                bail!("physics file {}: bounces = {b} is not in 2..={}", path.display(), crate::physics::model::MAX_BOUNCES);
+            }
+        }
+        Ok(f)
+    }
+}
+
+fn waveform(name: &str, harmonics: Option<[f64; 2]>) -> Result<Waveform> {
+    Ok(match name {
+        "sinusoid" => Waveform::Sinusoid,
+        "triangle" => Waveform::Triangle,
+        "harmonics" => {
+            let [third, fifth] = harmonics.unwrap_or([0.0, 0.0]);
+            Waveform::Harmonics { third, fifth }
+        }
+        other => bail!("waveform {other:?}: expected sinusoid, triangle or harmonics"),
+    })
+}
+
+impl ModelArgs {
+    /// The forward model these options describe.
+    pub fn model(&self) -> Result<ForwardModel> {
+        if !(self.modulation_frequency_hz.is_finite() && self.modulation_frequency_hz > 0.0) {
+            bail!("--modulation-frequency-hz must be positive, got {}", self.modulation_frequency_hz);
+        }
+        let file = match &self.physics {
+            Some(p) => PhysicsFile::load(p)?,
+            None => PhysicsFile::default(),
+        };
+        let d = ModelOptions::default();
+        let mut options = ModelOptions {
+            bounces: file.bounces.unwrap_or(d.bounces),
+            ir_mode: file.ir_mode.unwrap_or(d.ir_mode),
+            transmission_albedo_power: file.transmission_albedo_power.unwrap_or(d.transmission_albedo_power),
+            ambient_offset: file.ambient_offset.unwrap_or(d.ambient_offset),
+            subsurface_delay_mm: file.subsurface_delay_mm.unwrap_or(d.subsurface_delay_mm),
+        };
+        if let Some(m) = &self.ir_mode {
+            options.ir_mode = match m.as_str() {
+                "sum" => IrMode::Sum,
+                "amplitude" => IrMode::Amplitude,
+                other => bail!("--ir-mode {other:?}: expected sum or amplitude"),
+            };
+        }
+        let wf = waveform(file.waveform.as_deref().unwrap_or(&self.waveform), file.harmonics)?;
+        Ok(ForwardModel { sensor: Sensor::new(self.modulation_frequency_hz, wf), options })
+    }
+}
+
+/// An emitted-light calibration file, as `calibrate-lin` writes it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct LinFile {
+    /// Format tag.
+    pub format: String,
+    /// Columns.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// Albedo of the calibration plane.
+    pub albedo: f64,
+    /// Exposure of the calibration recording, s (Eq. 14), if known.
+    pub exposure_s: Option<f64>,
+    /// RMS of the calibration plane fit, mm.
+    pub plane_rms_mm: f64,
+    /// `Lin` per pixel, row-major, counts mm^2 (null where the plane was not seen).
+    pub lin: Vec<Option<f64>>,
+}
+
+/// The format tag of [`LinFile`].
+pub const LIN_FORMAT: &str = "translucent_tof.lin.v1";
+
+impl LinFile {
+    /// Reads a calibration and scales it to `exposure_s` (Eq. 14) when both exposures are known.
+    pub fn load(path: &Path, exposure_s: Option<f64>) -> Result<ImageBuf<f64>> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading Lin calibration {}", path.display()))?;
+        let f: LinFile = serde_json::from_str(&text).with_context(|| format!("Lin calibration {}", path.display()))?;
+        if f.format != LIN_FORMAT {
+            bail!("Lin calibration {}: format {:?}, expected {LIN_FORMAT:?}", path.display(), f.format);
+        }
+        let data: Vec<f64> = f.lin.iter().map(|v| v.unwrap_or(f64::NAN)).collect();
+        let lin = ImageBuf::from_vec(f.width, f.height, data)
+            .with_context(|| format!("Lin calibration {}: {} values for {}x{}", path.display(), f.lin.len(), f.width, f.height))?;
+        Ok(match (f.exposure_s, exposure_s) {
+            (Some(cal), Some(now)) if cal > 0.0 && now > 0.0 => crate::physics::emitted_light::scale_for_exposure(&lin, cal, now),
+            _ => lin,
+        })
+    }
+}
+
+/// Where the human summary and the JSON report go.
+#[derive(Debug, Clone, Args, Default)]
+pub struct OutputArgs {
+    /// Write a machine-readable JSON report to FILE (`-` for standard output; the summary then goes to standard error).
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<PathBuf>,
+}
+
+impl OutputArgs {
+    /// JSON goes to stdout: keep stdout clean and progress quiet.
+    pub fn json_on_stdout(&self) -> bool {
+        self.json.as_deref() == Some(Path::new("-"))
+    }
+
+    /// Prints the human summary (to stderr when stdout carries JSON).
+    pub fn summary(&self, text: &str) {
+        if self.json_on_stdout() {
+            eprintln!("{text}");
+        } else {
+            println!("{text}");
+        }
+    }
+
+    /// Writes the JSON report, if asked.
+    pub fn write_json(&self, value: &serde_json::Value) -> Result<()> {
+        let Some(path) = &self.json else { return Ok(()) };
+        let text = serde_json::to_string_pretty(value)?;
+        if self.json_on_stdout() {
+            println!("{text}");
+        } else {
+            write_atomic(path, text.as_bytes())?;
+        }
+        Ok(())
+    }
+
+    /// A progress bar on an interactive terminal; hidden in pipelines and with `--json -`.
+    pub fn progress(&self, len: u64, label: &str) -> ProgressBar {
+        let show = std::io::stderr().is_terminal() && !self.json_on_stdout();
+        let pb = ProgressBar::with_draw_target(Some(len), if show { ProgressDrawTarget::stderr() } else { ProgressDrawTarget::hidden() });
+        if let Ok(style) = ProgressStyle::with_template("{prefix:>12} [{bar:30}] {pos}/{len} {msg}") {
+            pb.set_style(style.progress_chars("=> "));
+        }
+        pb.set_prefix(label.to_string());
+        pb
+    }
+}
+
+/// Writes a file so that it appears whole or not at all.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = partial_path(path);
+    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+    Ok(())
+}
+
+fn partial_path(path: &Path) -> PathBuf {
+    let mut s = path.as_os_str().to_owned();
+    s.push(".partial");
+    PathBuf::from(s)
+}

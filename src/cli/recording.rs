@@ -1,0 +1,153 @@
+//! A recording read from a ROS 2 bag: paired depth + IR frames, intrinsics,
+//! ground truth, and the choice of background frames.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::{anyhow, bail, Context, Result};
+
+use crate::bag::{select_topics, BagReader, SelectedTopics};
+use crate::image::{depth_mm, ir_counts};
+use crate::msgs::{CameraInfo, Header, Image};
+use crate::physics::{ImageBuf, Intrinsics};
+use crate::pipeline::{detect_scene_change, DepthFrame};
+
+use super::common::TopicArgs;
+
+/// Everything the pipeline needs from a bag.
+pub struct Recording {
+    /// Topics chosen and why.
+    pub topics: SelectedTopics,
+    /// Intrinsics from camera_info.
+    pub intrinsics: Intrinsics,
+    /// Depth + IR pairs by exact stamp, in time order.
+    pub frames: Vec<DepthFrame>,
+    /// Header of each frame's depth image (for the outputs).
+    pub headers: Vec<Header>,
+    /// Encoding of the depth images (outputs keep it).
+    pub depth_encoding: String,
+    /// Ground-truth z-depth, mm, by stamp.
+    pub truth: BTreeMap<u64, ImageBuf<f32>>,
+    /// Depth messages with no IR at the same stamp, and IR with no depth.
+    pub unpaired: (usize, usize),
+}
+
+/// Reads a bag: picks topics, pairs depth and IR by exact stamp, decodes.
+pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
+    let reader = BagReader::open(path).with_context(|| format!("opening bag {}", path.display()))?;
+    let infos = reader.topics();
+    let sel = select_topics(&infos, &topics.overrides()).with_context(|| format!("bag {}", path.display()))?;
+    let mut depth: BTreeMap<u64, Image> = BTreeMap::new();
+    let mut ir: BTreeMap<u64, Image> = BTreeMap::new();
+    let mut truth = BTreeMap::new();
+    let mut info: Option<CameraInfo> = None;
+    for raw in reader.messages() {
+        let raw = raw.with_context(|| format!("reading {}", path.display()))?;
+        let at = |what: &str| format!("{} message at log time {} ns on {}", what, raw.log_time_ns, raw.topic);
+        if raw.topic == sel.depth {
+            let img: Image = BagReader::decode(&raw).with_context(|| at("depth"))?;
+            depth.insert(img.header.stamp.as_log_time_ns(), img);
+        } else if raw.topic == sel.ir {
+            let img: Image = BagReader::decode(&raw).with_context(|| at("IR"))?;
+            ir.insert(img.header.stamp.as_log_time_ns(), img);
+        } else if Some(raw.topic) == sel.info.as_deref() && info.is_none() {
+            info = Some(BagReader::decode(&raw).with_context(|| at("camera_info"))?);
+        } else if Some(raw.topic) == sel.ground_truth.as_deref() {
+            let img: Image = BagReader::decode(&raw).with_context(|| at("ground truth"))?;
+            let stamp = img.header.stamp.as_log_time_ns();
+            truth.insert(stamp, depth_mm(&img).with_context(|| at("ground truth"))?);
+        }
+    }
+    let info = info.ok_or_else(|| {
+        anyhow!(
+            "bag {}: no sensor_msgs/msg/CameraInfo message{}: the pipeline needs the intrinsics to turn z-depth into distance along each ray (pass --info-topic)",
+            path.display(),
+            sel.info.as_deref().map(|t| format!(" on {t}")).unwrap_or_default()
+        )
+    })?;
+    let intrinsics = Intrinsics::from_k(info.width as usize, info.height as usize, &info.k)
+        .ok_or_else(|| anyhow!("bag {}: camera_info K {:?} has no usable focal length", path.display(), info.k))?;
+    let paired: Vec<u64> = depth.keys().filter(|s| ir.contains_key(s)).copied().collect();
+    let unpaired = (depth.len() - paired.len(), ir.len() - paired.len());
+    if paired.is_empty() {
+        let first = |m: &BTreeMap<u64, Image>| m.keys().next().map(|s| s.to_string()).unwrap_or_else(|| "none".into());
+        bail!(
+            "bag {}: no depth message on {} shares its header stamp with an IR message on {} ({} depth, {} IR; first stamps {} and {} ns): depth and IR must be paired by exact stamp",
+            path.display(),
+            sel.depth,
+            sel.ir,
+            depth.len(),
+            ir.len(),
+            first(&depth),
+            first(&ir)
+        );
+    }
+    let mut frames = Vec::with_capacity(paired.len());
+    let mut headers = Vec::with_capacity(paired.len());
+    let mut depth_encoding = String::new();
+    for stamp in paired {
+        let (d, i) = (&depth[&stamp], &ir[&stamp]);
+        let z = depth_mm(d).with_context(|| format!("depth image at stamp {stamp} ns on {}", sel.depth))?;
+        let v = ir_counts(i).with_context(|| format!("IR image at stamp {stamp} ns on {}", sel.ir))?;
+        if !z.same_size(&v) {
+            bail!(
+                "bag {}: at stamp {stamp} ns the depth image is {}x{} but the IR image is {}x{}: they must come from the same sensor",
+                path.display(),
+                z.width,
+                z.height,
+                v.width,
+                v.height
+            );
+        }
+        if z.width != intrinsics.width || z.height != intrinsics.height {
+            bail!(
+                "bag {}: at stamp {stamp} ns the images are {}x{} but camera_info says {}x{}",
+                path.display(),
+                z.width,
+                z.height,
+                intrinsics.width,
+                intrinsics.height
+            );
+        }
+        depth_encoding = d.encoding.clone();
+        headers.push(d.header.clone());
+        frames.push(DepthFrame { stamp_ns: stamp, z_mm: z, ir: v });
+    }
+    Ok(Recording { topics: sel, intrinsics, frames, headers, depth_encoding, truth, unpaired })
+}
+
+/// How the background frames were chosen.
+pub struct BackgroundChoice {
+    /// Frames `0..count` are the background.
+    pub count: usize,
+    /// In words.
+    pub how: String,
+}
+
+impl Recording {
+    /// `--background-frames N`, else the first frame where the scene changes.
+    pub fn background_frames(&self, given: Option<usize>, threshold_mm: f64, min_region: usize) -> Result<BackgroundChoice> {
+        let n = self.frames.len();
+        match given {
+            Some(0) => bail!("--background-frames must be at least 1"),
+            Some(k) if k >= n => bail!("--background-frames {k}: the recording has {n} paired frames, leaving none with the object"),
+            Some(k) => Ok(BackgroundChoice { count: k, how: format!("first {k} frames (--background-frames)") }),
+            None => {
+                let depths: Vec<ImageBuf<f32>> = self.frames.iter().map(|f| f.z_mm.clone()).collect();
+                let change = detect_scene_change(&depths, threshold_mm, min_region).ok_or_else(|| {
+                    anyhow!("no background: the scene never changes over {n} frames (no object appears in front of the first frame's background); pass --background-frames N if the object is there from the start")
+                })?;
+                Ok(BackgroundChoice {
+                    count: change.frame,
+                    how: format!(
+                        "scene changes at frame {} (stamp {} ns: {} pixels moved by more than {threshold_mm} mm); frames 0..{} are the background",
+                        change.frame,
+                        self.frames[change.frame].stamp_ns,
+                        change.changed_pixels,
+                        change.frame - 1
+                    ),
+                })
+            }
+        }
+    }
+}

@@ -1,0 +1,297 @@
+//! `replay BAG`: the node's pipeline over a recorded bag, offline.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use serde_json::json;
+
+use crate::bag::BagWriter;
+use crate::image::{depth_image, mask_image, organized_cloud};
+use crate::msgs::translucent_tof::TranslucencyEstimate;
+use crate::msgs::Header;
+use crate::physics::{ImageBuf, Intrinsics, XiEstimate, XiMethod};
+use crate::pipeline::{rmse_against_truth, BackgroundLatch, FrameOutput, Pipeline, PipelineConfig, XiChoice};
+
+use super::common::{LinFile, ModelArgs, OutputArgs, TopicArgs};
+use super::recording::{load, Recording};
+
+/// Arguments of `replay`.
+#[derive(Debug, Args)]
+pub struct ReplayArgs {
+    /// A ROS 2 bag (MCAP file, or a rosbag2 directory holding one).
+    pub bag: PathBuf,
+    /// The first N paired frames are the background (default: detect where the scene changes).
+    #[arg(long)]
+    pub background_frames: Option<usize>,
+    /// A fixed ξ (e.g. from calibrate-xi); default: estimate it.
+    #[arg(long)]
+    pub xi: Option<f64>,
+    /// How to estimate ξ: one_material (default) or eq12_residual (the paper's, degenerate; for comparison).
+    #[arg(long, default_value = "one_material")]
+    pub xi_method: String,
+    /// pooled: estimate ξ over all object frames, then recover each (offline default);
+    /// online: each frame uses the estimate pooled up to it, as the node does.
+    #[arg(long, default_value = "pooled")]
+    pub xi_mode: String,
+    /// Output bag (default: BAG's stem + `.recovered.mcap` in the current directory).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Segmentation threshold |d - db|, mm.
+    #[arg(long, default_value_t = 30.0)]
+    pub threshold_mm: f64,
+    /// Albedo assumed for the background when Lin is derived from it.
+    #[arg(long, default_value_t = 1.0)]
+    pub background_albedo: f64,
+    /// Emitted-light calibration from calibrate-lin.
+    #[arg(long)]
+    pub lin_calibration: Option<PathBuf>,
+    /// Exposure of this recording, s, to scale the Lin calibration (Eq. 14).
+    #[arg(long)]
+    pub exposure_s: Option<f64>,
+    /// Radius (pixels) of the smooth-surface prior on the recovered layer (0: per-pixel inversion only).
+    #[arg(long, default_value_t = 4)]
+    pub prior_radius_px: usize,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    #[command(flatten)]
+    pub topics: TopicArgs,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+/// The pipeline's settings from command-line options shared with calibrate-xi.
+pub(super) fn pipeline_config(
+    model: &ModelArgs,
+    threshold_mm: f64,
+    background_albedo: f64,
+    lin_calibration: Option<&PathBuf>,
+    exposure_s: Option<f64>,
+) -> Result<PipelineConfig> {
+    if !(threshold_mm.is_finite() && threshold_mm > 0.0) {
+        bail!("--threshold-mm must be positive, got {threshold_mm}");
+    }
+    if !(background_albedo > 0.0 && background_albedo <= 1.0) {
+        bail!("--background-albedo must be in (0, 1], got {background_albedo}");
+    }
+    let lin = lin_calibration.map(|p| LinFile::load(p, exposure_s)).transpose()?;
+    Ok(PipelineConfig { threshold_mm, background_albedo, lin_calibration: lin, model: model.model()?, ..PipelineConfig::default() })
+}
+
+/// Latches the background of a recording into a new pipeline.
+pub(super) fn latched_pipeline(rec: &Recording, config: PipelineConfig, background: usize) -> Result<Pipeline> {
+    let k = rec.intrinsics;
+    let mut latch = BackgroundLatch::new(k.width, k.height);
+    for f in &rec.frames[..background] {
+        latch.push(f, &k)?;
+    }
+    let bg = latch.finish(&k, &config).context("latching the background")?;
+    let mut pipe = Pipeline::new(config, k);
+    pipe.set_background(bg);
+    Ok(pipe)
+}
+
+/// Runs `replay`.
+pub fn run(a: ReplayArgs) -> Result<()> {
+    let method = match a.xi_method.as_str() {
+        "one_material" => XiMethod::OneMaterial,
+        "eq12_residual" | "eq12" => XiMethod::Eq12Residual,
+        other => bail!("--xi-method {other:?}: expected one_material or eq12_residual"),
+    };
+    let online = match a.xi_mode.as_str() {
+        "pooled" => false,
+        "online" => true,
+        other => bail!("--xi-mode {other:?}: expected pooled or online"),
+    };
+    if let Some(x) = a.xi {
+        if !(0.0..1.0).contains(&x) {
+            bail!("--xi must be in [0, 1), got {x}");
+        }
+    }
+    let mut config = pipeline_config(&a.model, a.threshold_mm, a.background_albedo, a.lin_calibration.as_ref(), a.exposure_s)?;
+    config.prior_radius_px = a.prior_radius_px;
+    config.xi = match a.xi {
+        Some(x) => XiChoice::Fixed(x),
+        None => XiChoice::Estimate(method),
+    };
+    let rec = load(&a.bag, &a.topics)?;
+    let bg = rec.background_frames(a.background_frames, config.threshold_mm, config.min_region_pixels)?;
+    let mut pipe = latched_pipeline(&rec, config, bg.count)?;
+    let objects = &rec.frames[bg.count..];
+    let out_path = a.out.clone().unwrap_or_else(|| {
+        let stem = a.bag.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "replay".into());
+        PathBuf::from(format!("{stem}.recovered.mcap"))
+    });
+
+    // Pass 1 (pooled): the evidence of every object frame, before any is recovered.
+    let mut observed = Vec::with_capacity(objects.len());
+    let pb = a.output.progress(objects.len() as u64, "segmenting");
+    for f in objects {
+        let obs = pipe.observe(f)?;
+        if !online {
+            pipe.add_xi_evidence(&obs);
+        }
+        observed.push(obs);
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+
+    // Pass 2: recover and write.
+    let mut writer = BagWriter::create(&out_path).with_context(|| format!("creating {}", out_path.display()))?;
+    let pb = a.output.progress(objects.len() as u64, "recovering");
+    let mut per_frame = vec![];
+    let mut last: Option<XiEstimate> = None;
+    let (mut sum_e2, mut sum_raw2, mut n_err) = (0.0, 0.0, 0usize);
+    let mut total_px = 0usize;
+    for (j, (f, obs)) in objects.iter().zip(&observed).enumerate() {
+        if online {
+            pipe.add_xi_evidence(obs);
+        }
+        let Some(xi) = pipe.xi() else {
+            per_frame.push(json!({"stamp": f.stamp_ns as f64 * 1e-9, "xi": null, "translucent_pixels": obs.translucent_pixels, "note": "no xi yet"}));
+            pb.inc(1);
+            continue;
+        };
+        let out = pipe.recover(f, obs, &xi);
+        total_px += out.translucent_pixels;
+        let header = &rec.headers[bg.count + j];
+        write_outputs(&mut writer, header, &rec, &out, &f.ir, &pipe)?;
+        let mut row = json!({
+            "stamp": f.stamp_ns as f64 * 1e-9,
+            "xi": xi.xi,
+            "xi_interval": xi.interval,
+            "translucent_pixels": out.translucent_pixels,
+            "recovered_pixels": out.recovered_pixels,
+            "pinned_pixels": out.pinned_pixels,
+            "fit_residual_mm": out.fit_residual_mm,
+        });
+        if let Some(truth) = rec.truth.get(&f.stamp_ns) {
+            let mut mask = out.mask.clone();
+            for i in 0..mask.len() {
+                mask.data[i] &= out.corrected_z_mm.data[i].is_finite();
+            }
+            if let (Some((e, n)), Some((raw, _))) =
+                (rmse_against_truth(&out.corrected_z_mm, truth, &mask), rmse_against_truth(&f.z_mm, truth, &mask))
+            {
+                row["rmse_mm"] = json!(e);
+                row["rmse_raw_mm"] = json!(raw);
+                row["truth_pixels"] = json!(n);
+                sum_e2 += e * e * n as f64;
+                sum_raw2 += raw * raw * n as f64;
+                n_err += n;
+            }
+        }
+        per_frame.push(row);
+        last = Some(xi);
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    writer.finish().with_context(|| format!("finishing {}", out_path.display()))?;
+
+    let bgd = pipe.background().context("background")?;
+    let xi = last.or_else(|| pipe.xi());
+    let mut report = json!({
+        "bag": a.bag.display().to_string(),
+        "out": out_path.display().to_string(),
+        "frames": rec.frames.len(),
+        "background_frames": bg.count,
+        "background_choice": bg.how,
+        "background_noise_mm": bgd.median_noise_mm,
+        "lin_source": bgd.lin_source,
+        "topics": {"depth": rec.topics.depth, "ir": rec.topics.ir, "info": rec.topics.info, "ground_truth": rec.topics.ground_truth, "notes": rec.topics.notes},
+        "unpaired": {"depth": rec.unpaired.0, "ir": rec.unpaired.1},
+        "xi": xi.as_ref().map(|x| x.xi),
+        "xi_interval": xi.as_ref().map(|x| x.interval),
+        "xi_method": xi.as_ref().map(|x| x.method.as_str()),
+        "xi_mode": a.xi_mode,
+        "xi_frames_pooled": pipe.xi_frames(),
+        "xi_note": xi.as_ref().map(|x| x.note.clone()),
+        "xi_profile": xi.as_ref().map(|x| x.profile.clone()),
+        "translucent_pixels": total_px,
+        "per_frame": per_frame,
+    });
+    if let Some((profile, flat)) = pipe.eq12_comparison() {
+        report["eq12_profile"] = json!(profile);
+        report["eq12_flatness_mm"] = json!(flat);
+    }
+    let frame_rmse: Vec<(f64, f64)> = report["per_frame"]
+        .as_array()
+        .map(|v| v.iter().filter_map(|r| Some((r["rmse_mm"].as_f64()?, r["rmse_raw_mm"].as_f64()?))).collect())
+        .unwrap_or_default();
+    if n_err > 0 {
+        report["rmse_mm"] = json!((sum_e2 / n_err as f64).sqrt());
+        report["rmse_raw_mm"] = json!((sum_raw2 / n_err as f64).sqrt());
+        let k = frame_rmse.len() as f64;
+        report["mean_frame_rmse_mm"] = json!(frame_rmse.iter().map(|r| r.0).sum::<f64>() / k);
+        report["mean_frame_rmse_raw_mm"] = json!(frame_rmse.iter().map(|r| r.1).sum::<f64>() / k);
+    }
+    a.output.summary(&summary(&report, &rec));
+    a.output.write_json(&report)
+}
+
+fn write_outputs(writer: &mut BagWriter, header: &Header, rec: &Recording, out: &FrameOutput, ir: &ImageBuf<f32>, pipe: &Pipeline) -> Result<()> {
+    let t = out.stamp_ns;
+    let enc = if rec.depth_encoding == "32FC1" { "32FC1" } else { "16UC1" };
+    writer.write("/translucent_tof/depth/corrected", t, &depth_image(header, &out.corrected_z_mm, enc)?)?;
+    writer.write("/translucent_tof/translucent_mask", t, &mask_image(header, &out.mask))?;
+    let xyz = points_m(&rec.intrinsics, &out.corrected_z_mm);
+    writer.write("/translucent_tof/points", t, &organized_cloud(header, &xyz, ir, &out.mask))?;
+    let est = TranslucencyEstimate {
+        header: header.clone(),
+        xi: out.xi.xi,
+        xi_lower: out.xi.interval[0],
+        xi_upper: out.xi.interval[1],
+        method: out.xi.method.as_str().into(),
+        translucent_pixels: out.translucent_pixels as u32,
+        fit_residual_mm: out.fit_residual_mm,
+        frames_pooled: pipe.xi_frames() as u32,
+    };
+    writer.write("/translucent_tof/translucency", t, &est)?;
+    Ok(())
+}
+
+/// Points in the optical frame, metres, NaN where the depth is invalid.
+pub(super) fn points_m(k: &Intrinsics, z_mm: &ImageBuf<f32>) -> ImageBuf<[f32; 3]> {
+    let mut data = Vec::with_capacity(z_mm.len());
+    for row in 0..k.height {
+        for col in 0..k.width {
+            let z = z_mm.data[row * k.width + col] as f64 / 1000.0;
+            if z.is_finite() && z > 0.0 {
+                let r = k.ray(col, row) * z;
+                data.push([r.x as f32, r.y as f32, r.z as f32]);
+            } else {
+                data.push([f32::NAN; 3]);
+            }
+        }
+    }
+    ImageBuf { width: k.width, height: k.height, data }
+}
+
+fn summary(r: &serde_json::Value, rec: &Recording) -> String {
+    let mut s = String::new();
+    for n in &rec.topics.notes {
+        s.push_str(&format!("topics: {n}\n"));
+    }
+    s.push_str(&format!("background: {}\n", r["background_choice"].as_str().unwrap_or("")));
+    s.push_str(&format!("Lin: {}\n", r["lin_source"].as_str().unwrap_or("")));
+    if let (Some(x), Some(iv)) = (r["xi"].as_f64(), r["xi_interval"].as_array()) {
+        s.push_str(&format!(
+            "xi = {x:.3} [{:.3}, {:.3}] by {} over {} frame(s)\n",
+            iv[0].as_f64().unwrap_or(f64::NAN),
+            iv[1].as_f64().unwrap_or(f64::NAN),
+            r["xi_method"].as_str().unwrap_or("?"),
+            r["xi_frames_pooled"]
+        ));
+    } else {
+        s.push_str("xi: not determined (no translucent pixels)\n");
+    }
+    if let Some(f) = r["eq12_flatness_mm"].as_f64() {
+        s.push_str(&format!("Eq. 12 residual RMS varies by {f:.3} mm over xi in [0, 0.9] (it cannot pick xi)\n"));
+    }
+    s.push_str(&format!("{} object frames, {} translucent pixels in all\n", r["per_frame"].as_array().map(|v| v.len()).unwrap_or(0), r["translucent_pixels"]));
+    if let (Some(e), Some(raw)) = (r["mean_frame_rmse_mm"].as_f64(), r["mean_frame_rmse_raw_mm"].as_f64()) {
+        s.push_str(&format!("error against ground truth (mean of per-frame RMS): raw {raw:.1} mm -> recovered {e:.1} mm\n"));
+    }
+    s.push_str(&format!("wrote {}", r["out"].as_str().unwrap_or("")));
+    s
+}
