@@ -2,7 +2,6 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::builtin_interfaces::Time;
 use super::std_msgs::Header;
 use super::{cdr_bytes, RosMessage};
 
@@ -252,7 +251,7 @@ impl RosMessage for PointCloud2 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::msgs::{from_cdr, ros2msg_schema, to_cdr};
+    use crate::msgs::{from_cdr, ros2msg_schema, to_cdr, Time};
 
     #[test]
     fn shared_dependency_texts_match_their_types() {

@@ -14,14 +14,22 @@ pub struct ImageBuf<T> {
 impl<T: Clone> ImageBuf<T> {
     /// An image filled with one value.
     pub fn filled(width: usize, height: usize, value: T) -> Self {
-        Self { width, height, data: vec![value; width * height] }
+        Self {
+            width,
+            height,
+            data: vec![value; width * height],
+        }
     }
 }
 
 impl<T> ImageBuf<T> {
     /// Wraps samples; `None` when their count is not `width * height`.
     pub fn from_vec(width: usize, height: usize, data: Vec<T>) -> Option<Self> {
-        (data.len() == width * height).then_some(Self { width, height, data })
+        (data.len() == width * height).then_some(Self {
+            width,
+            height,
+            data,
+        })
     }
 
     /// Number of pixels.
