@@ -101,7 +101,7 @@ fn samples<'a>(
     let width = img.width as usize;
     let height = img.height as usize;
     let step = img.step as usize;
-    let min = width.checked_mul(size).unwrap_or(usize::MAX);
+    let min = width.saturating_mul(size);
     if step < min {
         return Err(ImageError::BadStep {
             role,
@@ -111,7 +111,7 @@ fn samples<'a>(
             min,
         });
     }
-    let expected = step.checked_mul(height).unwrap_or(usize::MAX);
+    let expected = step.saturating_mul(height);
     if img.data.len() < expected {
         return Err(ImageError::DataLength {
             role,
