@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Creates the Python virtual environment used by the bag interoperability
+# tests (tests/bag_interop.rs): independent ROS 2 MCAP readers and writers.
+#
+#   bash scripts/setup-python.sh          # venv at <repo>/.venv
+#   TTOF_VENV=/some/dir bash scripts/setup-python.sh
+#
+# Then `cargo test --test bag_interop` finds <repo>/.venv/bin/python, or the
+# interpreter named by TTOF_PYTHON.
+set -euo pipefail
+
+repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+venv="${TTOF_VENV:-$repo/.venv}"
+python="${PYTHON:-python3}"
+
+# Versions checked to work with the interop tests.
+ROSBAGS_VERSION="0.11.9"
+MCAP_VERSION="1.6.0"
+MCAP_ROS2_VERSION="0.6.0"
+
+if [ ! -x "$venv/bin/python" ]; then
+    echo "creating venv at $venv"
+    "$python" -m venv "$venv"
+fi
+"$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
+    "rosbags==$ROSBAGS_VERSION" \
+    "mcap==$MCAP_VERSION" \
+    "mcap-ros2-support==$MCAP_ROS2_VERSION"
+"$venv/bin/python" - <<'PY'
+import importlib.metadata as md
+for name in ("rosbags", "mcap", "mcap-ros2-support"):
+    print(f"{name}=={md.version(name)}")
+PY
+echo "ok: run the interop tests with: cargo test --test bag_interop"
