@@ -201,15 +201,9 @@ pub fn ir_counts(img: &Image) -> Result<ImageBuf<f32>, ImageError> {
     const ROLE: &str = "IR";
     let big = img.is_bigendian != 0;
     let data: Vec<f32> = match img.encoding.as_str() {
-        "16UC1" | "mono16" => samples(img, Sample::U16, ROLE)?
-            .map(|b| read_u16(b, big))
-            .collect(),
-        "mono8" => samples(img, Sample::U8, ROLE)?
-            .map(|b| f32::from(b[0]))
-            .collect(),
-        "32FC1" => samples(img, Sample::F32, ROLE)?
-            .map(|b| read_f32(b, big))
-            .collect(),
+        "16UC1" | "mono16" => samples(img, Sample::U16, ROLE)?.map(|b| read_u16(b, big)).collect(),
+        "mono8" => samples(img, Sample::U8, ROLE)?.map(|b| f32::from(b[0])).collect(),
+        "32FC1" => samples(img, Sample::F32, ROLE)?.map(|b| read_f32(b, big)).collect(),
         other => {
             return Err(ImageError::UnsupportedEncoding {
                 encoding: other.to_string(),
@@ -231,11 +225,7 @@ fn image_msg(
     data: Vec<u8>,
     what: &'static str,
 ) -> Result<Image, ImageError> {
-    let too_large = || ImageError::TooLarge {
-        what,
-        width,
-        height,
-    };
+    let too_large = || ImageError::TooLarge { what, width, height };
     let step = width.checked_mul(sample.size()).ok_or_else(too_large)?;
     Ok(Image {
         header: header.clone(),
@@ -258,11 +248,7 @@ fn f32_bytes(values: &[f32], map: impl Fn(f32) -> f32) -> Vec<u8> {
 
 /// Encodes millimetre z-depth: `16UC1` (rounded mm; NaN, <= 0 or above
 /// 65535 → 0, the invalid value) or `32FC1` (metres; invalid → NaN).
-pub fn depth_image(
-    header: &Header,
-    z_mm: &ImageBuf<f32>,
-    encoding: &str,
-) -> Result<Image, ImageError> {
+pub fn depth_image(header: &Header, z_mm: &ImageBuf<f32>, encoding: &str) -> Result<Image, ImageError> {
     let (w, h) = (z_mm.width, z_mm.height);
     match encoding {
         "16UC1" => {
@@ -296,11 +282,7 @@ pub fn depth_image(
 
 /// Encodes IR counts: `16UC1` / `mono16` (rounded, clamped to 0..=65535,
 /// NaN → 0), `mono8` (clamped to 0..=255) or `32FC1` (as is).
-pub fn ir_image(
-    header: &Header,
-    counts: &ImageBuf<f32>,
-    encoding: &str,
-) -> Result<Image, ImageError> {
+pub fn ir_image(header: &Header, counts: &ImageBuf<f32>, encoding: &str) -> Result<Image, ImageError> {
     let (w, h) = (counts.width, counts.height);
     // `as` saturates and maps NaN to 0.
     match encoding {
@@ -328,16 +310,7 @@ pub fn ir_image(
 /// clamped to an empty image.
 pub fn mask_image(header: &Header, mask: &ImageBuf<bool>) -> Image {
     let data = mask.data.iter().map(|&m| if m { 255 } else { 0 }).collect();
-    image_msg(
-        header,
-        mask.width,
-        mask.height,
-        "mono8",
-        Sample::U8,
-        data,
-        "mask",
-    )
-    .unwrap_or_else(|_| Image {
+    image_msg(header, mask.width, mask.height, "mono8", Sample::U8, data, "mask").unwrap_or_else(|_| Image {
         header: header.clone(),
         encoding: "mono8".into(),
         ..Image::default()
@@ -385,16 +358,13 @@ pub fn organized_cloud(
         } else {
             f32::NAN
         };
-        let flag = same(translucent.width, translucent.height)
-            && translucent.data.get(i).copied().unwrap_or(false);
+        let flag = same(translucent.width, translucent.height) && translucent.data.get(i).copied().unwrap_or(false);
         for v in [p[0], p[1], p[2], inten] {
             data.extend_from_slice(&v.to_le_bytes());
         }
         data.extend_from_slice(&[u8::from(flag), 0, 0, 0]);
     }
-    let dims = u32::try_from(xyz_m.width)
-        .ok()
-        .zip(u32::try_from(xyz_m.height).ok());
+    let dims = u32::try_from(xyz_m.width).ok().zip(u32::try_from(xyz_m.height).ok());
     let (width, height) = match dims {
         Some((w, h)) if xyz_m.len() == xyz_m.width.saturating_mul(xyz_m.height) => (w, h),
         // Inconsistent or oversized buffer: an empty cloud rather than a lie.
@@ -433,18 +403,13 @@ mod tests {
     }
 
     fn same(a: &[f32], b: &[f32]) -> bool {
-        a.len() == b.len()
-            && a.iter()
-                .zip(b)
-                .all(|(x, y)| (x.is_nan() && y.is_nan()) || x == y)
+        a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x.is_nan() && y.is_nan()) || x == y)
     }
 
     #[test]
     fn depth_16uc1_with_row_padding() {
         // 2x2, step 6: two samples and 2 padding bytes per row.
-        let data = vec![
-            0xE8, 0x03, 0x00, 0x00, 0xAA, 0xBB, 0x01, 0x00, 0xFF, 0xFF, 0xCC, 0xDD,
-        ];
+        let data = vec![0xE8, 0x03, 0x00, 0x00, 0xAA, 0xBB, 0x01, 0x00, 0xFF, 0xFF, 0xCC, 0xDD];
         let d = depth_mm(&msg(2, 2, "16UC1", 6, false, data.clone())).unwrap();
         assert_eq!((d.width, d.height), (2, 2));
         assert!(same(&d.data, &[1000.0, f32::NAN, 1.0, 65535.0]));
@@ -465,35 +430,19 @@ mod tests {
         let vals = [1.25f32, 0.0, -1.0, f32::NAN, f32::INFINITY, 0.001];
         let data = vals.iter().flat_map(|v| v.to_le_bytes()).collect();
         let d = depth_mm(&msg(3, 2, "32FC1", 12, false, data)).unwrap();
-        assert!(same(
-            &d.data,
-            &[1250.0, f32::NAN, f32::NAN, f32::NAN, f32::NAN, 1.0]
-        ));
+        assert!(same(&d.data, &[1250.0, f32::NAN, f32::NAN, f32::NAN, f32::NAN, 1.0]));
     }
 
     #[test]
     fn depth_errors_say_what() {
         let err = depth_mm(&msg(1, 1, "rgb8", 3, false, vec![0; 3])).unwrap_err();
-        assert!(matches!(
-            &err,
-            ImageError::UnsupportedEncoding { role: "depth", .. }
-        ));
+        assert!(matches!(&err, ImageError::UnsupportedEncoding { role: "depth", .. }));
         assert!(
             err.to_string().contains("rgb8") && err.to_string().contains("32FC1"),
             "{err}"
         );
         let err = depth_mm(&msg(4, 1, "16UC1", 6, false, vec![0; 8])).unwrap_err();
-        assert!(
-            matches!(
-                err,
-                ImageError::BadStep {
-                    step: 6,
-                    min: 8,
-                    ..
-                }
-            ),
-            "{err}"
-        );
+        assert!(matches!(err, ImageError::BadStep { step: 6, min: 8, .. }), "{err}");
         let err = depth_mm(&msg(2, 2, "16UC1", 4, false, vec![0; 7])).unwrap_err();
         assert!(
             matches!(
@@ -519,15 +468,7 @@ mod tests {
         assert_eq!(d.data, [4660.0]);
         let d = ir_counts(&msg(1, 1, "16UC1", 2, true, vec![0x12, 0x34])).unwrap();
         assert_eq!(d.data, [4660.0]);
-        let d = ir_counts(&msg(
-            1,
-            1,
-            "32FC1",
-            4,
-            false,
-            12.5f32.to_le_bytes().to_vec(),
-        ))
-        .unwrap();
+        let d = ir_counts(&msg(1, 1, "32FC1", 4, false, 12.5f32.to_le_bytes().to_vec())).unwrap();
         assert_eq!(d.data, [12.5]);
         let err = ir_counts(&msg(1, 1, "bgr8", 3, false, vec![0; 3])).unwrap_err();
         assert!(
@@ -538,14 +479,10 @@ mod tests {
 
     #[test]
     fn depth_encoding_round_trips() {
-        let z =
-            ImageBuf::from_vec(3, 2, vec![1000.4, f32::NAN, 70000.0, -5.0, 0.2, 1234.0]).unwrap();
+        let z = ImageBuf::from_vec(3, 2, vec![1000.4, f32::NAN, 70000.0, -5.0, 0.2, 1234.0]).unwrap();
         let h = Header::new(42, "cam");
         let img = depth_image(&h, &z, "16UC1").unwrap();
-        assert_eq!(
-            (img.width, img.height, img.step, img.is_bigendian),
-            (3, 2, 6, 0)
-        );
+        assert_eq!((img.width, img.height, img.step, img.is_bigendian), (3, 2, 6, 0));
         assert_eq!(img.header, h);
         let back = depth_mm(&img).unwrap();
         assert!(same(
@@ -595,20 +532,10 @@ mod tests {
         let inten = ImageBuf::from_vec(2, 1, vec![10.0, 20.0]).unwrap();
         let tr = ImageBuf::from_vec(2, 1, vec![false, true]).unwrap();
         let c = organized_cloud(&Header::new(1, "cam"), &xyz, &inten, &tr);
-        assert_eq!(
-            (c.width, c.height, c.point_step, c.row_step),
-            (2, 1, 20, 40)
-        );
+        assert_eq!((c.width, c.height, c.point_step, c.row_step), (2, 1, 20, 40));
         assert!(!c.is_dense && !c.is_bigendian);
         assert_eq!(c.data.len(), 40);
-        let f = |off: usize| {
-            f32::from_le_bytes([
-                c.data[off],
-                c.data[off + 1],
-                c.data[off + 2],
-                c.data[off + 3],
-            ])
-        };
+        let f = |off: usize| f32::from_le_bytes([c.data[off], c.data[off + 1], c.data[off + 2], c.data[off + 3]]);
         assert_eq!([f(0), f(4), f(8), f(12)], [1.0, 2.0, 3.0, 10.0]);
         assert_eq!(c.data[16], 0);
         assert!(f(20).is_nan() && f(28).is_nan());

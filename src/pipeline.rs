@@ -13,8 +13,8 @@ use crate::physics::segmentation::{changed_pixels, remove_small_regions, DEFAULT
 use crate::physics::surface::local_planes;
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
-    foreground_distance, ForwardModel, ImageBuf, Intrinsics, InversionBounds, PixelObservation,
-    Sensor, XiEstimate, XiMethod,
+    foreground_distance, ForwardModel, ImageBuf, Intrinsics, InversionBounds, PixelObservation, Sensor, XiEstimate,
+    XiMethod,
 };
 
 /// Why a frame or a latch could not be processed.
@@ -38,9 +38,7 @@ pub enum PipelineError {
     #[error("no background latched: latch one (the first frames of the recording, or the latch service) before the object is placed")]
     NoBackground,
     /// The background frames hold too few valid readings.
-    #[error(
-        "the background has {valid} valid pixels of {total}: too few (NaN/0 depth everywhere?)"
-    )]
+    #[error("the background has {valid} valid pixels of {total}: too few (NaN/0 depth everywhere?)")]
     BackgroundInvalid {
         /// Valid pixels.
         valid: usize,
@@ -177,11 +175,7 @@ impl BackgroundLatch {
     }
 
     /// Adds a frame (ray distances via the camera's intrinsics).
-    pub fn push(
-        &mut self,
-        frame: &DepthFrame,
-        intrinsics: &Intrinsics,
-    ) -> Result<(), PipelineError> {
+    pub fn push(&mut self, frame: &DepthFrame, intrinsics: &Intrinsics) -> Result<(), PipelineError> {
         check_size(frame, intrinsics)?;
         for row in 0..self.height {
             for col in 0..self.width {
@@ -203,11 +197,7 @@ impl BackgroundLatch {
 
     /// The averaged background, with `Lin` from the calibration if given,
     /// else from the background itself as a plane of `background_albedo`.
-    pub fn finish(
-        &self,
-        intrinsics: &Intrinsics,
-        config: &PipelineConfig,
-    ) -> Result<Background, PipelineError> {
+    pub fn finish(&self, intrinsics: &Intrinsics, config: &PipelineConfig) -> Result<Background, PipelineError> {
         let total = self.width * self.height;
         let need = (self.frames as u32).div_ceil(2).max(1);
         let mut d = ImageBuf::filled(self.width, self.height, f64::NAN);
@@ -221,9 +211,7 @@ impl BackgroundLatch {
                 d.data[i] = m;
                 ir.data[i] = self.sum_ir[i] / n as f64;
                 if n > 1 {
-                    sd.data[i] = ((self.sum_d2[i] / n as f64 - m * m).max(0.0) * n as f64
-                        / (n - 1) as f64)
-                        .sqrt();
+                    sd.data[i] = ((self.sum_d2[i] / n as f64 - m * m).max(0.0) * n as f64 / (n - 1) as f64).sqrt();
                 }
                 valid += 1;
             }
@@ -244,12 +232,8 @@ impl BackgroundLatch {
                 (lin.clone(), "calibration file (Eq. 13-14)".to_string())
             }
             None => {
-                let (lin, plane) = emitted_light_from_plane(
-                    &d,
-                    &ir,
-                    &intrinsics.unit_ray_map(),
-                    config.background_albedo,
-                )?;
+                let (lin, plane) =
+                    emitted_light_from_plane(&d, &ir, &intrinsics.unit_ray_map(), config.background_albedo)?;
                 let src = format!(
                     "derived from the latched background as a white plane of albedo {} (no calibration file; plane fit RMS {:.1} mm)",
                     config.background_albedo, plane.rms_mm
@@ -377,10 +361,7 @@ impl Pipeline {
     /// Segments a frame and gathers what the inversion needs.
     pub fn observe(&self, frame: &DepthFrame) -> Result<Observed, PipelineError> {
         check_size(frame, &self.intrinsics)?;
-        let bg = self
-            .background
-            .as_ref()
-            .ok_or(PipelineError::NoBackground)?;
+        let bg = self.background.as_ref().ok_or(PipelineError::NoBackground)?;
         let k = &self.intrinsics;
         let mut d = ImageBuf::filled(k.width, k.height, f64::NAN);
         for row in 0..k.height {
@@ -446,6 +427,7 @@ impl Pipeline {
             &self.config.bounds,
             &sample,
             &self.config.xi_settings,
+            translucency::ProfileUse::Estimation,
         );
         self.profiles.push(profile);
         let est = match method {
@@ -479,9 +461,7 @@ impl Pipeline {
             let Some(o) = obs.observations.data[i] else {
                 continue;
             };
-            if let Some(est) =
-                foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None)
-            {
+            if let Some(est) = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None) {
                 res2 += est.residual_mm * est.residual_mm;
                 fitted += 1;
                 if est.pinned {
@@ -561,13 +541,14 @@ impl Pipeline {
         self.profiles.len()
     }
 
-    /// The Eq. 12 comparison over the pooled frames: `(profile, flatness_mm)`.
-    pub fn eq12_comparison(&self) -> Option<(Vec<(f64, f64)>, f64)> {
+    /// The Eq. 12 comparison over the pooled frames: its RMS profile (mm) and
+    /// the ξ range over which it stays within 1 mm of its minimum.
+    pub fn eq12_comparison(&self) -> Option<(Vec<(f64, f64)>, [f64; 2])> {
         let est = translucency::eq12_residual(&self.profiles)?;
         let r: Vec<f64> = (0..translucency::xi_grid().len())
             .map(|k| self.profiles.iter().map(|p| p.eq12[k]).sum())
             .collect();
-        Some((est.profile, translucency::eq12_flatness(&r)))
+        Some((est.profile, translucency::eq12_flat_range(&r, est.pixels)))
     }
 }
 
@@ -653,11 +634,7 @@ pub struct SceneChange {
 
 /// RMS z error (mm) of `z` against `truth` over `mask` pixels with finite truth
 /// and a finite estimate; `(rmse, pixels)`.
-pub fn rmse_against_truth(
-    z: &ImageBuf<f32>,
-    truth: &ImageBuf<f32>,
-    mask: &ImageBuf<bool>,
-) -> Option<(f64, usize)> {
+pub fn rmse_against_truth(z: &ImageBuf<f32>, truth: &ImageBuf<f32>, mask: &ImageBuf<bool>) -> Option<(f64, usize)> {
     let mut s = 0.0;
     let mut n = 0;
     for i in 0..z.len() {

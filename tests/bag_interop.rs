@@ -56,8 +56,7 @@ fn run_py(script: &str, arg: &Path) -> String {
 
 fn read_json(script: &str, bag: &Path) -> Value {
     let text = run_py(script, bag);
-    serde_json::from_str(&text)
-        .unwrap_or_else(|e| panic!("{script} printed bad JSON ({e}):\n{text}"))
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{script} printed bad JSON ({e}):\n{text}"))
 }
 
 fn header(frame: u64) -> Header {
@@ -82,9 +81,7 @@ fn camera_info(frame: u64) -> CameraInfo {
         d: vec![0.1, -0.2, 0.0, 0.0, 0.05],
         k: [500.0, 0.0, 1.0, 0.0, 501.0, 0.5, 0.0, 0.0, 1.0],
         r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        p: [
-            500.0, 0.0, 1.0, 0.0, 0.0, 501.0, 0.5, 0.0, 0.0, 0.0, 1.0, 0.0,
-        ],
+        p: [500.0, 0.0, 1.0, 0.0, 0.0, 501.0, 0.5, 0.0, 0.0, 0.0, 1.0, 0.0],
         ..Default::default()
     }
 }
@@ -95,34 +92,16 @@ fn write_test_bag(path: &Path) {
     for f in 0..FRAMES {
         let h = header(f);
         let t = h.stamp.as_log_time_ns();
-        let z = ImageBuf::from_vec(3, 2, (0..6).map(|i| depth_value(f, i % 3, i / 3)).collect())
+        let z = ImageBuf::from_vec(3, 2, (0..6).map(|i| depth_value(f, i % 3, i / 3)).collect()).unwrap();
+        w.write("/tof/depth/image_raw", t, &depth_image(&h, &z, "16UC1").unwrap())
             .unwrap();
-        w.write(
-            "/tof/depth/image_raw",
-            t,
-            &depth_image(&h, &z, "16UC1").unwrap(),
-        )
-        .unwrap();
-        w.write(
-            "/tof/depth/image_m",
-            t,
-            &depth_image(&h, &z, "32FC1").unwrap(),
-        )
-        .unwrap();
-        let ir =
-            ImageBuf::from_vec(3, 2, (0..6).map(|i| (400 + 10 * f + i) as f32).collect()).unwrap();
-        w.write(
-            "/tof/ir/image_raw",
-            t,
-            &ir_image(&h, &ir, "mono16").unwrap(),
-        )
-        .unwrap();
-        w.write(
-            "/tof/ir/image_mono8",
-            t,
-            &ir_image(&h, &ir, "mono8").unwrap(),
-        )
-        .unwrap();
+        w.write("/tof/depth/image_m", t, &depth_image(&h, &z, "32FC1").unwrap())
+            .unwrap();
+        let ir = ImageBuf::from_vec(3, 2, (0..6).map(|i| (400 + 10 * f + i) as f32).collect()).unwrap();
+        w.write("/tof/ir/image_raw", t, &ir_image(&h, &ir, "mono16").unwrap())
+            .unwrap();
+        w.write("/tof/ir/image_mono8", t, &ir_image(&h, &ir, "mono8").unwrap())
+            .unwrap();
         // Row padding: 3 samples of 2 bytes, step 8.
         let mut padded = Vec::new();
         for row in 0..2u16 {
@@ -141,12 +120,9 @@ fn write_test_bag(path: &Path) {
             data: padded,
         };
         w.write("/tof/depth/image_padded", t, &padded).unwrap();
-        w.write("/tof/depth/camera_info", t, &camera_info(f))
-            .unwrap();
-        let xyz = ImageBuf::from_vec(3, 2, (0..6).map(|i| [i as f32 * 0.1, -0.5, 1.25]).collect())
-            .unwrap();
-        let translucent =
-            ImageBuf::from_vec(3, 2, vec![true, false, false, false, false, true]).unwrap();
+        w.write("/tof/depth/camera_info", t, &camera_info(f)).unwrap();
+        let xyz = ImageBuf::from_vec(3, 2, (0..6).map(|i| [i as f32 * 0.1, -0.5, 1.25]).collect()).unwrap();
+        let translucent = ImageBuf::from_vec(3, 2, vec![true, false, false, false, false, true]).unwrap();
         let cloud: PointCloud2 = organized_cloud(&h, &xyz, &ir, &translucent);
         w.write("/tof/points", t, &cloud).unwrap();
     }
@@ -215,10 +191,7 @@ fn check_python_view(json: &Value) {
     assert_eq!(d["step"], 6);
     assert_eq!(d["stamp"], want_stamp, "{reader}");
     assert_eq!(d["frame_id"], "tof_optical_frame");
-    assert_eq!(
-        nums(&d["first_pixels"]),
-        [Some(1000.0), Some(1001.0), Some(1002.0)]
-    );
+    assert_eq!(nums(&d["first_pixels"]), [Some(1000.0), Some(1001.0), Some(1002.0)]);
 
     let m = &first["/tof/depth/image_m"];
     assert_eq!(m["encoding"], "32FC1");
@@ -234,39 +207,23 @@ fn check_python_view(json: &Value) {
         (ir["encoding"].as_str(), ir["step"].as_u64()),
         (Some("mono16"), Some(6))
     );
-    assert_eq!(
-        nums(&ir["first_pixels"]),
-        [Some(400.0), Some(401.0), Some(402.0)]
-    );
+    assert_eq!(nums(&ir["first_pixels"]), [Some(400.0), Some(401.0), Some(402.0)]);
     let ir8 = &first["/tof/ir/image_mono8"];
     assert_eq!(
         (ir8["encoding"].as_str(), ir8["step"].as_u64()),
         (Some("mono8"), Some(3))
     );
-    assert_eq!(
-        nums(&ir8["first_pixels"]),
-        [Some(255.0), Some(255.0), Some(255.0)]
-    );
+    assert_eq!(nums(&ir8["first_pixels"]), [Some(255.0), Some(255.0), Some(255.0)]);
 
     let p = &first["/tof/depth/image_padded"];
-    assert_eq!(
-        (p["step"].as_u64(), p["data_len"].as_u64()),
-        (Some(8), Some(16))
-    );
-    assert_eq!(
-        nums(&p["first_pixels"]),
-        [Some(2000.0), Some(2001.0), Some(2002.0)]
-    );
+    assert_eq!((p["step"].as_u64(), p["data_len"].as_u64()), (Some(8), Some(16)));
+    assert_eq!(nums(&p["first_pixels"]), [Some(2000.0), Some(2001.0), Some(2002.0)]);
 
     let info = &first["/tof/depth/camera_info"];
     assert_eq!(nums(&info["k"]), camera_info(0).k.map(Some));
     assert_eq!(
         nums(&info["d"]),
-        camera_info(0)
-            .d
-            .iter()
-            .map(|&x| Some(x))
-            .collect::<Vec<_>>()
+        camera_info(0).d.iter().map(|&x| Some(x)).collect::<Vec<_>>()
     );
     assert_eq!(nums(&info["p"]), camera_info(0).p.map(Some));
     assert_eq!(info["distortion_model"], "plumb_bob");
@@ -277,10 +234,7 @@ fn check_python_view(json: &Value) {
         (Some(3), Some(2)),
         "{reader}: {c}"
     );
-    assert_eq!(
-        (c["point_step"].as_u64(), c["row_step"].as_u64()),
-        (Some(20), Some(60))
-    );
+    assert_eq!((c["point_step"].as_u64(), c["row_step"].as_u64()), (Some(20), Some(60)));
     assert_eq!(c["is_dense"], false);
     let fp = &c["first_point"];
     assert_eq!(
@@ -338,10 +292,7 @@ fn we_read_a_bag_written_by_mcap_ros2() {
         if raw.topic == sel.depth {
             let img: Image = BagReader::decode(&raw).unwrap();
             let f = depth_frames;
-            assert_eq!(
-                img.header.stamp.as_log_time_ns(),
-                1_000_000_000 + f * 100_000_000
-            );
+            assert_eq!(img.header.stamp.as_log_time_ns(), 1_000_000_000 + f * 100_000_000);
             assert_eq!(raw.log_time_ns, img.header.stamp.as_log_time_ns());
             assert_eq!(img.step, 10);
             let z = depth_mm(&img).unwrap();
@@ -400,15 +351,10 @@ fn truncated_file_is_a_clear_error() {
     let bytes = std::fs::read(&bag).unwrap();
     let cut = dir.path().join("cut.mcap");
     std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
-    let err = BagReader::open(&cut)
-        .err()
-        .expect("a truncated bag must not open");
+    let err = BagReader::open(&cut).err().expect("a truncated bag must not open");
     assert!(matches!(err, BagError::Truncated { .. }), "{err}");
     let msg = err.to_string();
-    assert!(
-        msg.contains("cut.mcap") && msg.contains("truncated"),
-        "{msg}"
-    );
+    assert!(msg.contains("cut.mcap") && msg.contains("truncated"), "{msg}");
 }
 
 #[test]
@@ -416,9 +362,7 @@ fn non_mcap_file_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("notes.mcap");
     std::fs::write(&path, b"just some text, no MCAP here\n").unwrap();
-    let err = BagReader::open(&path)
-        .err()
-        .expect("a text file must not open");
+    let err = BagReader::open(&path).err().expect("a text file must not open");
     assert!(matches!(err, BagError::NotMcap { .. }), "{err}");
     assert!(
         err.to_string().contains("notes.mcap") && err.to_string().contains("not an MCAP"),
@@ -432,8 +376,7 @@ fn partial_file_removed_when_writer_dropped() {
     let bag = dir.path().join("out.mcap");
     {
         let mut w = BagWriter::create(&bag).unwrap();
-        w.write("/tof/depth/camera_info", T0, &camera_info(0))
-            .unwrap();
+        w.write("/tof/depth/camera_info", T0, &camera_info(0)).unwrap();
         assert!(dir.path().join("out.mcap.partial").exists());
         assert!(!bag.exists());
     }

@@ -99,9 +99,7 @@ fn depth_rank(topic: &str) -> Option<(u8, &'static str)> {
             return Some((rank as u8, ending));
         }
     }
-    topic
-        .contains("depth")
-        .then_some((ENDINGS.len() as u8, "depth"))
+    topic.contains("depth").then_some((ENDINGS.len() as u8, "depth"))
 }
 
 fn is_ir_segment(seg: &str) -> bool {
@@ -211,15 +209,8 @@ fn overridden<'a>(
 /// `CameraInfo` there, else `depth/camera_info` elsewhere, else the only
 /// `CameraInfo`; ground truth ends in `ground_truth/depth`. Among equally
 /// named candidates, the depth topic's namespace wins.
-pub fn select_topics(
-    topics: &[TopicInfo],
-    ov: &TopicOverrides,
-) -> Result<SelectedTopics, BagError> {
-    let of_type = |want: &'static str| {
-        topics
-            .iter()
-            .filter(move |t| normalize_type_name(&t.type_name) == want)
-    };
+pub fn select_topics(topics: &[TopicInfo], ov: &TopicOverrides) -> Result<SelectedTopics, BagError> {
+    let of_type = |want: &'static str| topics.iter().filter(move |t| normalize_type_name(&t.type_name) == want);
     let mut notes = Vec::new();
 
     // IR override first: it can settle the depth topic's namespace.
@@ -240,11 +231,7 @@ pub fn select_topics(
                 .filter(|t| ir_override.is_none_or(|ir| ir.name != t.name))
                 .filter_map(|t| {
                     let (rank, why) = depth_rank(&t.name)?;
-                    let other_ns = u8::from(
-                        ir_ns
-                            .as_ref()
-                            .is_some_and(|ns| *ns != camera_namespace(&t.name)),
-                    );
+                    let other_ns = u8::from(ir_ns.as_ref().is_some_and(|ns| *ns != camera_namespace(&t.name)));
                     Some((t, (rank, other_ns), why.to_string()))
                 })
                 .collect();
@@ -322,14 +309,9 @@ pub fn select_topics(
                     let named = ends_with_segments(&t.name, "depth/camera_info");
                     let (rank, why) = match (named, other_ns(t) == 0) {
                         (true, true) => (0, format!("ends with depth/camera_info in {ns}")),
-                        (false, true) => (
-                            1,
-                            format!("the camera info in the depth topic's namespace {ns}"),
-                        ),
+                        (false, true) => (1, format!("the camera info in the depth topic's namespace {ns}")),
                         (true, false) => (2, "ends with depth/camera_info".to_string()),
-                        (false, false) if only_one => {
-                            (3, "the only camera info in the bag".to_string())
-                        }
+                        (false, false) if only_one => (3, "the only camera info in the bag".to_string()),
                         (false, false) => return None,
                     };
                     Some((t, (rank, 0), why))
@@ -361,10 +343,7 @@ pub fn select_topics(
         .collect();
     let ground_truth = match best(truths, "ground truth", "") {
         Ok(Some((t, _, _))) => {
-            notes.push(format!(
-                "ground truth: {} (ends with ground_truth/depth)",
-                t.name
-            ));
+            notes.push(format!("ground truth: {} (ends with ground_truth/depth)", t.name));
             Some(t.name.clone())
         }
         Ok(None) => None,
@@ -423,11 +402,7 @@ mod tests {
         assert_eq!(s.info.as_deref(), Some("/tof/depth/camera_info"));
         assert_eq!(s.ground_truth.as_deref(), Some("/tof/ground_truth/depth"));
         assert_eq!(s.notes.len(), 4, "{:?}", s.notes);
-        assert!(
-            s.notes[0].contains("ends with depth/image_raw"),
-            "{:?}",
-            s.notes
-        );
+        assert!(s.notes[0].contains("ends with depth/image_raw"), "{:?}", s.notes);
     }
 
     #[test]
@@ -437,10 +412,7 @@ mod tests {
             topic("/ir/image_raw", "sensor_msgs/Image"),
         ];
         let s = select(&topics).unwrap();
-        assert_eq!(
-            (s.depth.as_str(), s.ir.as_str()),
-            ("/depth/image_raw", "/ir/image_raw")
-        );
+        assert_eq!((s.depth.as_str(), s.ir.as_str()), ("/depth/image_raw", "/ir/image_raw"));
         assert_eq!(s.info, None);
     }
 
@@ -453,19 +425,13 @@ mod tests {
             img("/cam/ir/image_raw"),
         ];
         assert_eq!(select(&topics).unwrap().depth, "/cam/depth/image_rect_raw");
-        let topics = [
-            img("/cam/aligned_depth_to_color/foo"),
-            img("/cam/ir/image_raw"),
-        ];
+        let topics = [img("/cam/aligned_depth_to_color/foo"), img("/cam/ir/image_raw")];
         let s = select(&topics).unwrap();
         assert_eq!(s.depth, "/cam/aligned_depth_to_color/foo");
         assert!(s.notes[0].contains("contains \"depth\""), "{:?}", s.notes);
         let topics = [img("/cam/depth"), img("/cam/intensity")];
         let s = select(&topics).unwrap();
-        assert_eq!(
-            (s.depth.as_str(), s.ir.as_str()),
-            ("/cam/depth", "/cam/intensity")
-        );
+        assert_eq!((s.depth.as_str(), s.ir.as_str()), ("/cam/depth", "/cam/intensity"));
     }
 
     #[test]
@@ -476,10 +442,7 @@ mod tests {
             img("/tof/ir/image_raw"),
         ];
         let err = select(&topics).unwrap_err();
-        assert!(
-            matches!(err, BagError::NoTopic { role: "depth", .. }),
-            "{err}"
-        );
+        assert!(matches!(err, BagError::NoTopic { role: "depth", .. }), "{err}");
         let msg = err.to_string();
         assert!(
             msg.contains("/tof/ir/image_raw") && msg.contains("--depth-topic"),
@@ -493,10 +456,7 @@ mod tests {
             topic("/tof/depth/image_raw", "sensor_msgs/msg/CompressedImage"),
             img("/tof/ir/image_raw"),
         ];
-        assert!(matches!(
-            select(&topics),
-            Err(BagError::NoTopic { role: "depth", .. })
-        ));
+        assert!(matches!(select(&topics), Err(BagError::NoTopic { role: "depth", .. })));
     }
 
     #[test]
@@ -515,10 +475,7 @@ mod tests {
                 vec![img("/cam/amplitude"), img("/cam/confidence/image")],
                 "/cam/amplitude",
             ),
-            (
-                vec![img("/cam/infra1/image_rect_raw")],
-                "/cam/infra1/image_rect_raw",
-            ),
+            (vec![img("/cam/infra1/image_rect_raw")], "/cam/infra1/image_rect_raw"),
         ];
         for (extra, want) in cases {
             let mut topics = vec![base.clone()];
@@ -526,11 +483,7 @@ mod tests {
             assert_eq!(select(&topics).unwrap().ir, want, "{topics:?}");
         }
         // "mirror" is not IR; confidence never is.
-        let topics = [
-            base.clone(),
-            img("/cam/mirror/image"),
-            img("/cam/confidence"),
-        ];
+        let topics = [base.clone(), img("/cam/mirror/image"), img("/cam/confidence")];
         let err = select(&topics).unwrap_err();
         assert!(matches!(err, BagError::NoTopic { role: "IR", .. }), "{err}");
         assert!(err.to_string().contains("/cam/mirror/image"), "{err}");
@@ -575,15 +528,9 @@ mod tests {
             ir: Some("/a/ir/image_raw".into()),
             ..Default::default()
         };
-        assert_eq!(
-            select_topics(&topics, &ov).unwrap().depth,
-            "/a/depth/image_raw"
-        );
+        assert_eq!(select_topics(&topics, &ov).unwrap().depth, "/a/depth/image_raw");
         // Without overrides IR is ambiguous.
-        assert!(matches!(
-            select(&topics),
-            Err(BagError::AmbiguousTopic { .. })
-        ));
+        assert!(matches!(select(&topics), Err(BagError::AmbiguousTopic { .. })));
     }
 
     #[test]
@@ -595,18 +542,13 @@ mod tests {
             select(&t).map(|s| s.info)
         };
         assert_eq!(
-            with(&[
-                info("/tof/ir/camera_info"),
-                info("/other/depth/camera_info")
-            ])
-            .unwrap()
-            .as_deref(),
+            with(&[info("/tof/ir/camera_info"), info("/other/depth/camera_info")])
+                .unwrap()
+                .as_deref(),
             Some("/tof/ir/camera_info")
         );
         assert_eq!(
-            with(&[info("/other/depth/camera_info")])
-                .unwrap()
-                .as_deref(),
+            with(&[info("/other/depth/camera_info")]).unwrap().as_deref(),
             Some("/other/depth/camera_info")
         );
         assert_eq!(with(&[info("/calib")]).unwrap().as_deref(), Some("/calib"));

@@ -120,7 +120,9 @@ pub enum BagError {
         source: mcap::McapError,
     },
     /// No topic fits a role (depth, IR).
-    #[error("no {role} topic found (looked for {looked_for}); the bag has: {available}. Pass {flag} TOPIC to choose one")]
+    #[error(
+        "no {role} topic found (looked for {looked_for}); the bag has: {available}. Pass {flag} TOPIC to choose one"
+    )]
     NoTopic {
         /// `depth`, `IR`, ...
         role: &'static str,
@@ -171,14 +173,8 @@ mod tests {
 
     #[test]
     fn type_names_normalize() {
-        assert_eq!(
-            normalize_type_name("sensor_msgs/Image"),
-            "sensor_msgs/msg/Image"
-        );
-        assert_eq!(
-            normalize_type_name("sensor_msgs/msg/Image"),
-            "sensor_msgs/msg/Image"
-        );
+        assert_eq!(normalize_type_name("sensor_msgs/Image"), "sensor_msgs/msg/Image");
+        assert_eq!(normalize_type_name("sensor_msgs/msg/Image"), "sensor_msgs/msg/Image");
         assert_eq!(
             normalize_type_name("std_srvs/srv/Trigger_Request"),
             "std_srvs/srv/Trigger_Request"

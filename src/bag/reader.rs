@@ -360,10 +360,7 @@ mod tests {
 
         let text = dir.path().join("t.mcap");
         std::fs::write(&text, b"hello").unwrap();
-        assert!(matches!(
-            BagReader::open(&text),
-            Err(BagError::NotMcap { .. })
-        ));
+        assert!(matches!(BagReader::open(&text), Err(BagError::NotMcap { .. })));
 
         let missing = dir.path().join("none.mcap");
         let err = BagReader::open(&missing).err().unwrap();

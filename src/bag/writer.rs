@@ -52,10 +52,7 @@ pub struct BagWriter {
 }
 
 fn partial_path(path: &Path) -> PathBuf {
-    let mut name = path
-        .file_name()
-        .map(|n| n.to_os_string())
-        .unwrap_or_default();
+    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
     name.push(".partial");
     path.with_file_name(name)
 }
@@ -142,10 +139,7 @@ impl BagWriter {
                 id
             }
         };
-        let metadata = BTreeMap::from([(
-            "offered_qos_profiles".to_string(),
-            DEFAULT_QOS_PROFILES.to_string(),
-        )]);
+        let metadata = BTreeMap::from([("offered_qos_profiles".to_string(), DEFAULT_QOS_PROFILES.to_string())]);
         let id = mcap
             .add_channel(schema_id, topic, "cdr", &metadata)
             .map_err(|source| BagError::Write {
@@ -167,12 +161,7 @@ impl BagWriter {
     /// (pass the header stamp in ns, see
     /// [`Time::as_log_time_ns`](crate::msgs::Time::as_log_time_ns)).
     /// Each topic keeps the type it was first written with.
-    pub fn write<M: RosMessage>(
-        &mut self,
-        topic: &str,
-        log_time_ns: u64,
-        msg: &M,
-    ) -> Result<(), BagError> {
+    pub fn write<M: RosMessage>(&mut self, topic: &str, log_time_ns: u64, msg: &M) -> Result<(), BagError> {
         let data = to_cdr(msg).map_err(|source| BagError::Encode {
             path: self.partial.clone(),
             topic: topic.to_string(),

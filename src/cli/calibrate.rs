@@ -45,7 +45,13 @@ pub struct CalibrateXiArgs {
 
 /// Runs `calibrate-xi`.
 pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
-    let config = pipeline_config(&a.model, a.threshold_mm, a.background_albedo, a.lin_calibration.as_ref(), a.exposure_s)?;
+    let config = pipeline_config(
+        &a.model,
+        a.threshold_mm,
+        a.background_albedo,
+        a.lin_calibration.as_ref(),
+        a.exposure_s,
+    )?;
     let rec = load(&a.bag, &a.topics)?;
     if rec.topics.ground_truth.is_none() || rec.truth.is_empty() {
         bail!(
@@ -65,14 +71,26 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
     let mut used = vec![];
     for f in objects {
         pb.inc(1);
-        let Some(truth) = rec.truth.get(&f.stamp_ns) else { continue };
+        let Some(truth) = rec.truth.get(&f.stamp_ns) else {
+            continue;
+        };
         let obs = pipe.observe(f)?;
         let truth_ray = ImageBuf {
             width: k.width,
             height: k.height,
-            data: truth.data.iter().zip(&scale.data).map(|(&z, &s)| z as f64 * s).collect(),
+            data: truth
+                .data
+                .iter()
+                .zip(&scale.data)
+                .map(|(&z, &s)| z as f64 * s)
+                .collect(),
         };
-        let sample = FrameSample::from_image(&obs.observations, &rays, Some(&truth_ray), settings.max_pixels_per_frame);
+        let sample = FrameSample::from_image(
+            &obs.observations,
+            &rays,
+            Some(&truth_ray),
+            settings.max_pixels_per_frame,
+        );
         let with_truth = sample
             .observations
             .data
@@ -83,7 +101,13 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
         if with_truth < 10 {
             continue;
         }
-        profiles.push(translucency::frame_profile(&pipe.config.model, &pipe.config.bounds, &sample, &settings));
+        profiles.push(translucency::frame_profile(
+            &pipe.config.model,
+            &pipe.config.bounds,
+            &sample,
+            &settings,
+            translucency::ProfileUse::Calibration,
+        ));
         used.push(f.stamp_ns);
     }
     pb.finish_and_clear();
@@ -151,9 +175,13 @@ pub fn run_lin(a: CalibrateLinArgs) -> Result<()> {
         latch.push(f, &k)?;
     }
     // The plane is averaged like a background; Lin comes from it as a plane of the given albedo.
-    let config = PipelineConfig { background_albedo: a.albedo, ..PipelineConfig::default() };
+    let config = PipelineConfig {
+        background_albedo: a.albedo,
+        ..PipelineConfig::default()
+    };
     let bg = latch.finish(&k, &config).context("averaging the calibration plane")?;
-    let (lin, plane) = emitted_light_from_plane(&bg.distance_mm, &bg.ir, &k.unit_ray_map(), a.albedo).context("fitting the calibration plane")?;
+    let (lin, plane) = emitted_light_from_plane(&bg.distance_mm, &bg.ir, &k.unit_ray_map(), a.albedo)
+        .context("fitting the calibration plane")?;
     let seen = lin.data.iter().filter(|v| v.is_finite()).count();
     let file = LinFile {
         format: LIN_FORMAT.into(),

@@ -28,7 +28,11 @@ pub struct TopicArgs {
 impl TopicArgs {
     /// As the bag layer's overrides.
     pub fn overrides(&self) -> TopicOverrides {
-        TopicOverrides { depth: self.depth_topic.clone(), ir: self.ir_topic.clone(), info: self.info_topic.clone() }
+        TopicOverrides {
+            depth: self.depth_topic.clone(),
+            ir: self.ir_topic.clone(),
+            info: self.info_topic.clone(),
+        }
     }
 }
 
@@ -77,7 +81,11 @@ impl PhysicsFile {
         let f: PhysicsFile = toml::from_str(&text).with_context(|| format!("physics file {}", path.display()))?;
         if let Some(b) = f.bounces {
             if !(2..=crate::physics::model::MAX_BOUNCES).contains(&b) {
-                bail!("physics file {}: bounces = {b} is not in 2..={}", path.display(), crate::physics::model::MAX_BOUNCES);
+                bail!(
+                    "physics file {}: bounces = {b} is not in 2..={}",
+                    path.display(),
+                    crate::physics::model::MAX_BOUNCES
+                );
             }
         }
         Ok(f)
@@ -100,7 +108,10 @@ impl ModelArgs {
     /// The forward model these options describe.
     pub fn model(&self) -> Result<ForwardModel> {
         if !(self.modulation_frequency_hz.is_finite() && self.modulation_frequency_hz > 0.0) {
-            bail!("--modulation-frequency-hz must be positive, got {}", self.modulation_frequency_hz);
+            bail!(
+                "--modulation-frequency-hz must be positive, got {}",
+                self.modulation_frequency_hz
+            );
         }
         let file = match &self.physics {
             Some(p) => PhysicsFile::load(p)?,
@@ -122,7 +133,10 @@ impl ModelArgs {
             };
         }
         let wf = waveform(file.waveform.as_deref().unwrap_or(&self.waveform), file.harmonics)?;
-        Ok(ForwardModel { sensor: Sensor::new(self.modulation_frequency_hz, wf), options })
+        Ok(ForwardModel {
+            sensor: Sensor::new(self.modulation_frequency_hz, wf),
+            options,
+        })
     }
 }
 
@@ -151,16 +165,30 @@ pub const LIN_FORMAT: &str = "translucent_tof.lin.v1";
 impl LinFile {
     /// Reads a calibration and scales it to `exposure_s` (Eq. 14) when both exposures are known.
     pub fn load(path: &Path, exposure_s: Option<f64>) -> Result<ImageBuf<f64>> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("reading Lin calibration {}", path.display()))?;
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("reading Lin calibration {}", path.display()))?;
         let f: LinFile = serde_json::from_str(&text).with_context(|| format!("Lin calibration {}", path.display()))?;
         if f.format != LIN_FORMAT {
-            bail!("Lin calibration {}: format {:?}, expected {LIN_FORMAT:?}", path.display(), f.format);
+            bail!(
+                "Lin calibration {}: format {:?}, expected {LIN_FORMAT:?}",
+                path.display(),
+                f.format
+            );
         }
         let data: Vec<f64> = f.lin.iter().map(|v| v.unwrap_or(f64::NAN)).collect();
-        let lin = ImageBuf::from_vec(f.width, f.height, data)
-            .with_context(|| format!("Lin calibration {}: {} values for {}x{}", path.display(), f.lin.len(), f.width, f.height))?;
+        let lin = ImageBuf::from_vec(f.width, f.height, data).with_context(|| {
+            format!(
+                "Lin calibration {}: {} values for {}x{}",
+                path.display(),
+                f.lin.len(),
+                f.width,
+                f.height
+            )
+        })?;
         Ok(match (f.exposure_s, exposure_s) {
-            (Some(cal), Some(now)) if cal > 0.0 && now > 0.0 => crate::physics::emitted_light::scale_for_exposure(&lin, cal, now),
+            (Some(cal), Some(now)) if cal > 0.0 && now > 0.0 => {
+                crate::physics::emitted_light::scale_for_exposure(&lin, cal, now)
+            }
             _ => lin,
         })
     }
@@ -204,7 +232,14 @@ impl OutputArgs {
     /// A progress bar on an interactive terminal; hidden in pipelines and with `--json -`.
     pub fn progress(&self, len: u64, label: &str) -> ProgressBar {
         let show = std::io::stderr().is_terminal() && !self.json_on_stdout();
-        let pb = ProgressBar::with_draw_target(Some(len), if show { ProgressDrawTarget::stderr() } else { ProgressDrawTarget::hidden() });
+        let pb = ProgressBar::with_draw_target(
+            Some(len),
+            if show {
+                ProgressDrawTarget::stderr()
+            } else {
+                ProgressDrawTarget::hidden()
+            },
+        );
         if let Ok(style) = ProgressStyle::with_template("{prefix:>12} [{bar:30}] {pos}/{len} {msg}") {
             pb.set_style(style.progress_chars("=> "));
         }

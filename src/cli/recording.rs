@@ -65,8 +65,13 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
             sel.info.as_deref().map(|t| format!(" on {t}")).unwrap_or_default()
         )
     })?;
-    let intrinsics = Intrinsics::from_k(info.width as usize, info.height as usize, &info.k)
-        .ok_or_else(|| anyhow!("bag {}: camera_info K {:?} has no usable focal length", path.display(), info.k))?;
+    let intrinsics = Intrinsics::from_k(info.width as usize, info.height as usize, &info.k).ok_or_else(|| {
+        anyhow!(
+            "bag {}: camera_info K {:?} has no usable focal length",
+            path.display(),
+            info.k
+        )
+    })?;
     let paired: Vec<u64> = depth.keys().filter(|s| ir.contains_key(s)).copied().collect();
     let unpaired = (depth.len() - paired.len(), ir.len() - paired.len());
     if paired.is_empty() {
@@ -111,9 +116,21 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
         }
         depth_encoding = d.encoding.clone();
         headers.push(d.header.clone());
-        frames.push(DepthFrame { stamp_ns: stamp, z_mm: z, ir: v });
+        frames.push(DepthFrame {
+            stamp_ns: stamp,
+            z_mm: z,
+            ir: v,
+        });
     }
-    Ok(Recording { topics: sel, intrinsics, frames, headers, depth_encoding, truth, unpaired })
+    Ok(Recording {
+        topics: sel,
+        intrinsics,
+        frames,
+        headers,
+        depth_encoding,
+        truth,
+        unpaired,
+    })
 }
 
 /// How the background frames were chosen.
@@ -126,12 +143,22 @@ pub struct BackgroundChoice {
 
 impl Recording {
     /// `--background-frames N`, else the first frame where the scene changes.
-    pub fn background_frames(&self, given: Option<usize>, threshold_mm: f64, min_region: usize) -> Result<BackgroundChoice> {
+    pub fn background_frames(
+        &self,
+        given: Option<usize>,
+        threshold_mm: f64,
+        min_region: usize,
+    ) -> Result<BackgroundChoice> {
         let n = self.frames.len();
         match given {
             Some(0) => bail!("--background-frames must be at least 1"),
-            Some(k) if k >= n => bail!("--background-frames {k}: the recording has {n} paired frames, leaving none with the object"),
-            Some(k) => Ok(BackgroundChoice { count: k, how: format!("first {k} frames (--background-frames)") }),
+            Some(k) if k >= n => {
+                bail!("--background-frames {k}: the recording has {n} paired frames, leaving none with the object")
+            }
+            Some(k) => Ok(BackgroundChoice {
+                count: k,
+                how: format!("first {k} frames (--background-frames)"),
+            }),
             None => {
                 let depths: Vec<ImageBuf<f32>> = self.frames.iter().map(|f| f.z_mm.clone()).collect();
                 let change = detect_scene_change(&depths, threshold_mm, min_region).ok_or_else(|| {

@@ -75,7 +75,13 @@ pub(super) fn pipeline_config(
         bail!("--background-albedo must be in (0, 1], got {background_albedo}");
     }
     let lin = lin_calibration.map(|p| LinFile::load(p, exposure_s)).transpose()?;
-    Ok(PipelineConfig { threshold_mm, background_albedo, lin_calibration: lin, model: model.model()?, ..PipelineConfig::default() })
+    Ok(PipelineConfig {
+        threshold_mm,
+        background_albedo,
+        lin_calibration: lin,
+        model: model.model()?,
+        ..PipelineConfig::default()
+    })
 }
 
 /// Latches the background of a recording into a new pipeline.
@@ -108,7 +114,13 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             bail!("--xi must be in [0, 1), got {x}");
         }
     }
-    let mut config = pipeline_config(&a.model, a.threshold_mm, a.background_albedo, a.lin_calibration.as_ref(), a.exposure_s)?;
+    let mut config = pipeline_config(
+        &a.model,
+        a.threshold_mm,
+        a.background_albedo,
+        a.lin_calibration.as_ref(),
+        a.exposure_s,
+    )?;
     config.prior_radius_px = a.prior_radius_px;
     config.xi = match a.xi {
         Some(x) => XiChoice::Fixed(x),
@@ -119,7 +131,11 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let mut pipe = latched_pipeline(&rec, config, bg.count)?;
     let objects = &rec.frames[bg.count..];
     let out_path = a.out.clone().unwrap_or_else(|| {
-        let stem = a.bag.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "replay".into());
+        let stem = a
+            .bag
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "replay".into());
         PathBuf::from(format!("{stem}.recovered.mcap"))
     });
 
@@ -170,9 +186,10 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             for i in 0..mask.len() {
                 mask.data[i] &= out.corrected_z_mm.data[i].is_finite();
             }
-            if let (Some((e, n)), Some((raw, _))) =
-                (rmse_against_truth(&out.corrected_z_mm, truth, &mask), rmse_against_truth(&f.z_mm, truth, &mask))
-            {
+            if let (Some((e, n)), Some((raw, _))) = (
+                rmse_against_truth(&out.corrected_z_mm, truth, &mask),
+                rmse_against_truth(&f.z_mm, truth, &mask),
+            ) {
                 row["rmse_mm"] = json!(e);
                 row["rmse_raw_mm"] = json!(raw);
                 row["truth_pixels"] = json!(n);
@@ -186,7 +203,9 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         pb.inc(1);
     }
     pb.finish_and_clear();
-    writer.finish().with_context(|| format!("finishing {}", out_path.display()))?;
+    writer
+        .finish()
+        .with_context(|| format!("finishing {}", out_path.display()))?;
 
     let bgd = pipe.background().context("background")?;
     let xi = last.or_else(|| pipe.xi());
@@ -212,11 +231,15 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     });
     if let Some((profile, flat)) = pipe.eq12_comparison() {
         report["eq12_profile"] = json!(profile);
-        report["eq12_flatness_mm"] = json!(flat);
+        report["eq12_flat_range"] = json!(flat);
     }
     let frame_rmse: Vec<(f64, f64)> = report["per_frame"]
         .as_array()
-        .map(|v| v.iter().filter_map(|r| Some((r["rmse_mm"].as_f64()?, r["rmse_raw_mm"].as_f64()?))).collect())
+        .map(|v| {
+            v.iter()
+                .filter_map(|r| Some((r["rmse_mm"].as_f64()?, r["rmse_raw_mm"].as_f64()?)))
+                .collect()
+        })
         .unwrap_or_default();
     if n_err > 0 {
         report["rmse_mm"] = json!((sum_e2 / n_err as f64).sqrt());
@@ -229,13 +252,32 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     a.output.write_json(&report)
 }
 
-fn write_outputs(writer: &mut BagWriter, header: &Header, rec: &Recording, out: &FrameOutput, ir: &ImageBuf<f32>, pipe: &Pipeline) -> Result<()> {
+fn write_outputs(
+    writer: &mut BagWriter,
+    header: &Header,
+    rec: &Recording,
+    out: &FrameOutput,
+    ir: &ImageBuf<f32>,
+    pipe: &Pipeline,
+) -> Result<()> {
     let t = out.stamp_ns;
-    let enc = if rec.depth_encoding == "32FC1" { "32FC1" } else { "16UC1" };
-    writer.write("/translucent_tof/depth/corrected", t, &depth_image(header, &out.corrected_z_mm, enc)?)?;
+    let enc = if rec.depth_encoding == "32FC1" {
+        "32FC1"
+    } else {
+        "16UC1"
+    };
+    writer.write(
+        "/translucent_tof/depth/corrected",
+        t,
+        &depth_image(header, &out.corrected_z_mm, enc)?,
+    )?;
     writer.write("/translucent_tof/translucent_mask", t, &mask_image(header, &out.mask))?;
     let xyz = points_m(&rec.intrinsics, &out.corrected_z_mm);
-    writer.write("/translucent_tof/points", t, &organized_cloud(header, &xyz, ir, &out.mask))?;
+    writer.write(
+        "/translucent_tof/points",
+        t,
+        &organized_cloud(header, &xyz, ir, &out.mask),
+    )?;
     let est = TranslucencyEstimate {
         header: header.clone(),
         xi: out.xi.xi,
@@ -264,7 +306,11 @@ pub(super) fn points_m(k: &Intrinsics, z_mm: &ImageBuf<f32>) -> ImageBuf<[f32; 3
             }
         }
     }
-    ImageBuf { width: k.width, height: k.height, data }
+    ImageBuf {
+        width: k.width,
+        height: k.height,
+        data,
+    }
 }
 
 fn summary(r: &serde_json::Value, rec: &Recording) -> String {
@@ -272,7 +318,10 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
     for n in &rec.topics.notes {
         s.push_str(&format!("topics: {n}\n"));
     }
-    s.push_str(&format!("background: {}\n", r["background_choice"].as_str().unwrap_or("")));
+    s.push_str(&format!(
+        "background: {}\n",
+        r["background_choice"].as_str().unwrap_or("")
+    ));
     s.push_str(&format!("Lin: {}\n", r["lin_source"].as_str().unwrap_or("")));
     if let (Some(x), Some(iv)) = (r["xi"].as_f64(), r["xi_interval"].as_array()) {
         s.push_str(&format!(
@@ -285,12 +334,23 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
     } else {
         s.push_str("xi: not determined (no translucent pixels)\n");
     }
-    if let Some(f) = r["eq12_flatness_mm"].as_f64() {
-        s.push_str(&format!("Eq. 12 residual RMS varies by {f:.3} mm over xi in [0, 0.9] (it cannot pick xi)\n"));
+    if let Some(f) = r["eq12_flat_range"].as_array() {
+        let g = |i: usize| f.get(i).and_then(|v| v.as_f64()).unwrap_or(f64::NAN);
+        s.push_str(&format!(
+            "Eq. 12 (the paper's xi criterion) fits within 1 mm for every xi in [{:.2}, {:.2}]: it cannot pick xi\n",
+            g(0),
+            g(1)
+        ));
     }
-    s.push_str(&format!("{} object frames, {} translucent pixels in all\n", r["per_frame"].as_array().map(|v| v.len()).unwrap_or(0), r["translucent_pixels"]));
+    s.push_str(&format!(
+        "{} object frames, {} translucent pixels in all\n",
+        r["per_frame"].as_array().map(|v| v.len()).unwrap_or(0),
+        r["translucent_pixels"]
+    ));
     if let (Some(e), Some(raw)) = (r["mean_frame_rmse_mm"].as_f64(), r["mean_frame_rmse_raw_mm"].as_f64()) {
-        s.push_str(&format!("error against ground truth (mean of per-frame RMS): raw {raw:.1} mm -> recovered {e:.1} mm\n"));
+        s.push_str(&format!(
+            "error against ground truth (mean of per-frame RMS): raw {raw:.1} mm -> recovered {e:.1} mm\n"
+        ));
     }
     s.push_str(&format!("wrote {}", r["out"].as_str().unwrap_or("")));
     s

@@ -58,13 +58,29 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     let mut background = 0;
     render(&scene, |_, f| {
         let h = Header::new(f.stamp_ns, c.frame_id.clone());
-        let go = || -> Result<()> {
-            writer.write(&topic("depth/image_raw"), f.stamp_ns, &depth_image(&h, &f.depth_z_mm, &c.depth_encoding)?)?;
-            writer.write(&topic("ir/image_raw"), f.stamp_ns, &ir_image(&h, &f.ir, &c.ir_encoding)?)?;
+        let mut go = || -> Result<()> {
+            writer.write(
+                &topic("depth/image_raw"),
+                f.stamp_ns,
+                &depth_image(&h, &f.depth_z_mm, &c.depth_encoding)?,
+            )?;
+            writer.write(
+                &topic("ir/image_raw"),
+                f.stamp_ns,
+                &ir_image(&h, &f.ir, &c.ir_encoding)?,
+            )?;
             info.header = h.clone();
             writer.write(&topic("depth/camera_info"), f.stamp_ns, &info)?;
-            let truth_m = ImageBuf { width: f.truth_z_mm.width, height: f.truth_z_mm.height, data: f.truth_z_mm.data.clone() };
-            writer.write(&topic("ground_truth/depth"), f.stamp_ns, &depth_image(&h, &truth_m, "32FC1")?)?;
+            let truth_m = ImageBuf {
+                width: f.truth_z_mm.width,
+                height: f.truth_z_mm.height,
+                data: f.truth_z_mm.data.clone(),
+            };
+            writer.write(
+                &topic("ground_truth/depth"),
+                f.stamp_ns,
+                &depth_image(&h, &truth_m, "32FC1")?,
+            )?;
             Ok(())
         };
         go().map_err(|e| format!("{e:#}"))?;
@@ -76,7 +92,9 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     })
     .map_err(|e| anyhow!(e))?;
     pb.finish_and_clear();
-    writer.finish().with_context(|| format!("finishing {}", a.out.display()))?;
+    writer
+        .finish()
+        .with_context(|| format!("finishing {}", a.out.display()))?;
     let report = json!({
         "scene": a.scene.display().to_string(),
         "out": a.out.display().to_string(),

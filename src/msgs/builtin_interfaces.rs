@@ -6,9 +6,7 @@ use super::RosMessage;
 
 /// `builtin_interfaces/msg/Time`: a point in time, seconds and nanoseconds
 /// since the epoch of the clock that stamped it.
-#[derive(
-    Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize,
-)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
 pub struct Time {
     /// Whole seconds.
     pub sec: i32,

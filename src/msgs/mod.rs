@@ -10,6 +10,7 @@ pub mod builtin_interfaces;
 pub mod sensor_msgs;
 pub mod std_msgs;
 pub mod std_srvs;
+pub mod translucent_tof;
 
 pub use builtin_interfaces::Time;
 pub use sensor_msgs::{CameraInfo, Image, PointCloud2, PointField, RegionOfInterest};
@@ -70,8 +71,7 @@ pub trait RosMessage: serde::Serialize + serde::de::DeserializeOwned {
 }
 
 /// Separator between the definitions of a `ros2msg` schema: exactly 80 `=`.
-pub const SCHEMA_SEPARATOR: &str =
-    "================================================================================";
+pub const SCHEMA_SEPARATOR: &str = "================================================================================";
 
 /// `pkg/msg/Name` → `pkg/Name`, the spelling rosbag2 uses after `MSG:`.
 pub fn short_type_name(type_name: &str) -> String {
@@ -159,8 +159,7 @@ pub(crate) mod cdr_bytes {
     }
 
     pub fn serialize<S: Serializer>(data: &[u8], s: S) -> Result<S::Ok, S::Error> {
-        let len = u32::try_from(data.len())
-            .map_err(|_| S::Error::custom("byte sequence longer than u32::MAX"))?;
+        let len = u32::try_from(data.len()).map_err(|_| S::Error::custom("byte sequence longer than u32::MAX"))?;
         let mut t = s.serialize_tuple(2)?;
         t.serialize_element(&len)?;
         t.serialize_element(&Raw(data))?;
@@ -180,10 +179,7 @@ mod tests {
     fn big_endian_header_accepted() {
         // Time { sec: 1, nanosec: 2 } in CDR_BE
         let bytes = [0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 2];
-        assert_eq!(
-            from_cdr::<Time>(&bytes).unwrap(),
-            Time { sec: 1, nanosec: 2 }
-        );
+        assert_eq!(from_cdr::<Time>(&bytes).unwrap(), Time { sec: 1, nanosec: 2 });
     }
 
     #[test]
@@ -194,10 +190,7 @@ mod tests {
         assert!(err.to_string().contains("0x0007"), "{err}");
         let err = from_cdr::<Image>(&[0, 1, 0, 0, 1, 0]).unwrap_err();
         assert!(matches!(err, MsgError::Decode { .. }), "{err}");
-        assert!(
-            err.to_string().starts_with("sensor_msgs/msg/Image"),
-            "{err}"
-        );
+        assert!(err.to_string().starts_with("sensor_msgs/msg/Image"), "{err}");
     }
 
     #[test]
@@ -211,10 +204,7 @@ mod tests {
 
     #[test]
     fn short_names() {
-        assert_eq!(
-            short_type_name("sensor_msgs/msg/Image"),
-            "sensor_msgs/Image"
-        );
+        assert_eq!(short_type_name("sensor_msgs/msg/Image"), "sensor_msgs/Image");
         assert_eq!(short_type_name("sensor_msgs/Image"), "sensor_msgs/Image");
     }
 

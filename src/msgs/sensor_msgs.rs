@@ -240,11 +240,7 @@ impl RosMessage for PointCloud2 {
         POINT_CLOUD2_DEF
     }
     fn dependencies() -> Vec<(&'static str, &'static str)> {
-        vec![
-            HEADER_DEP,
-            TIME_DEP,
-            (PointField::TYPE_NAME, POINT_FIELD_DEF),
-        ]
+        vec![HEADER_DEP, TIME_DEP, (PointField::TYPE_NAME, POINT_FIELD_DEF)]
     }
 }
 

@@ -61,10 +61,7 @@ mod tests {
     fn empty_request_is_one_byte() {
         let bytes = to_cdr(&TriggerRequest::default()).unwrap();
         assert_eq!(bytes, vec![0, 1, 0, 0, 0]);
-        assert_eq!(
-            from_cdr::<TriggerRequest>(&bytes).unwrap(),
-            TriggerRequest::default()
-        );
+        assert_eq!(from_cdr::<TriggerRequest>(&bytes).unwrap(), TriggerRequest::default());
     }
 
     #[test]
@@ -75,10 +72,7 @@ mod tests {
         };
         let bytes = to_cdr(&r).unwrap();
         // bool, pad to 4, u32 length 3 (with NUL), "ok\0"
-        assert_eq!(
-            bytes,
-            vec![0, 1, 0, 0, 1, 0, 0, 0, 3, 0, 0, 0, b'o', b'k', 0]
-        );
+        assert_eq!(bytes, vec![0, 1, 0, 0, 1, 0, 0, 0, 3, 0, 0, 0, b'o', b'k', 0]);
         assert_eq!(from_cdr::<TriggerResponse>(&bytes).unwrap(), r);
     }
 }

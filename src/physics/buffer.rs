@@ -25,11 +25,7 @@ impl<T: Clone> ImageBuf<T> {
 impl<T> ImageBuf<T> {
     /// Wraps samples; `None` when their count is not `width * height`.
     pub fn from_vec(width: usize, height: usize, data: Vec<T>) -> Option<Self> {
-        (data.len() == width * height).then_some(Self {
-            width,
-            height,
-            data,
-        })
+        (data.len() == width * height).then_some(Self { width, height, data })
     }
 
     /// Number of pixels.

@@ -46,12 +46,7 @@ impl Intrinsics {
     /// `None` when the focal lengths are not positive and finite.
     pub fn from_k(width: usize, height: usize, k: &[f64; 9]) -> Option<Self> {
         let (fx, fy, cx, cy) = (k[0], k[4], k[2], k[5]);
-        let ok = fx.is_finite()
-            && fy.is_finite()
-            && fx > 0.0
-            && fy > 0.0
-            && cx.is_finite()
-            && cy.is_finite();
+        let ok = fx.is_finite() && fy.is_finite() && fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite();
         ok.then_some(Self {
             width,
             height,
@@ -69,11 +64,7 @@ impl Intrinsics {
 
     /// The ray through pixel `(col, row)` with z = 1 (optical frame: x right, y down, z forward).
     pub fn ray(&self, col: usize, row: usize) -> Vector3<f64> {
-        Vector3::new(
-            (col as f64 - self.cx) / self.fx,
-            (row as f64 - self.cy) / self.fy,
-            1.0,
-        )
+        Vector3::new((col as f64 - self.cx) / self.fx, (row as f64 - self.cy) / self.fy, 1.0)
     }
 
     /// Unit ray through pixel `(col, row)`.
@@ -119,12 +110,7 @@ impl Intrinsics {
 
 /// Converts a z-depth image (mm, NaN invalid) to ray distances (mm).
 pub fn z_to_ray_distance(z_mm: &ImageBuf<f32>, scale: &ImageBuf<f64>) -> ImageBuf<f64> {
-    let data = z_mm
-        .data
-        .iter()
-        .zip(&scale.data)
-        .map(|(&z, &s)| z as f64 * s)
-        .collect();
+    let data = z_mm.data.iter().zip(&scale.data).map(|(&z, &s)| z as f64 * s).collect();
     ImageBuf {
         width: z_mm.width,
         height: z_mm.height,

@@ -89,11 +89,7 @@ pub fn emitted_light_from_plane(
 }
 
 /// Eq. 14: `Lin` scales linearly with exposure time.
-pub fn scale_for_exposure(
-    lin: &ImageBuf<f64>,
-    calibrated_exposure_s: f64,
-    exposure_s: f64,
-) -> ImageBuf<f64> {
+pub fn scale_for_exposure(lin: &ImageBuf<f64>, calibrated_exposure_s: f64, exposure_s: f64) -> ImageBuf<f64> {
     let k = exposure_s / calibrated_exposure_s;
     ImageBuf {
         width: lin.width,
@@ -140,9 +136,6 @@ mod tests {
         let d = ImageBuf::filled(40, 30, f64::NAN);
         let ir = ImageBuf::filled(40, 30, 1.0);
         let e = emitted_light_from_plane(&d, &ir, &k.unit_ray_map(), 1.0).unwrap_err();
-        assert!(matches!(
-            e,
-            EmittedLightError::TooFewPixels { valid: 0, .. }
-        ));
+        assert!(matches!(e, EmittedLightError::TooFewPixels { valid: 0, .. }));
     }
 }

@@ -126,16 +126,8 @@ impl ForwardModel {
     /// first; writes them into `out` and returns how many.
     pub fn layer_returns(&self, s: &LayerScene, out: &mut [Return; MAX_BOUNCES]) -> usize {
         let o = &self.options;
-        let (df, db, xi) = (
-            s.foreground_distance_mm,
-            s.background_distance_mm,
-            s.translucency,
-        );
-        let (x, xb, lin) = (
-            s.foreground_albedo_cos,
-            s.background_albedo_cos,
-            s.emitted_light,
-        );
+        let (df, db, xi) = (s.foreground_distance_mm, s.background_distance_mm, s.translucency);
+        let (x, xb, lin) = (s.foreground_albedo_cos, s.background_albedo_cos, s.emitted_light);
         // Eq. 1: first bounce, off the layer.
         out[0] = Return {
             strength: (1.0 - xi) * x * lin / (df * df),
@@ -280,8 +272,7 @@ mod tests {
         assert_eq!(m.layer_returns(&s, &mut r), 4);
         for i in 0..2 {
             let dist = 2000.0 + (i + 1) as f64 * 500.0;
-            let want = 0.25 * 0.5f64.powi(i + 1) * 0.7f64.powi(i + 3) * 0.8f64.powi(i + 2) * 1e10
-                / (dist * dist);
+            let want = 0.25 * 0.5f64.powi(i + 1) * 0.7f64.powi(i + 3) * 0.8f64.powi(i + 2) * 1e10 / (dist * dist);
             let got = r[2 + i as usize];
             assert!((got.strength - want).abs() < 1e-9 * want, "term {i}");
             assert_eq!(got.distance_mm, dist);

@@ -72,9 +72,6 @@ mod tests {
         let sigma = (acc / n).sqrt();
         assert!((sigma - 10.0).abs() < 0.2, "{sigma}");
         // Four times less light: twice the noise.
-        assert!(
-            (noise.bucket_sigma(strength / 4.0) / strength * 4.0)
-                > 1.9 * noise.bucket_sigma(strength) / strength
-        );
+        assert!((noise.bucket_sigma(strength / 4.0) / strength * 4.0) > 1.9 * noise.bucket_sigma(strength) / strength);
     }
 }

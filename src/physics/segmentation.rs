@@ -7,11 +7,7 @@ use super::buffer::ImageBuf;
 pub const DEFAULT_THRESHOLD_MM: f64 = 30.0;
 
 /// `|d - db| > threshold_mm` where both readings are valid (finite, > 0).
-pub fn changed_pixels(
-    distance_mm: &ImageBuf<f64>,
-    background_mm: &ImageBuf<f64>,
-    threshold_mm: f64,
-) -> ImageBuf<bool> {
+pub fn changed_pixels(distance_mm: &ImageBuf<f64>, background_mm: &ImageBuf<f64>, threshold_mm: f64) -> ImageBuf<bool> {
     let data = distance_mm
         .data
         .iter()

@@ -37,9 +37,7 @@ impl Waveform {
                 let p = wrap_phase(phi).abs();
                 1.0 - 2.0 * p / PI
             }
-            Waveform::Harmonics { third, fifth } => {
-                phi.cos() + third * (3.0 * phi).cos() + fifth * (5.0 * phi).cos()
-            }
+            Waveform::Harmonics { third, fifth } => phi.cos() + third * (3.0 * phi).cos() + fifth * (5.0 * phi).cos(),
         }
     }
 }

@@ -52,10 +52,7 @@ pub fn fit_plane_weighted(points: &[(Vector3<f64>, f64)]) -> Option<Plane> {
         .eigenvalues
         .iter()
         .enumerate()
-        .fold(
-            (0, f64::INFINITY),
-            |b, (i, &v)| if v < b.1 { (i, v) } else { b },
-        );
+        .fold((0, f64::INFINITY), |b, (i, &v)| if v < b.1 { (i, v) } else { b });
     let mut n: Vector3<f64> = eig.eigenvectors.column(imin).into_owned();
     // The two larger eigenvalues must span a plane, not a line.
     let mut ev: Vec<f64> = eig.eigenvalues.iter().copied().collect();
@@ -78,12 +75,7 @@ pub fn fit_plane_weighted(points: &[(Vector3<f64>, f64)]) -> Option<Plane> {
 
 /// A plane fit that drops points farther than `k` times the RMS (and at
 /// least `floor_mm`) from the previous fit, `passes` times.
-pub fn fit_plane_robust(
-    points: &[Vector3<f64>],
-    k: f64,
-    floor_mm: f64,
-    passes: usize,
-) -> Option<Plane> {
+pub fn fit_plane_robust(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: usize) -> Option<Plane> {
     let mut kept: Vec<(Vector3<f64>, f64)> = points.iter().map(|p| (*p, 1.0)).collect();
     let mut plane = fit_plane_weighted(&kept)?;
     for _ in 0..passes {
@@ -109,12 +101,7 @@ pub fn fit_plane_robust(
 /// right when the depth noise is as large as the window (a small window on a
 /// noisy layer). Points farther than `k` times the RMS (at least `floor_mm`)
 /// are dropped and the fit repeated, `passes` times.
-pub fn fit_plane_along_rays(
-    points: &[Vector3<f64>],
-    k: f64,
-    floor_mm: f64,
-    passes: usize,
-) -> Option<Plane> {
+pub fn fit_plane_along_rays(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: usize) -> Option<Plane> {
     let mut keep: Vec<bool> = points
         .iter()
         .map(|p| p.z > 0.0 && p.iter().all(|v| v.is_finite()))
@@ -146,9 +133,7 @@ pub fn fit_plane_along_rays(
         } else {
             (coef / norm, 1.0 / norm)
         };
-        let resid = |p: &Vector3<f64>| {
-            (p.z - 1.0 / (coef.x * p.x / p.z + coef.y * p.y / p.z + coef.z)).abs()
-        };
+        let resid = |p: &Vector3<f64>| (p.z - 1.0 / (coef.x * p.x / p.z + coef.y * p.y / p.z + coef.z)).abs();
         let ss: f64 = points
             .iter()
             .zip(&keep)
@@ -267,9 +252,7 @@ mod tests {
 
     #[test]
     fn collinear_points_have_no_plane() {
-        let pts: Vec<_> = (0..10)
-            .map(|i| Vector3::new(i as f64, 0.0, 1000.0))
-            .collect();
+        let pts: Vec<_> = (0..10).map(|i| Vector3::new(i as f64, 0.0, 1000.0)).collect();
         assert!(fit_plane_robust(&pts, 3.0, 1.0, 1).is_none());
     }
 }

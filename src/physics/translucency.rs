@@ -15,9 +15,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::buffer::ImageBuf;
-use super::inversion::{
-    albedo_cos, foreground_distance, predicted_reading, InversionBounds, PixelObservation,
-};
+use super::inversion::{albedo_cos, foreground_distance, predicted_reading, InversionBounds, PixelObservation};
 use super::model::ForwardModel;
 use super::surface::local_planes;
 
@@ -141,12 +139,7 @@ impl FrameSample {
         truth_mm: Option<&ImageBuf<f64>>,
         max_pixels: usize,
     ) -> Self {
-        let n = observations
-            .data
-            .iter()
-            .filter(|o| o.is_some())
-            .count()
-            .max(1);
+        let n = observations.data.iter().filter(|o| o.is_some()).count().max(1);
         let stride = ((n as f64 / max_pixels.max(1) as f64).sqrt().ceil() as usize).max(1);
         let (w, h) = (
             (observations.width).div_ceil(stride),
@@ -180,11 +173,7 @@ impl FrameSample {
 
     /// Observations present.
     pub fn pixel_count(&self) -> usize {
-        self.observations
-            .data
-            .iter()
-            .filter(|o| o.is_some())
-            .count()
+        self.observations.data.iter().filter(|o| o.is_some()).count()
     }
 }
 
@@ -199,6 +188,28 @@ pub struct GroupStat {
     pub count: usize,
 }
 
+/// Error sums of the model's prediction at known foreground distances.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TruthFit {
+    /// Noise-weighted sum of squared errors, mm^2.
+    pub weighted_sse: f64,
+    /// Sum of the weights.
+    pub weight: f64,
+    /// Plain sum of squared errors, mm^2.
+    pub sse: f64,
+    /// Pixels.
+    pub count: usize,
+}
+
+/// What a frame's profile is computed for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ProfileUse {
+    /// Invert every pixel at every ξ: one-material and Eq. 12 statistics.
+    Estimation,
+    /// Only the prediction at the known distances (calibration; much cheaper).
+    Calibration,
+}
+
 /// A frame's statistics at every ξ of [`xi_grid`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameProfile {
@@ -208,8 +219,8 @@ pub struct FrameProfile {
     pub pinned_fraction: Vec<f64>,
     /// Per ξ: Eq. 12's summed squared residual, mm^2.
     pub eq12: Vec<f64>,
-    /// Per ξ: noise-weighted squared error against the known distances (calibration), and its weight sum.
-    pub truth_sse: Vec<(f64, f64)>,
+    /// Per ξ: the error of the predicted reading at the known distances (calibration).
+    pub truth: Vec<TruthFit>,
     /// Pixels in the sample.
     pub pixels: usize,
 }
@@ -220,6 +231,7 @@ pub fn frame_profile(
     bounds: &InversionBounds,
     sample: &FrameSample,
     settings: &XiSettings,
+    usage: ProfileUse,
 ) -> FrameProfile {
     let grid = xi_grid();
     let obs = &sample.observations;
@@ -238,7 +250,7 @@ pub fn frame_profile(
         groups: vec![],
         pinned_fraction: vec![],
         eq12: vec![],
-        truth_sse: vec![],
+        truth: vec![],
         pixels: ds.len(),
     };
     let mut points = ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
@@ -251,11 +263,17 @@ pub fn frame_profile(
     for &xi in &grid {
         let mut pinned = 0usize;
         let mut eq12 = 0.0;
-        let mut sse = (0.0, 0.0);
+        let mut fit = TruthFit::default();
         for i in 0..w * h {
             points.data[i] = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
             xs[i] = f64::NAN;
             let Some(o) = obs.data[i] else { continue };
+            if let Some(t) = sample.truth_mm.as_ref().map(|t| t.data[i]).filter(|t| t.is_finite()) {
+                add_truth_error(model, &o, t, xi, bounds, &mut fit);
+            }
+            if usage == ProfileUse::Calibration {
+                continue;
+            }
             match foreground_distance(model, &o, xi, bounds, None) {
                 Some(est) => {
                     eq12 += est.residual_mm * est.residual_mm;
@@ -270,14 +288,6 @@ pub fn frame_profile(
                     pinned += 1;
                     eq12 += (o.distance_mm - o.background_distance_mm).powi(2);
                 }
-            }
-            if let Some(t) = sample
-                .truth_mm
-                .as_ref()
-                .map(|t| t.data[i])
-                .filter(|t| t.is_finite())
-            {
-                sse = add_truth_error(model, &o, t, xi, bounds, sse);
             }
         }
         // Normals from the smooth-surface prior: local planes over the recovered layer.
@@ -301,10 +311,9 @@ pub fn frame_profile(
                 .map(|v| group_stat(v, settings.min_group_pixels))
                 .collect(),
         );
-        out.pinned_fraction
-            .push(pinned as f64 / ds.len().max(1) as f64);
+        out.pinned_fraction.push(pinned as f64 / ds.len().max(1) as f64);
         out.eq12.push(eq12);
-        out.truth_sse.push(sse);
+        out.truth.push(fit);
     }
     out
 }
@@ -316,21 +325,34 @@ fn add_truth_error(
     truth: f64,
     xi: f64,
     bounds: &InversionBounds,
-    acc: (f64, f64),
-) -> (f64, f64) {
+    acc: &mut TruthFit,
+) {
     if !(truth > bounds.min_distance_mm && truth < o.background_distance_mm) {
-        return acc;
+        return;
     }
-    let Some(x) = albedo_cos(model, o, truth, xi, bounds.max_albedo_cos) else {
+    let (r, w) = match albedo_cos(model, o, truth, xi, bounds.max_albedo_cos) {
+        Some(x) => {
+            let pred = predicted_reading(model, o, truth, xi, x);
+            // Shot-noise weight: phase noise ~ sqrt(total light) / |mixed amplitude|.
+            (
+                model.sensor.wrapped_difference_mm(pred, o.distance_mm),
+                noise_weight(model, o, truth, xi, x),
+            )
+        }
         // No admissible albedo explains the IR at this ξ: the worst error the wrap allows.
-        let r = model.sensor.unambiguous_range_mm() / 2.0;
-        return (acc.0 + r * r, acc.1 + 1.0);
+        None => (model.sensor.unambiguous_range_mm() / 2.0, f64::NAN),
     };
-    let pred = predicted_reading(model, o, truth, xi, x);
-    let r = model.sensor.wrapped_difference_mm(pred, o.distance_mm);
-    // Shot-noise weight: phase noise ~ sqrt(total light) / |mixed amplitude|.
-    let w = noise_weight(model, o, truth, xi, x);
-    (acc.0 + w * r * r, acc.1 + w)
+    let w = if w.is_finite() && w > 0.0 {
+        w
+    } else if acc.count > 0 {
+        acc.weight / acc.count as f64
+    } else {
+        1.0
+    };
+    acc.weighted_sse += w * r * r;
+    acc.weight += w;
+    acc.sse += r * r;
+    acc.count += 1;
 }
 
 /// `1 / var(d)` up to a constant, for shot noise: `|A + iB|^2 / total light`.
@@ -419,15 +441,8 @@ fn one_material_objective(profiles: &[FrameProfile]) -> Vec<(f64, usize)> {
                 return (f64::NAN, gs.len());
             }
             let wsum: f64 = gs.iter().map(|g| 1.0 / (g.std_error * g.std_error)).sum();
-            let mean = gs
-                .iter()
-                .map(|g| g.median / (g.std_error * g.std_error))
-                .sum::<f64>()
-                / wsum;
-            let q = gs
-                .iter()
-                .map(|g| ((g.median - mean) / g.std_error).powi(2))
-                .sum();
+            let mean = gs.iter().map(|g| g.median / (g.std_error * g.std_error)).sum::<f64>() / wsum;
+            let q = gs.iter().map(|g| ((g.median - mean) / g.std_error).powi(2)).sum();
             (q, gs.len())
         })
         .collect()
@@ -463,9 +478,7 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
             frames: profiles.len(),
             pixels,
             profile,
-            note: format!(
-                "{groups} pixel group(s): too few to compare albedos; the data do not determine xi"
-            ),
+            note: format!("{groups} pixel group(s): too few to compare albedos; the data do not determine xi"),
         });
     }
     let phi = (qmin / (groups as f64 - 2.0)).max(1.0);
@@ -492,35 +505,35 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
 pub fn calibrate(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let grid = xi_grid();
     let sse: Vec<f64> = (0..grid.len())
-        .map(|k| profiles.iter().map(|p| p.truth_sse[k].0).sum::<f64>())
+        .map(|k| {
+            profiles
+                .iter()
+                .map(|p| p.truth[k].weighted_sse / p.truth[k].weight.max(1e-300) * p.truth[k].count as f64)
+                .sum::<f64>()
+        })
         .collect();
-    let wsum: f64 = profiles.iter().map(|p| p.truth_sse[0].1).sum();
-    if !(wsum > 0.0) {
+    let count: usize = profiles.iter().map(|p| p.truth[0].count).sum();
+    if count == 0 {
         return None;
     }
     let (kmin, smin) = argmin(&sse)?;
     let xi = refine_minimum(&grid, &sse, kmin);
-    let n = profiles.iter().map(|p| p.pixels).sum::<usize>().max(2);
+    let n = count.max(2);
     let sigma2 = smin / (n as f64 - 1.0);
     let mut interval = threshold_interval(&grid, &sse, kmin, smin + 3.84 * sigma2);
     let per_frame: Vec<f64> = profiles
         .iter()
         .filter_map(|p| {
-            let s: Vec<f64> = p.truth_sse.iter().map(|t| t.0).collect();
+            let s: Vec<f64> = p.truth.iter().map(|t| t.weighted_sse / t.weight.max(1e-300)).collect();
             let (k, _) = argmin(&s)?;
-            (p.truth_sse[k].1 > 0.0).then(|| refine_minimum(&grid, &s, k))
+            (p.truth[k].count > 0).then(|| refine_minimum(&grid, &s, k))
         })
         .collect();
     if per_frame.len() >= 2 {
         let m = per_frame.iter().sum::<f64>() / per_frame.len() as f64;
-        let sd = (per_frame.iter().map(|x| (x - m).powi(2)).sum::<f64>()
-            / (per_frame.len() - 1) as f64)
-            .sqrt();
+        let sd = (per_frame.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (per_frame.len() - 1) as f64).sqrt();
         let half = student_t975(per_frame.len() - 1) * sd / (per_frame.len() as f64).sqrt();
-        interval = [
-            interval[0].min(xi - half).max(0.0),
-            interval[1].max(xi + half).min(1.0),
-        ];
+        interval = [interval[0].min(xi - half).max(0.0), interval[1].max(xi + half).min(1.0)];
     }
     Some(XiEstimate {
         xi,
@@ -530,11 +543,16 @@ pub fn calibrate(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         pixels: n,
         profile: grid
             .iter()
-            .copied()
-            .zip(sse.iter().map(|s| s / wsum))
+            .enumerate()
+            .map(|(k, &x)| {
+                let (s, c) = profiles
+                    .iter()
+                    .fold((0.0, 0usize), |a, p| (a.0 + p.truth[k].sse, a.1 + p.truth[k].count));
+                (x, (s / c.max(1) as f64).sqrt())
+            })
             .collect(),
         note: format!(
-            "fitted to known foreground distances in {} frame(s)",
+            "fitted to known foreground distances in {} frame(s); the profile is the model-vs-measurement RMS (mm)",
             profiles.len()
         ),
     })
@@ -550,8 +568,9 @@ pub fn eq12_residual(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         .collect();
     let (kmin, rmin) = argmin(&r)?;
     let pixels = profiles.iter().map(|p| p.pixels).sum::<usize>().max(1);
-    let interval = threshold_interval(&grid, &r, kmin, rmin * 1.05 + 1e-6 * pixels as f64);
-    let flatness = eq12_flatness(&r);
+    let level = (rmin.sqrt() + (pixels as f64).sqrt()).powi(2); // RMS within 1 mm of its minimum
+    let interval = threshold_interval(&grid, &r, kmin, level);
+    let flat = eq12_flat_range(&r, pixels);
     Some(XiEstimate {
         xi: grid[kmin],
         interval,
@@ -559,22 +578,19 @@ pub fn eq12_residual(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         frames: profiles.len(),
         pixels,
         profile: grid.iter().copied().zip(r.iter().map(|v| (v / pixels as f64).sqrt())).collect(),
-        note: format!("Eq. 12 residual RMS spans {flatness:.3} mm over xi in [0, 0.9]: every xi fits (physics.md §3)"),
+        note: format!("Eq. 12 residual RMS is within 1 mm of its minimum for every xi in [{:.2}, {:.2}]: it cannot pick xi (physics.md §3)", flat[0], flat[1]),
     })
 }
 
-/// The spread of the Eq. 12 residual RMS (mm) over ξ in [0, 0.9].
-pub fn eq12_flatness(r: &[f64]) -> f64 {
+/// The ξ range over which the Eq. 12 residual RMS (over `pixels`) stays
+/// within 1 mm of its minimum: how flat, and so how uninformative, it is.
+pub fn eq12_flat_range(r: &[f64], pixels: usize) -> [f64; 2] {
     let grid = xi_grid();
-    let vals: Vec<f64> = grid
-        .iter()
-        .zip(r)
-        .filter(|(x, _)| **x <= 0.9)
-        .map(|(_, v)| v.sqrt())
-        .collect();
-    let max = vals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let min = vals.iter().copied().fold(f64::INFINITY, f64::min);
-    max - min
+    let n = pixels.max(1) as f64;
+    let rms: Vec<f64> = r.iter().map(|v| (v / n).sqrt()).collect();
+    let Some((k, m)) = argmin(&rms) else { return [0.0, 1.0] };
+    let iv = threshold_interval(&grid, &rms, k, m + 1.0);
+    [iv[0], iv[1]]
 }
 
 fn argmin(v: &[f64]) -> Option<(usize, f64)> {
@@ -620,11 +636,7 @@ fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2]
         let t = ((level - v[a]) / (v[b] - v[a])).clamp(0.0, 1.0);
         grid[a] + t * (grid[b] - grid[a])
     };
-    let lo_x = if lo > 0 {
-        cross(lo, lo - 1) - 0.005
-    } else {
-        0.0
-    };
+    let lo_x = if lo > 0 { cross(lo, lo - 1) - 0.005 } else { 0.0 };
     let hi_x = if hi + 1 < grid.len() {
         cross(hi, hi + 1) + 0.005
     } else {
@@ -642,17 +654,13 @@ fn admissible_range(grid: &[f64], v: &[f64]) -> (f64, f64) {
         .collect();
     (
         ok.first().copied().unwrap_or(0.0),
-        ok.last()
-            .map(|&x| if x >= 0.99 { 1.0 } else { x })
-            .unwrap_or(1.0),
+        ok.last().map(|&x| if x >= 0.99 { 1.0 } else { x }).unwrap_or(1.0),
     )
 }
 
 /// Two-sided 97.5 % quantile of Student's t.
 fn student_t975(dof: usize) -> f64 {
-    const T: [f64; 10] = [
-        12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
-    ];
+    const T: [f64; 10] = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228];
     match dof {
         0 => f64::INFINITY,
         1..=10 => T[dof - 1],

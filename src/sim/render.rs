@@ -74,12 +74,7 @@ fn tilt(x_deg: f64, y_deg: f64) -> Rotation3<f64> {
     Rotation3::from_euler_angles(x_deg.to_radians(), y_deg.to_radians(), 0.0)
 }
 
-fn hit_plane(
-    u: &Vector3<f64>,
-    center: Vector3<f64>,
-    rot: &Rotation3<f64>,
-    half: Option<[f64; 2]>,
-) -> Option<Hit> {
+fn hit_plane(u: &Vector3<f64>, center: Vector3<f64>, rot: &Rotation3<f64>, half: Option<[f64; 2]>) -> Option<Hit> {
     let n = rot * Vector3::new(0.0, 0.0, -1.0);
     let den = n.dot(u);
     if den.abs() < 1e-9 {
@@ -117,10 +112,7 @@ fn hit_cylinder(u: &Vector3<f64>, o: &ObjectSpec) -> Option<Hit> {
         return None;
     }
     let n = Vector3::new(p.x - c.x, 0.0, p.z - c.z) / o.radius_mm;
-    Some(Hit {
-        t,
-        cos: n.dot(u).abs(),
-    })
+    Some(Hit { t, cos: n.dot(u).abs() })
 }
 
 fn hit_object(u: &Vector3<f64>, o: &ObjectSpec) -> Option<Hit> {
@@ -138,10 +130,7 @@ fn hit_object(u: &Vector3<f64>, o: &ObjectSpec) -> Option<Hit> {
 
 /// Renders every frame of the scene: background frames, then each stage's.
 /// `on_frame` receives each frame as it is made (for progress and writing).
-pub fn render(
-    scene: &Scene,
-    mut on_frame: impl FnMut(usize, SimFrame) -> Result<(), String>,
-) -> Result<(), String> {
+pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result<(), String>) -> Result<(), String> {
     let k = scene_intrinsics(scene);
     let sensor = scene_sensor(scene);
     let model = ForwardModel {
@@ -150,8 +139,7 @@ pub fn render(
     };
     let lin = emitted_light_map(scene);
     let n = &scene.noise;
-    let ref_strength =
-        n.reference_albedo * scene.emitter.peak_emitted_light / n.reference_distance_mm.powi(2);
+    let ref_strength = n.reference_albedo * scene.emitter.peak_emitted_light / n.reference_distance_mm.powi(2);
     let noise = ShotNoise::calibrated(&sensor, ref_strength, n.depth_noise_mm, n.read_noise);
     let mut rng = ChaCha8Rng::seed_from_u64(scene.seed);
     let rays = k.unit_ray_map();
@@ -192,11 +180,9 @@ pub fn render(
                     background_albedo_cos: b.albedo * bh.cos,
                     emitted_light: lin.data[i],
                 })),
-                (None, Some(bh)) => Some(model.measure(&[ForwardModel::opaque_return(
-                    bh.t,
-                    b.albedo * bh.cos,
-                    lin.data[i],
-                )])),
+                (None, Some(bh)) => {
+                    Some(model.measure(&[ForwardModel::opaque_return(bh.t, b.albedo * bh.cos, lin.data[i])]))
+                }
                 // A layer with nothing behind it: its first return alone.
                 (Some((h, o)), None) => Some(model.measure(&[ForwardModel::opaque_return(
                     h.t,
@@ -210,15 +196,10 @@ pub fn render(
                 rng.sample(StandardNormal),
                 rng.sample(StandardNormal),
             ];
-            let (d, v) = meas
-                .map(|m| noise.apply(&sensor, &m, z))
-                .unwrap_or((f64::NAN, 0.0));
+            let (d, v) = meas.map(|m| noise.apply(&sensor, &m, z)).unwrap_or((f64::NAN, 0.0));
             depth.push((d / scale.data[i]) as f32);
             ir.push(v.max(0.0) as f32);
-            truth.push(
-                fg.map(|(h, _)| (h.t / scale.data[i]) as f32)
-                    .unwrap_or(f32::NAN),
-            );
+            truth.push(fg.map(|(h, _)| (h.t / scale.data[i]) as f32).unwrap_or(f32::NAN));
         }
         let frame = SimFrame {
             stamp_ns: start_ns + (index as f64 * period_ns).round() as u64,
@@ -295,10 +276,7 @@ mod tests {
         let mut v = vec![];
         for r in 62..82 {
             for c in 78..98 {
-                v.push(
-                    f.depth_z_mm.data[r * k.width + c] as f64 * k.ray_scale(c, r)
-                        - 2000.0 * k.ray_scale(c, r),
-                );
+                v.push(f.depth_z_mm.data[r * k.width + c] as f64 * k.ray_scale(c, r) - 2000.0 * k.ray_scale(c, r));
             }
         }
         let sd = (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();

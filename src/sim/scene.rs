@@ -261,10 +261,7 @@ impl Scene {
         let c = &self.camera;
         let pos = |v: f64| v.is_finite() && v > 0.0;
         if c.width == 0 || c.height == 0 || c.width * c.height > 4096 * 4096 {
-            return Err(format!(
-                "camera size {}x{} is not usable",
-                c.width, c.height
-            ));
+            return Err(format!("camera size {}x{} is not usable", c.width, c.height));
         }
         if !(c.hfov_deg > 0.0 && c.hfov_deg < 170.0 && c.vfov_deg > 0.0 && c.vfov_deg < 170.0) {
             return Err("camera field of view must be in (0, 170) degrees".into());
@@ -287,7 +284,10 @@ impl Scene {
             || !pos(n.reference_albedo)
             || !(n.read_noise >= 0.0)
         {
-            return Err("noise: depth_noise_mm >= 0, reference_distance_mm > 0, reference_albedo > 0, read_noise >= 0 required".into());
+            return Err(
+                "noise: depth_noise_mm >= 0, reference_distance_mm > 0, reference_albedo > 0, read_noise >= 0 required"
+                    .into(),
+            );
         }
         let b = &self.background;
         if !pos(b.distance_mm) || !(b.albedo > 0.0 && b.albedo <= 1.0) {
@@ -303,14 +303,8 @@ impl Scene {
                     "plane" if pos(o.size_mm[0]) && pos(o.size_mm[1]) => {}
                     "cylinder" if pos(o.radius_mm) && pos(o.height_mm) => {}
                     "plane" => return Err(format!("{at}: a plane needs size_mm = [w, h] > 0")),
-                    "cylinder" => {
-                        return Err(format!(
-                            "{at}: a cylinder needs radius_mm and height_mm > 0"
-                        ))
-                    }
-                    other => {
-                        return Err(format!("{at}: shape {other:?}: expected plane or cylinder"))
-                    }
+                    "cylinder" => return Err(format!("{at}: a cylinder needs radius_mm and height_mm > 0")),
+                    other => return Err(format!("{at}: shape {other:?}: expected plane or cylinder")),
                 }
                 if !(o.center_mm[2] > 0.0) {
                     return Err(format!("{at}: center_mm z must be in front of the camera"));

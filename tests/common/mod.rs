@@ -6,9 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use translucent_tof::physics::translucency::XiMethod;
 use translucent_tof::physics::ForwardModel;
-use translucent_tof::pipeline::{
-    rmse_against_truth, BackgroundLatch, DepthFrame, Pipeline, PipelineConfig, XiChoice,
-};
+use translucent_tof::pipeline::{rmse_against_truth, BackgroundLatch, DepthFrame, Pipeline, PipelineConfig, XiChoice};
 use translucent_tof::sim::render::{render_all, scene_intrinsics, scene_sensor};
 use translucent_tof::sim::scene::{BackgroundSpec, ObjectSpec, Scene, StageSpec};
 
@@ -26,11 +24,7 @@ pub fn fig5_scene(seed: u64, xi: f64, albedo_range: (f64, f64), frames_per_stage
             frames: frames_per_stage,
             objects: vec![ObjectSpec {
                 shape: "plane".into(),
-                center_mm: [
-                    rng.random_range(-30.0..30.0),
-                    rng.random_range(-30.0..30.0),
-                    z,
-                ],
+                center_mm: [rng.random_range(-30.0..30.0), rng.random_range(-30.0..30.0), z],
                 size_mm: [w, h],
                 tilt_x_deg: rng.random_range(-5.0..5.0),
                 tilt_y_deg: rng.random_range(-5.0..5.0),
@@ -104,10 +98,7 @@ pub fn run_scene(scene: &Scene, xi: XiChoice, prior_radius_px: usize) -> RunFigu
     }
     pipe.set_background(latch.finish(&k, &config).unwrap());
     let objects: Vec<_> = frames.iter().filter(|f| !f.background_only).collect();
-    let observed: Vec<_> = objects
-        .iter()
-        .map(|f| pipe.observe(&df(f)).unwrap())
-        .collect();
+    let observed: Vec<_> = objects.iter().map(|f| pipe.observe(&df(f)).unwrap()).collect();
     for o in &observed {
         pipe.add_xi_evidence(o);
     }
