@@ -11,6 +11,10 @@
 //! - [`pipeline`]: background latch, segmentation, recovery per frame;
 //! - [`cli`]: the subcommands.
 
+// Image code indexes several parallel buffers by pixel, and `!(x > 0.0)` is
+// meant: it rejects NaN too.
+#![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod bag;
 pub mod cli;
 pub mod image;

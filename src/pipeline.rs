@@ -110,6 +110,9 @@ impl Default for PipelineConfig {
     }
 }
 
+/// An objective over the ξ grid: `(xi, value)` pairs.
+pub type Profile = Vec<(f64, f64)>;
+
 /// One depth + IR pair.
 #[derive(Debug, Clone)]
 pub struct DepthFrame {
@@ -543,7 +546,7 @@ impl Pipeline {
 
     /// The Eq. 12 comparison over the pooled frames: its RMS profile (mm) and
     /// the ξ range over which it stays within 1 mm of its minimum.
-    pub fn eq12_comparison(&self) -> Option<(Vec<(f64, f64)>, [f64; 2])> {
+    pub fn eq12_comparison(&self) -> Option<(Profile, [f64; 2])> {
         let est = translucency::eq12_residual(&self.profiles)?;
         let r: Vec<f64> = (0..translucency::xi_grid().len())
             .map(|k| self.profiles.iter().map(|p| p.eq12[k]).sum())

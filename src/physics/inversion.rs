@@ -159,6 +159,28 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
     None
 }
 
+/// [`albedo_cos`] kept within `[0, x_max]`: where noise puts the IR outside
+/// what any admissible albedo explains at this `(df, xi)`, the nearer bound,
+/// flagged `true` (pinned).
+pub fn albedo_cos_clamped(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> (f64, bool) {
+    if let Some(x) = albedo_cos(model, obs, df, xi, x_max) {
+        return (x, false);
+    }
+    let scene = LayerScene {
+        foreground_distance_mm: df,
+        background_distance_mm: obs.background_distance_mm,
+        translucency: xi,
+        foreground_albedo_cos: x_max,
+        background_albedo_cos: obs.background_albedo_cos(model.options.ambient_offset),
+        emitted_light: obs.emitted_light,
+    };
+    if model.layer_ir(&scene) < obs.ir {
+        (x_max, true)
+    } else {
+        (0.0, true)
+    }
+}
+
 /// The reading the model predicts for `(df, xi, X)` at this pixel (Eq. 11), mm.
 pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x: f64) -> f64 {
     let scene = LayerScene {

@@ -15,7 +15,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::buffer::ImageBuf;
-use super::inversion::{albedo_cos, foreground_distance, predicted_reading, InversionBounds, PixelObservation};
+use super::inversion::{albedo_cos_clamped, foreground_distance, predicted_reading, InversionBounds, PixelObservation};
 use super::model::ForwardModel;
 use super::surface::local_planes;
 
@@ -330,18 +330,13 @@ fn add_truth_error(
     if !(truth > bounds.min_distance_mm && truth < o.background_distance_mm) {
         return;
     }
-    let (r, w) = match albedo_cos(model, o, truth, xi, bounds.max_albedo_cos) {
-        Some(x) => {
-            let pred = predicted_reading(model, o, truth, xi, x);
-            // Shot-noise weight: phase noise ~ sqrt(total light) / |mixed amplitude|.
-            (
-                model.sensor.wrapped_difference_mm(pred, o.distance_mm),
-                noise_weight(model, o, truth, xi, x),
-            )
-        }
-        // No admissible albedo explains the IR at this ξ: the worst error the wrap allows.
-        None => (model.sensor.unambiguous_range_mm() / 2.0, f64::NAN),
-    };
+    // Noise can put the IR outside what any admissible albedo explains: the bound, not a penalty
+    // (a penalty would push ξ toward values where fewer pixels leave the range).
+    let (x, _) = albedo_cos_clamped(model, o, truth, xi, bounds.max_albedo_cos);
+    let pred = predicted_reading(model, o, truth, xi, x);
+    let r = model.sensor.wrapped_difference_mm(pred, o.distance_mm);
+    // Shot-noise weight: phase noise ~ sqrt(total light) / |mixed amplitude|.
+    let w = noise_weight(model, o, truth, xi, x);
     let w = if w.is_finite() && w > 0.0 {
         w
     } else if acc.count > 0 {

@@ -290,13 +290,13 @@ impl Scene {
             );
         }
         let b = &self.background;
-        if !pos(b.distance_mm) || !(b.albedo > 0.0 && b.albedo <= 1.0) {
+        if !(pos(b.distance_mm) && b.albedo > 0.0 && b.albedo <= 1.0) {
             return Err("background: distance_mm > 0 and albedo in (0, 1] required".into());
         }
         for (si, s) in self.stages.iter().enumerate() {
             for (oi, o) in s.objects.iter().enumerate() {
                 let at = format!("stage {} object {}", si + 1, oi + 1);
-                if !(0.0..=1.0).contains(&o.xi) || !(o.albedo > 0.0 && o.albedo <= 1.0) {
+                if !((0.0..=1.0).contains(&o.xi) && o.albedo > 0.0 && o.albedo <= 1.0) {
                     return Err(format!("{at}: xi in [0, 1] and albedo in (0, 1] required"));
                 }
                 match o.shape.as_str() {
