@@ -478,7 +478,7 @@ impl Pipeline {
             }
         }
         if self.config.prior_radius_px > 0 {
-            let planes = local_planes(&points, &obs.mask, self.config.prior_radius_px, 6);
+            let planes = local_planes(&points, &self.rays, &obs.mask, self.config.prior_radius_px, 12);
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
             for i in 0..n {
                 if !obs.mask.data[i] {

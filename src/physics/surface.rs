@@ -1,7 +1,7 @@
 //! Plane fits over 3D points: the white calibration plane (Eq. 13), and the
 //! smooth-surface prior on a recovered layer (local planes over a window).
 
-use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use nalgebra::{Matrix3, SMatrix, SVector, SymmetricEigen, Vector3};
 
 use super::buffer::ImageBuf;
 
@@ -16,6 +16,8 @@ pub struct Plane {
     pub rms_mm: f64,
     /// Points kept by the fit.
     pub count: usize,
+    /// Standard error of the normal's direction, radians (NaN when the fit does not say).
+    pub normal_sigma_rad: f64,
 }
 
 impl Plane {
@@ -70,6 +72,7 @@ pub fn fit_plane_weighted(points: &[(Vector3<f64>, f64)]) -> Option<Plane> {
         offset,
         rms_mm: rms,
         count: points.len(),
+        normal_sigma_rad: f64::NAN,
     })
 }
 
@@ -141,11 +144,18 @@ pub fn fit_plane_along_rays(points: &[Vector3<f64>], k: f64, floor_mm: f64, pass
             .map(|(p, _)| resid(p).powi(2))
             .sum();
         let rms = (ss / n as f64).sqrt();
+        // Residuals are in z units under the z^4 weights, so Cov(coef) = rms^2 (A^T W A)^-1;
+        // the normal turns by d(alpha, beta) / |gamma|.
+        let normal_sigma_rad = ata
+            .try_inverse()
+            .map(|inv| rms * (inv[(0, 0)] + inv[(1, 1)]).max(0.0).sqrt() / coef.z.abs())
+            .unwrap_or(f64::INFINITY);
         plane = Some(Plane {
             normal,
             offset,
             rms_mm: rms,
             count: n,
+            normal_sigma_rad,
         });
         if pass == passes {
             break;
@@ -165,41 +175,166 @@ pub fn fit_plane_along_rays(points: &[Vector3<f64>], k: f64, floor_mm: f64, pass
     plane
 }
 
+/// The plane tangent, at the ray `center` (a unit or z = 1 ray), to a smooth
+/// surface through points with depth noise along the rays: a quadric in
+/// inverse depth, `1/z = c0 + c1 a + c2 b + c3 a^2 + c4 a b + c5 b^2` with
+/// `(a, b)` the image coordinates relative to the centre ray, fitted like
+/// [`fit_plane_along_rays`]. Unbiased on curved layers (a cylinder) where a
+/// plane over the same window is not; `None` with fewer than 10 points or a
+/// degenerate window.
+pub fn fit_tangent_plane_along_rays(
+    points: &[Vector3<f64>],
+    center: &Vector3<f64>,
+    k: f64,
+    floor_mm: f64,
+    passes: usize,
+) -> Option<Plane> {
+    if center.z <= 0.0 {
+        return None;
+    }
+    let (a0, b0) = (center.x / center.z, center.y / center.z);
+    let row = |p: &Vector3<f64>| {
+        let (a, b) = (p.x / p.z - a0, p.y / p.z - b0);
+        SVector::<f64, 6>::from([1.0, a, b, a * a, a * b, b * b])
+    };
+    let mut keep: Vec<bool> = points
+        .iter()
+        .map(|p| p.z > 0.0 && p.iter().all(|v| v.is_finite()))
+        .collect();
+    let mut plane = None;
+    for pass in 0..=passes {
+        let mut ata = SMatrix::<f64, 6, 6>::zeros();
+        let mut atb = SVector::<f64, 6>::zeros();
+        let mut n = 0;
+        for (p, _) in points.iter().zip(&keep).filter(|(_, k)| **k) {
+            let z2 = p.z * p.z;
+            let w = z2 * z2;
+            let r = row(p);
+            ata += r * r.transpose() * w;
+            atb += r * (w / p.z);
+            n += 1;
+        }
+        if n < 10 {
+            return plane;
+        }
+        let inv = ata.try_inverse()?;
+        let c = inv * atb;
+        if !c.iter().all(|v| v.is_finite()) || c[0] <= 0.0 {
+            return plane;
+        }
+        let resid = |p: &Vector3<f64>| (p.z - 1.0 / row(p).dot(&c)).abs();
+        let kept = || points.iter().zip(&keep).filter(|(_, k)| **k).map(|(p, _)| p);
+        let rms = (kept().map(|p| resid(p).powi(2)).sum::<f64>() / n as f64).sqrt();
+        // Tangent plane at the centre: 1/z = c0 + c1 (a - a0) + c2 (b - b0), i.e. coef . p = 1.
+        let coef = Vector3::new(c[1], c[2], c[0] - c[1] * a0 - c[2] * b0);
+        let norm = coef.norm();
+        let (normal, offset) = if coef.z > 0.0 {
+            (-coef / norm, -1.0 / norm)
+        } else {
+            (coef / norm, 1.0 / norm)
+        };
+        let normal_sigma_rad = rms * (inv[(1, 1)] + inv[(2, 2)]).max(0.0).sqrt() / c[0];
+        plane = Some(Plane {
+            normal,
+            offset,
+            rms_mm: rms,
+            count: n,
+            normal_sigma_rad,
+        });
+        if pass == passes {
+            break;
+        }
+        let cut = (k * rms).max(floor_mm);
+        let mut changed = false;
+        for (p, kp) in points.iter().zip(keep.iter_mut()) {
+            if *kp && resid(p) > cut {
+                *kp = false;
+                changed = true;
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    plane
+}
+
+/// Local planes whose window grows until the normal is known to
+/// `max_normal_sigma_rad` (noisy layers need wide windows, curved ones narrow):
+/// for each pixel the first of `radii` (ascending) that reaches it, else the widest.
+pub fn local_planes_adaptive(
+    points: &ImageBuf<Vector3<f64>>,
+    rays: &ImageBuf<Vector3<f64>>,
+    mask: &ImageBuf<bool>,
+    radii: &[usize],
+    min_points: usize,
+    max_normal_sigma_rad: f64,
+) -> ImageBuf<Option<Plane>> {
+    let mut out = ImageBuf::filled(points.width, points.height, None);
+    for i in 0..out.len() {
+        if !mask.data[i] || !points.data[i].x.is_finite() {
+            continue;
+        }
+        for (k, &r) in radii.iter().enumerate() {
+            if let Some(p) = local_plane_at(points, rays, mask, i, r, min_points) {
+                out.data[i] = Some(p);
+                if k + 1 == radii.len() || p.normal_sigma_rad <= max_normal_sigma_rad {
+                    break;
+                }
+            }
+        }
+    }
+    out
+}
+
 /// Local planes over a `(2 radius + 1)^2` window: for every pixel where
-/// `points` is finite and `mask` holds, a robust plane (fitted along the rays)
+/// `mask` holds, the robust tangent plane (fitted along the rays, see
+/// [`fit_tangent_plane_along_rays`]) at the pixel's ray `rays`
 /// through the masked neighbours' points (`None` with fewer than
 /// `min_points`). The smooth-surface prior: a noisy per-pixel depth is
 /// replaced by its neighbourhood's plane.
 pub fn local_planes(
     points: &ImageBuf<Vector3<f64>>,
+    rays: &ImageBuf<Vector3<f64>>,
     mask: &ImageBuf<bool>,
     radius: usize,
     min_points: usize,
 ) -> ImageBuf<Option<Plane>> {
-    let (w, h) = (points.width, points.height);
-    let mut out = ImageBuf::filled(w, h, None);
-    let mut window = Vec::with_capacity((2 * radius + 1).pow(2));
-    for row in 0..h {
-        for col in 0..w {
-            let i = row * w + col;
-            if !mask.data[i] {
-                continue;
-            }
-            window.clear();
-            for r in row.saturating_sub(radius)..(row + radius + 1).min(h) {
-                for c in col.saturating_sub(radius)..(col + radius + 1).min(w) {
-                    let j = r * w + c;
-                    if mask.data[j] && points.data[j].x.is_finite() {
-                        window.push(points.data[j]);
-                    }
-                }
-            }
-            if window.len() >= min_points.max(3) {
-                out.data[i] = fit_plane_along_rays(&window, 2.5, 1.0, 2);
-            }
+    let mut out = ImageBuf::filled(points.width, points.height, None);
+    for i in 0..out.len() {
+        if mask.data[i] {
+            out.data[i] = local_plane_at(points, rays, mask, i, radius, min_points);
         }
     }
     out
+}
+
+/// The plane through the masked, finite points in the window around pixel `i`.
+fn local_plane_at(
+    points: &ImageBuf<Vector3<f64>>,
+    rays: &ImageBuf<Vector3<f64>>,
+    mask: &ImageBuf<bool>,
+    i: usize,
+    radius: usize,
+    min_points: usize,
+) -> Option<Plane> {
+    let (w, h) = (points.width, points.height);
+    let (col, row) = (i % w, i / w);
+    let mut window = Vec::with_capacity((2 * radius + 1).pow(2));
+    for r in row.saturating_sub(radius)..(row + radius + 1).min(h) {
+        for c in col.saturating_sub(radius)..(col + radius + 1).min(w) {
+            let j = r * w + c;
+            if mask.data[j] && points.data[j].x.is_finite() {
+                window.push(points.data[j]);
+            }
+        }
+    }
+    if window.len() < min_points.max(3) {
+        return None;
+    }
+    // The tangent to a quadric where the window allows it (curved layers), else a plane.
+    fit_tangent_plane_along_rays(&window, &rays.data[i], 2.5, 1.0, 2)
+        .or_else(|| fit_plane_along_rays(&window, 2.5, 1.0, 2))
 }
 
 #[cfg(test)]
