@@ -234,6 +234,8 @@ pub struct FrameProfile {
     pub truth: Vec<TruthFit>,
     /// Pixels in the sample.
     pub pixels: usize,
+    /// The object's pose in this frame, as the median measured distance, mm.
+    pub median_distance_mm: f64,
 }
 
 /// Computes one frame's profile on the grid (the expensive part, done once per frame).
@@ -247,15 +249,18 @@ pub fn frame_profile(
     let grid = xi_grid();
     let obs = &sample.observations;
     let (w, h) = (obs.width, obs.height);
-    // Groups by the measured distance (independent of ξ): quantile bins.
-    let mut ds: Vec<f64> = obs.data.iter().flatten().map(|o| o.distance_mm).collect();
+    // Groups: quantile bins of the measured distance averaged over a neighbourhood. Not ξ's
+    // doing, and not the pixel's own noise either: bins of the raw reading would sort pixels
+    // by their noise, and the recovered layer with them.
+    let smooth = neighbourhood_mean_distance(obs, (6 / sample.stride).max(1));
+    let mut ds: Vec<f64> = smooth.iter().copied().filter(|d| d.is_finite()).collect();
     ds.sort_by(f64::total_cmp);
     let n_groups = settings
         .groups_per_frame
         .min(ds.len() / settings.min_group_pixels.max(1))
         .max(1);
     let edges: Vec<f64> = (1..n_groups).map(|k| ds[k * ds.len() / n_groups]).collect();
-    let group_of = |d: f64| edges.iter().filter(|&&e| d >= e).count();
+    let group_of = |i: usize| edges.iter().filter(|&&e| smooth[i] >= e).count();
     // Windows from `normal_radius_px` up to 6x that, in lattice steps; each pixel takes the
     // narrowest whose normal is known to 0.05 rad (a cos(theta) bias under 0.13 %).
     let radii: Vec<usize> = {
@@ -272,6 +277,7 @@ pub fn frame_profile(
         eq12: vec![],
         truth: vec![],
         pixels: ds.len(),
+        median_distance_mm: ds.get(ds.len() / 2).copied().unwrap_or(f64::NAN),
     };
     let mut points = ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
     let mut xs = vec![f64::NAN; w * h];
@@ -314,10 +320,12 @@ pub fn frame_profile(
         let planes = local_planes_adaptive(&points, &sample.rays, &mask, &radii, 12, 0.05);
         let mut per_group: Vec<Vec<f64>> = vec![vec![]; n_groups];
         for i in 0..w * h {
-            let Some(o) = obs.data[i] else { continue };
+            if obs.data[i].is_none() {
+                continue;
+            }
             if !xs[i].is_finite() {
                 // Pinned by the inversion (counted above): censored too.
-                per_group[group_of(o.distance_mm)].push(CENSORED_ALBEDO.ln());
+                per_group[group_of(i)].push(CENSORED_ALBEDO.ln());
                 continue;
             }
             // Every pixel stays in its group at every ξ (so no ξ wins by dropping pixels): one
@@ -334,7 +342,7 @@ pub fn frame_profile(
             if rho > MAX_ALBEDO && cos > MIN_INCIDENCE_COS {
                 pinned += 1;
             }
-            per_group[group_of(o.distance_mm)].push(rho.min(CENSORED_ALBEDO).ln());
+            per_group[group_of(i)].push(rho.min(CENSORED_ALBEDO).ln());
         }
         out.groups.push(
             per_group
@@ -347,6 +355,29 @@ pub fn frame_profile(
         out.truth.push(fit);
     }
     out
+}
+
+/// Mean reading over the observed pixels within `radius` (lattice steps) of each pixel.
+fn neighbourhood_mean_distance(obs: &ImageBuf<Option<PixelObservation>>, radius: usize) -> Vec<f64> {
+    let (w, h) = (obs.width, obs.height);
+    (0..w * h)
+        .map(|i| {
+            if obs.data[i].is_none() {
+                return f64::NAN;
+            }
+            let (col, row) = (i % w, i / w);
+            let (mut sum, mut n) = (0.0, 0);
+            for r in row.saturating_sub(radius)..(row + radius + 1).min(h) {
+                for c in col.saturating_sub(radius)..(col + radius + 1).min(w) {
+                    if let Some(o) = obs.data[r * w + c] {
+                        sum += o.distance_mm;
+                        n += 1;
+                    }
+                }
+            }
+            sum / n as f64
+        })
+        .collect()
 }
 
 /// Adds one pixel's noise-weighted error against a known foreground distance.
@@ -474,13 +505,30 @@ fn one_material_objective(profiles: &[FrameProfile]) -> Vec<(f64, usize)> {
         .collect()
 }
 
+/// Poses among the frames: their median distances, clustered with a gap of
+/// more than 5 % (and 50 mm) between clusters.
+fn distinct_poses(profiles: &[FrameProfile]) -> usize {
+    let mut d: Vec<f64> = profiles
+        .iter()
+        .map(|p| p.median_distance_mm)
+        .filter(|d| d.is_finite())
+        .collect();
+    d.sort_by(f64::total_cmp);
+    if d.is_empty() {
+        return 0;
+    }
+    1 + d.windows(2).filter(|w| w[1] - w[0] > (0.05 * w[0]).max(50.0)).count()
+}
+
 /// ξ as one material (physics.md §3, item 2), pooled over the frames given.
 ///
 /// The interval is where `Q` rises by less than 3.84 times the overdispersion
 /// `max(1, Q_min / (G - 2))` above its minimum (a profile-likelihood interval
 /// that widens when the groups scatter more than their errors say), widened
-/// by half a grid step. With fewer than three groups it is the whole
-/// admissible range: the data cannot tell.
+/// by half a grid step. With fewer than three groups, or the object seen in
+/// one pose only, it is the whole admissible range: the data cannot tell
+/// (physics.md §3 measured one frame of one tilted plane: a profile that
+/// falls through the truth).
 pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let grid = xi_grid();
     let ok = eligible(profiles);
@@ -495,8 +543,14 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let pixels = profiles.iter().map(|p| p.pixels).sum();
     let profile: Vec<(f64, f64)> = grid.iter().copied().zip(q.iter().copied()).collect();
     let xi = refine_minimum(&grid, &q, kmin);
-    if groups < 3 {
+    let poses = distinct_poses(profiles);
+    if groups < 3 || poses < 2 {
         let (lo, hi) = admissible_range(&grid, &q);
+        let why = if groups < 3 {
+            format!("{groups} pixel group(s): too few to compare albedos")
+        } else {
+            "the object has been seen in one pose only: one view of one surface does not determine xi (physics.md §3); move it to another distance or give xi".to_string()
+        };
         return Some(XiEstimate {
             xi,
             interval: [lo, hi],
@@ -504,7 +558,7 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
             frames: profiles.len(),
             pixels,
             profile,
-            note: format!("{groups} pixel group(s): too few to compare albedos; the data do not determine xi"),
+            note: why,
         });
     }
     let phi = (qmin / (groups as f64 - 2.0)).max(1.0);
@@ -517,7 +571,7 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         pixels,
         profile,
         note: format!(
-            "albedo consistency over {groups} groups in {} frame(s); overdispersion {phi:.2}",
+            "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi:.2}",
             profiles.len()
         ),
     })
