@@ -209,12 +209,14 @@ impl OutputArgs {
     }
 
     /// Prints the human summary (to stderr when stdout carries JSON).
+    /// A closed pipe (`| head`) is not an error worth a panic: the summary is dropped.
     pub fn summary(&self, text: &str) {
-        if self.json_on_stdout() {
-            eprintln!("{text}");
+        use std::io::Write;
+        let _ = if self.json_on_stdout() {
+            writeln!(std::io::stderr(), "{text}")
         } else {
-            println!("{text}");
-        }
+            writeln!(std::io::stdout(), "{text}")
+        };
     }
 
     /// Writes the JSON report, if asked.
@@ -222,7 +224,8 @@ impl OutputArgs {
         let Some(path) = &self.json else { return Ok(()) };
         let text = serde_json::to_string_pretty(value)?;
         if self.json_on_stdout() {
-            println!("{text}");
+            use std::io::Write;
+            writeln!(std::io::stdout(), "{text}").context("writing the JSON report to standard output")?;
         } else {
             write_atomic(path, text.as_bytes())?;
         }
