@@ -46,7 +46,7 @@ pub enum PipelineError {
         total: usize,
     },
     /// The emitted-light map could not be derived.
-    #[error("emitted light (Eq. 13): {0}")]
+    #[error("emitted light (Eq. 13)")]
     EmittedLight(#[from] EmittedLightError),
     /// A given Lin calibration does not match the camera.
     #[error("the Lin calibration is {got_w}x{got_h} but the camera is {want_w}x{want_h}")]

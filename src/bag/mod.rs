@@ -25,7 +25,7 @@ use crate::msgs::MsgError;
 #[derive(Debug, thiserror::Error)]
 pub enum BagError {
     /// The file system refused (open, read, write, rename).
-    #[error("{}: {what}: {source}", path.display())]
+    #[error("{}: {what}", path.display())]
     Io {
         /// File concerned.
         path: PathBuf,
@@ -48,7 +48,7 @@ pub enum BagError {
         path: PathBuf,
     },
     /// MCAP records that do not parse (bad CRC, bad lengths, bad compression...).
-    #[error("{}: corrupt MCAP: {source}", path.display())]
+    #[error("{}: corrupt MCAP", path.display())]
     Corrupt {
         /// File concerned.
         path: PathBuf,
@@ -82,7 +82,7 @@ pub enum BagError {
         found: String,
     },
     /// A message whose CDR does not decode.
-    #[error("topic {topic}: {source}")]
+    #[error("topic {topic}")]
     Decode {
         /// Topic of the message.
         topic: String,
@@ -90,7 +90,7 @@ pub enum BagError {
         source: MsgError,
     },
     /// A message that could not be encoded for writing.
-    #[error("{}: topic {topic}: {source}", path.display())]
+    #[error("{}: topic {topic}", path.display())]
     Encode {
         /// File being written.
         path: PathBuf,
@@ -112,7 +112,7 @@ pub enum BagError {
         new: &'static str,
     },
     /// The MCAP writer failed.
-    #[error("{}: writing MCAP: {source}", path.display())]
+    #[error("{}: writing MCAP", path.display())]
     Write {
         /// File being written.
         path: PathBuf,

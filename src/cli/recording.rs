@@ -160,6 +160,15 @@ impl Recording {
                 how: format!("first {k} frames (--background-frames)"),
             }),
             None => {
+                // A background needs valid readings before a change can be looked for.
+                let first = &self.frames[0].z_mm;
+                let valid = first.data.iter().filter(|z| z.is_finite() && **z > 0.0).count();
+                if valid < (first.len() / 20).max(10) {
+                    bail!(
+                        "no background: the first frame has {valid} valid depth pixels of {} (NaN/0 depth everywhere?)",
+                        first.len()
+                    );
+                }
                 let depths: Vec<ImageBuf<f32>> = self.frames.iter().map(|f| f.z_mm.clone()).collect();
                 let change = detect_scene_change(&depths, threshold_mm, min_region).ok_or_else(|| {
                     anyhow!("no background: the scene never changes over {n} frames (no object appears in front of the first frame's background); pass --background-frames N if the object is there from the start")

@@ -231,8 +231,17 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     });
     if let Some((profile, flat)) = pipe.eq12_comparison() {
         // The paper's criterion beside ours: where it would put ξ, and how flat it is.
-        let best = profile.iter().copied().filter(|p| p.1.is_finite()).min_by(|a, b| a.1.total_cmp(&b.1));
-        let at = |x: f64| profile.iter().min_by(|a, b| (a.0 - x).abs().total_cmp(&(b.0 - x).abs())).map(|p| p.1);
+        let best = profile
+            .iter()
+            .copied()
+            .filter(|p| p.1.is_finite())
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        let at = |x: f64| {
+            profile
+                .iter()
+                .min_by(|a, b| (a.0 - x).abs().total_cmp(&(b.0 - x).abs()))
+                .map(|p| p.1)
+        };
         report["eq12"] = json!({
             "xi": best.map(|b| b.0),
             "rms_mm_at_its_xi": best.map(|b| b.1),
@@ -343,7 +352,11 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         s.push_str("xi: not determined (no translucent pixels)\n");
     }
     let e = &r["eq12"];
-    if let (Some(x), Some(rms), Some(flat)) = (e["xi"].as_f64(), e["rms_mm_at_its_xi"].as_f64(), e["flat_range"].as_array()) {
+    if let (Some(x), Some(rms), Some(flat)) = (
+        e["xi"].as_f64(),
+        e["rms_mm_at_its_xi"].as_f64(),
+        e["flat_range"].as_array(),
+    ) {
         let g = |i: usize| flat.get(i).and_then(|v| v.as_f64()).unwrap_or(f64::NAN);
         s.push_str(&format!(
             "Eq. 12 (the paper's residual) would pick xi = {x:.2} (RMS {rms:.2} mm; within 1 mm of that for xi in [{:.2}, {:.2}], {:.2} mm at the estimate): residuals alone do not determine xi\n",

@@ -42,7 +42,7 @@ pub enum MsgError {
         id: u16,
     },
     /// The CDR body does not match the type (too short, bad bool, bad UTF-8, ...).
-    #[error("{type_name}: CDR decoding failed: {source}")]
+    #[error("{type_name}: CDR decoding failed")]
     Decode {
         /// ROS type being decoded.
         type_name: &'static str,
@@ -50,7 +50,7 @@ pub enum MsgError {
         source: cdr_encoding::Error,
     },
     /// The message could not be encoded (e.g. a sequence longer than `u32::MAX`).
-    #[error("{type_name}: CDR encoding failed: {source}")]
+    #[error("{type_name}: CDR encoding failed")]
     Encode {
         /// ROS type being encoded.
         type_name: &'static str,

@@ -10,7 +10,7 @@ use crate::physics::ModelOptions;
 #[derive(Debug, Error)]
 pub enum SceneError {
     /// The TOML did not parse into a scene.
-    #[error("{path}: {source}")]
+    #[error("{path}")]
     Parse {
         /// The file.
         path: String,
@@ -26,7 +26,7 @@ pub enum SceneError {
         what: String,
     },
     /// The file could not be read.
-    #[error("{path}: {source}")]
+    #[error("{path}")]
     Io {
         /// The file.
         path: String,
@@ -342,19 +342,28 @@ mod tests {
         assert_eq!(s.physics, ModelOptions::default());
     }
 
+    /// The error and its causes, as `main` prints them.
+    fn chain(e: &dyn std::error::Error) -> String {
+        let mut s = e.to_string();
+        let mut cur = e.source();
+        while let Some(c) = cur {
+            s.push_str(&format!(": {c}"));
+            cur = c.source();
+        }
+        s
+    }
+
     #[test]
     fn bad_values_are_named() {
-        let e = Scene::from_toml("[background]\ndistance_mm = -5\n", "x.toml")
-            .unwrap_err()
-            .to_string();
+        let e = Scene::from_toml("[background]\ndistance_mm = -5\n", "x.toml").unwrap_err();
+        let e = chain(&e);
         assert!(e.contains("x.toml") && e.contains("background"), "{e}");
         let e = Scene::from_toml("[background]\ndistance_mm = 5\n[[stage]]\n[[stage.objects]]\nshape = \"cone\"\ncenter_mm = [0,0,1]\nxi = 0.5\nalbedo = 0.5\n", "x.toml")
-            .unwrap_err()
-            .to_string();
+            .unwrap_err();
+        let e = chain(&e);
         assert!(e.contains("cone"), "{e}");
-        let e = Scene::from_toml("[background]\ndistance_mm = 5\ncolour = 3\n", "x.toml")
-            .unwrap_err()
-            .to_string();
+        let e = Scene::from_toml("[background]\ndistance_mm = 5\ncolour = 3\n", "x.toml").unwrap_err();
+        let e = chain(&e);
         assert!(e.contains("colour"), "{e}");
     }
 }

@@ -1,0 +1,974 @@
+//! The `translucent_tof` binary end to end: the offline subcommands on the
+//! bundled bags and on scenes drawn here (happy paths), and bad input that
+//! must fail with a message naming the cause and leave no output behind.
+//!
+//! Every run happens in its own temporary directory (the binary's working
+//! directory), so anything it writes, wanted or not, is seen.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::Value;
+use tempfile::TempDir;
+use translucent_tof::bag::{BagReader, BagWriter};
+use translucent_tof::image::{depth_image, ir_image};
+use translucent_tof::msgs::translucent_tof::TranslucencyEstimate;
+use translucent_tof::msgs::{CameraInfo, Header, Image, PointCloud2, PointField, RegionOfInterest};
+use translucent_tof::physics::ImageBuf;
+use translucent_tof::sim::render::scene_intrinsics;
+use translucent_tof::sim::{render_all, Scene, SimFrame};
+
+// ---------------------------------------------------------------- helpers
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn bundled(name: &str) -> PathBuf {
+    repo().join("bags").join(name)
+}
+
+/// Runs the binary with `dir` as its working directory.
+fn run(dir: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_translucent_tof"))
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("running the translucent_tof binary")
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+fn describe(out: &Output) -> String {
+    format!(
+        "status {:?}\n--- stdout ---\n{}\n--- stderr ---\n{}",
+        out.status.code(),
+        text(&out.stdout),
+        text(&out.stderr)
+    )
+}
+
+fn assert_ok(out: &Output) {
+    assert!(out.status.success(), "expected success, got {}", describe(out));
+}
+
+fn read_json(path: &Path) -> Value {
+    let t = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("reading {}: {e}", path.display()));
+    serde_json::from_str(&t).unwrap_or_else(|e| panic!("{} is not JSON ({e}):\n{t}", path.display()))
+}
+
+fn num(v: &Value, key: &str) -> f64 {
+    v[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("report key {key:?} is not a number: {}", v[key]))
+}
+
+fn interval(v: &Value) -> [f64; 2] {
+    let iv = v["xi_interval"]
+        .as_array()
+        .unwrap_or_else(|| panic!("xi_interval is not an array: {}", v["xi_interval"]));
+    assert_eq!(iv.len(), 2, "xi_interval {iv:?}");
+    let lo = iv[0].as_f64().expect("xi_interval[0] a number");
+    let hi = iv[1].as_f64().expect("xi_interval[1] a number");
+    assert!(lo <= hi, "xi_interval [{lo}, {hi}] is reversed");
+    [lo, hi]
+}
+
+fn assert_in_interval(v: &Value, xi: f64) {
+    let [lo, hi] = interval(v);
+    assert!(
+        lo <= xi && xi <= hi,
+        "true xi {xi} is outside the reported interval [{lo}, {hi}] (xi {})",
+        v["xi"]
+    );
+}
+
+/// Names of the entries of a directory.
+fn entries(dir: &Path) -> BTreeSet<String> {
+    std::fs::read_dir(dir)
+        .expect("listing the temp dir")
+        .map(|e| e.expect("dir entry").file_name().to_string_lossy().into_owned())
+        .collect()
+}
+
+/// A failure as a user should see it: a non-zero exit (not a panic), a
+/// message on stderr holding every `needle` (case-insensitive), nothing on
+/// stdout that looks like a success, and no file left in `dir` beyond `inputs`.
+fn assert_clean_failure(out: &Output, needles: &[&str], dir: &Path, inputs: &[&str]) {
+    let err = text(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "bad input was accepted (exit 0): {}",
+        describe(out)
+    );
+    assert_ne!(out.status.code(), Some(101), "the program panicked: {}", describe(out));
+    assert!(out.status.code().is_some(), "killed by a signal: {}", describe(out));
+    assert!(!err.contains("panicked"), "the program panicked: {}", describe(out));
+    let lower = err.to_lowercase();
+    for n in needles {
+        assert!(
+            lower.contains(&n.to_lowercase()),
+            "stderr does not name the cause (expected {n:?}): {}",
+            describe(out)
+        );
+    }
+    let left: BTreeSet<String> = entries(dir);
+    let want: BTreeSet<String> = inputs.iter().map(|s| s.to_string()).collect();
+    assert_eq!(
+        left,
+        want,
+        "files left behind after a failure (besides the inputs): {:?}\n{}",
+        left.difference(&want).collect::<Vec<_>>(),
+        describe(out)
+    );
+}
+
+/// `replay BAG --out out.mcap --json report.json` in `dir`, expecting failure.
+fn replay_fails(dir: &Path, bag: &str, extra: &[&str], needles: &[&str], inputs: &[&str]) {
+    let mut args = vec!["replay", bag, "--out", "out.mcap", "--json", "report.json"];
+    args.extend_from_slice(extra);
+    let out = run(dir, &args);
+    assert_clean_failure(&out, needles, dir, inputs);
+}
+
+// ------------------------------------------------------- small bad bags
+
+const NS: &str = "/tof";
+const FRAME_ID: &str = "tof_optical_frame";
+
+/// A 64x48 scene: `bg_frames` of a wall at 2000 mm, then (if `with_object`)
+/// two frames of a translucent plane at 1000 mm.
+fn small_scene(bg_frames: usize, with_object: bool) -> Scene {
+    let mut toml = format!(
+        "name = \"cli test\"\nseed = 7\n[camera]\nwidth = 64\nheight = 48\n[background]\ndistance_mm = 2000\nframes = {bg_frames}\n"
+    );
+    if with_object {
+        toml.push_str(
+            "[[stage]]\nframes = 2\n[[stage.objects]]\nshape = \"plane\"\ncenter_mm = [0, 0, 1000]\nsize_mm = [400, 300]\nxi = 0.6\nalbedo = 0.7\n",
+        );
+    }
+    Scene::from_toml(&toml, "small_scene.toml").expect("the small scene parses")
+}
+
+fn camera_info(scene: &Scene, stamp_ns: u64) -> CameraInfo {
+    let k = scene_intrinsics(scene);
+    CameraInfo {
+        header: Header::new(stamp_ns, FRAME_ID),
+        height: k.height as u32,
+        width: k.width as u32,
+        distortion_model: "plumb_bob".into(),
+        d: vec![0.0; 5],
+        k: k.k(),
+        r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        p: [k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+        binning_x: 0,
+        binning_y: 0,
+        roi: RegionOfInterest::default(),
+    }
+}
+
+fn topic(t: &str) -> String {
+    format!("{NS}/{t}")
+}
+
+/// Which topics a synthetic bag gets, and how each frame is encoded.
+struct BagSpec<'a> {
+    depth: bool,
+    ir: bool,
+    info: bool,
+    truth: bool,
+    /// Depth message of frame `i` (default: the rendered depth, 16UC1).
+    depth_msg: &'a dyn Fn(usize, &SimFrame, &Header) -> Image,
+    /// IR message of frame `i` (default: the rendered IR, 16UC1).
+    ir_msg: &'a dyn Fn(usize, &SimFrame, &Header) -> Image,
+    /// Stamp of the IR message of frame `i`, given the depth stamp.
+    ir_stamp: &'a dyn Fn(u64) -> u64,
+}
+
+fn default_depth(_: usize, f: &SimFrame, h: &Header) -> Image {
+    depth_image(h, &f.depth_z_mm, "16UC1").expect("encoding depth")
+}
+
+fn default_ir(_: usize, f: &SimFrame, h: &Header) -> Image {
+    ir_image(h, &f.ir, "16UC1").expect("encoding IR")
+}
+
+fn same_stamp(t: u64) -> u64 {
+    t
+}
+
+impl Default for BagSpec<'_> {
+    fn default() -> Self {
+        BagSpec {
+            depth: true,
+            ir: true,
+            info: true,
+            truth: false,
+            depth_msg: &default_depth,
+            ir_msg: &default_ir,
+            ir_stamp: &same_stamp,
+        }
+    }
+}
+
+/// Renders `scene` and writes the topics `spec` asks for to `path`.
+fn write_bag(path: &Path, scene: &Scene, spec: &BagSpec) {
+    let frames = render_all(scene);
+    assert_eq!(frames.len(), scene.frame_count());
+    let mut w = BagWriter::create(path).expect("creating a test bag");
+    for (i, f) in frames.iter().enumerate() {
+        let h = Header::new(f.stamp_ns, FRAME_ID);
+        if spec.depth {
+            w.write(&topic("depth/image_raw"), f.stamp_ns, &(spec.depth_msg)(i, f, &h))
+                .expect("writing depth");
+        }
+        if spec.ir {
+            let t = (spec.ir_stamp)(f.stamp_ns);
+            let hi = Header::new(t, FRAME_ID);
+            w.write(&topic("ir/image_raw"), t, &(spec.ir_msg)(i, f, &hi))
+                .expect("writing IR");
+        }
+        if spec.info {
+            w.write(&topic("depth/camera_info"), f.stamp_ns, &camera_info(scene, f.stamp_ns))
+                .expect("writing camera_info");
+        }
+        if spec.truth {
+            w.write(
+                &topic("ground_truth/depth"),
+                f.stamp_ns,
+                &depth_image(&h, &f.truth_z_mm, "32FC1").expect("encoding truth"),
+            )
+            .expect("writing truth");
+        }
+    }
+    w.finish().expect("finishing a test bag");
+}
+
+fn temp() -> TempDir {
+    tempfile::tempdir().expect("a temp dir")
+}
+
+// ------------------------------------------------------------ happy paths
+
+fn messages_by_topic(bag: &Path) -> BTreeMap<String, Vec<(u64, Vec<u8>, String)>> {
+    let r = BagReader::open(bag).unwrap_or_else(|e| panic!("reading {}: {e}", bag.display()));
+    let mut m: BTreeMap<String, Vec<(u64, Vec<u8>, String)>> = BTreeMap::new();
+    for raw in r.messages() {
+        let raw = raw.expect("a message");
+        m.entry(raw.topic.to_string()).or_default().push((
+            raw.log_time_ns,
+            raw.data.to_vec(),
+            raw.type_name.to_string(),
+        ));
+    }
+    m
+}
+
+fn decode<M: translucent_tof::msgs::RosMessage>(data: &[u8]) -> M {
+    translucent_tof::msgs::from_cdr(data).expect("decoding a message")
+}
+
+fn f32_at(d: &[u8], off: usize) -> f32 {
+    f32::from_le_bytes([d[off], d[off + 1], d[off + 2], d[off + 3]])
+}
+
+/// A1: the paper's document holder, ξ estimated, background detected, the
+/// output bag read back.
+#[test]
+fn replay_document_holder_estimates_xi_and_writes_outputs() {
+    let dir = temp();
+    let input = bundled("document_holder.mcap");
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            input.to_str().unwrap(),
+            "--out",
+            "out.mcap",
+            "--json",
+            "report.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("report.json"));
+    assert_eq!(r["frames"].as_u64(), Some(18), "frames: {}", r["frames"]);
+    assert_eq!(
+        r["background_frames"].as_u64(),
+        Some(10),
+        "background_frames: {}",
+        r["background_frames"]
+    );
+    assert_eq!(r["xi_method"].as_str(), Some("one_material"));
+    assert_in_interval(&r, 0.65);
+    let mean = num(&r, "mean_frame_rmse_mm");
+    let mean_raw = num(&r, "mean_frame_rmse_raw_mm");
+    assert!(
+        mean <= 10.6,
+        "mean per-frame RMSE {mean} mm is worse than the paper's 10.6 mm"
+    );
+    assert!(
+        mean < mean_raw,
+        "recovery did not improve the depth: {mean} vs raw {mean_raw} mm"
+    );
+    assert!(num(&r, "rmse_mm") < num(&r, "rmse_raw_mm"));
+    assert!(r["translucent_pixels"].as_u64().unwrap_or(0) > 0);
+    let per_frame = r["per_frame"].as_array().expect("per_frame array");
+    assert_eq!(per_frame.len(), 8, "one row per object frame");
+    for row in per_frame {
+        for key in ["stamp", "xi", "rmse_raw_mm", "rmse_mm", "translucent_pixels"] {
+            assert!(!row[key].is_null(), "per_frame row lacks {key}: {row}");
+        }
+    }
+
+    // The output bag, read back.
+    let out_bag = dir.path().join("out.mcap");
+    assert!(out_bag.is_file(), "no output bag");
+    assert!(
+        !dir.path().join("out.mcap.partial").exists(),
+        "a .partial file was left"
+    );
+    let outs = messages_by_topic(&out_bag);
+    let ins = messages_by_topic(&input);
+    let want_topics = [
+        "/translucent_tof/depth/corrected",
+        "/translucent_tof/points",
+        "/translucent_tof/translucent_mask",
+        "/translucent_tof/translucency",
+    ];
+    for t in want_topics {
+        let n = outs.get(t).map(|v| v.len()).unwrap_or(0);
+        assert_eq!(
+            n,
+            8,
+            "{t}: {n} messages, expected one per object frame; topics: {:?}",
+            outs.keys()
+        );
+    }
+    let input_depth: BTreeMap<u64, Image> = ins["/tof/depth/image_raw"]
+        .iter()
+        .map(|(_, d, _)| {
+            let img: Image = decode(d);
+            (img.header.stamp.as_log_time_ns(), img)
+        })
+        .collect();
+    let report_stamps: Vec<u64> = per_frame
+        .iter()
+        .map(|row| (row["stamp"].as_f64().unwrap() * 1e9).round() as u64)
+        .collect();
+    for (i, (log_time, data, ty)) in outs["/translucent_tof/depth/corrected"].iter().enumerate() {
+        assert_eq!(ty, "sensor_msgs/msg/Image");
+        let img: Image = decode(data);
+        let stamp = img.header.stamp.as_log_time_ns();
+        assert_eq!(*log_time, stamp, "log time differs from the header stamp");
+        let src = input_depth
+            .get(&stamp)
+            .unwrap_or_else(|| panic!("corrected depth at stamp {stamp} has no input depth frame"));
+        assert_eq!((img.width, img.height), (src.width, src.height), "size at {stamp}");
+        assert_eq!(img.encoding, src.encoding, "encoding at {stamp}");
+        assert_eq!(img.header, src.header, "header at {stamp}");
+        assert!(
+            report_stamps.iter().any(|s| s.abs_diff(stamp) < 1000),
+            "stamp {stamp} not in the report's per_frame stamps {report_stamps:?} (row {i})"
+        );
+    }
+    let (w, h) = {
+        let any = input_depth.values().next().unwrap();
+        (any.width, any.height)
+    };
+    for (_, data, ty) in &outs["/translucent_tof/points"] {
+        assert_eq!(ty, "sensor_msgs/msg/PointCloud2");
+        let pc: PointCloud2 = decode(data);
+        assert_eq!((pc.width, pc.height), (w, h), "cloud not organized like the image");
+        assert!(
+            !pc.is_dense,
+            "an organized cloud with NaN points must have is_dense = false"
+        );
+        assert_eq!(pc.row_step, pc.point_step * pc.width);
+        assert_eq!(pc.data.len(), (pc.row_step * pc.height) as usize);
+        let field = |n: &str| {
+            pc.fields
+                .iter()
+                .find(|f| f.name == n)
+                .unwrap_or_else(|| panic!("no field {n}"))
+        };
+        for n in ["x", "y", "z"] {
+            assert_eq!(field(n).datatype, PointField::FLOAT32, "{n} is not float32");
+        }
+        let zoff = field("z").offset as usize;
+        let zs: Vec<f32> = (0..(w * h) as usize)
+            .map(|i| f32_at(&pc.data, i * pc.point_step as usize + zoff))
+            .filter(|z| z.is_finite())
+            .collect();
+        assert!(zs.len() > (w * h) as usize / 2, "too few valid points: {}", zs.len());
+        assert!(
+            zs.iter().all(|&z| z > 0.2 && z < 3.0),
+            "points outside 0.2..3 m (metres expected)"
+        );
+    }
+    let [lo, hi] = interval(&r);
+    for (_, data, ty) in &outs["/translucent_tof/translucency"] {
+        assert_eq!(ty, "translucent_tof/msg/TranslucencyEstimate");
+        let e: TranslucencyEstimate = decode(data);
+        assert_eq!(e.method, "one_material");
+        assert!(
+            (e.xi_lower - lo).abs() < 1e-9 && (e.xi_upper - hi).abs() < 1e-9,
+            "estimate message interval [{}, {}] differs from the report's [{lo}, {hi}]",
+            e.xi_lower,
+            e.xi_upper
+        );
+    }
+    for (_, data, _) in &outs["/translucent_tof/translucent_mask"] {
+        let m: Image = decode(data);
+        assert_eq!((m.width, m.height, m.encoding.as_str()), (w, h, "mono8"));
+        assert!(m.data.iter().any(|&b| b == 255), "an empty mask on an object frame");
+    }
+}
+
+/// A2: a fixed ξ is reported as such, with a degenerate interval.
+#[test]
+fn replay_with_fixed_xi_reports_fixed() {
+    let dir = temp();
+    let input = bundled("document_holder.mcap");
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            input.to_str().unwrap(),
+            "--xi",
+            "0.65",
+            "--out",
+            "out.mcap",
+            "--json",
+            "report.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("report.json"));
+    assert_eq!(r["xi_method"].as_str(), Some("fixed"), "xi_method {}", r["xi_method"]);
+    assert_eq!(interval(&r), [0.65, 0.65]);
+    assert_eq!(r["xi"].as_f64(), Some(0.65));
+    assert_eq!(r["background_frames"].as_u64(), Some(10));
+}
+
+/// A3: `--json -` puts the report alone on stdout; the summary goes to stderr.
+/// (`--xi` keeps this run short; the stdout/stderr split does not depend on it.)
+#[test]
+fn replay_json_to_stdout_is_pure_json() {
+    let dir = temp();
+    let input = bundled("document_holder.mcap");
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            input.to_str().unwrap(),
+            "--xi",
+            "0.65",
+            "--out",
+            "out.mcap",
+            "--json",
+            "-",
+        ],
+    );
+    assert_ok(&out);
+    let stdout = text(&out.stdout);
+    let v: Value =
+        serde_json::from_str(&stdout).unwrap_or_else(|e| panic!("stdout is not (only) JSON: {e}\n{}", describe(&out)));
+    assert_eq!(v["frames"].as_u64(), Some(18));
+    assert!(v["per_frame"].is_array());
+    let err = text(&out.stderr);
+    assert!(
+        err.contains("xi"),
+        "the human summary is not on stderr: {}",
+        describe(&out)
+    );
+    assert!(
+        err.contains("out.mcap"),
+        "the summary does not say what it wrote: {err}"
+    );
+    assert!(!dir.path().join("-").exists(), "wrote the report to a file named '-'");
+}
+
+/// A4: a scene drawn from a seeded RNG, simulated, then replayed: the true ξ
+/// lies in the reported interval.
+#[test]
+fn simulate_random_scene_then_replay_recovers_xi() {
+    let mut rng = ChaCha8Rng::seed_from_u64(0x7f0f_2024);
+    let xi: f64 = rng.random_range(0.4..0.8);
+    let albedo: f64 = rng.random_range(0.5..0.8);
+    let wall: f64 = rng.random_range(1800.0..2500.0);
+    let z1: f64 = rng.random_range(500.0..900.0);
+    let z2: f64 = rng.random_range(1000.0..wall - 500.0);
+    let n1: usize = rng.random_range(1..=2);
+    let n2: usize = rng.random_range(1..=2);
+    let seed: u64 = rng.random_range(0..1_000_000);
+    let mut toml = format!(
+        "name = \"random cli scene\"\nseed = {seed}\n[background]\ndistance_mm = {wall:.1}\nalbedo = 1.0\nframes = 10\n"
+    );
+    for (z, n) in [(z1, n1), (z2, n2)] {
+        let (x, y): (f64, f64) = (rng.random_range(-30.0..30.0), rng.random_range(-30.0..30.0));
+        let (tx, ty): (f64, f64) = (rng.random_range(-4.0..4.0), rng.random_range(-4.0..4.0));
+        toml.push_str(&format!(
+            "[[stage]]\nframes = {n}\n[[stage.objects]]\nshape = \"plane\"\ncenter_mm = [{x:.1}, {y:.1}, {z:.1}]\nsize_mm = [260, 320]\ntilt_x_deg = {tx:.2}\ntilt_y_deg = {ty:.2}\nxi = {xi}\nalbedo = {albedo}\n"
+        ));
+    }
+    let dir = temp();
+    std::fs::write(dir.path().join("scene.toml"), &toml).unwrap();
+    let out = run(
+        dir.path(),
+        &["simulate", "scene.toml", "-o", "scene.mcap", "--json", "sim.json"],
+    );
+    assert_ok(&out);
+    let sim = read_json(&dir.path().join("sim.json"));
+    assert_eq!(sim["frames"].as_u64(), Some((10 + n1 + n2) as u64), "{sim}");
+    assert_eq!(sim["background_frames"].as_u64(), Some(10));
+    assert!(dir.path().join("scene.mcap").is_file());
+
+    let out = run(
+        dir.path(),
+        &["replay", "scene.mcap", "--out", "rec.mcap", "--json", "report.json"],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("report.json"));
+    assert_eq!(r["background_frames"].as_u64(), Some(10), "scene:\n{toml}");
+    assert_eq!(r["per_frame"].as_array().map(|v| v.len()), Some(n1 + n2));
+    assert_in_interval(&r, xi);
+    assert!(
+        num(&r, "rmse_mm") < num(&r, "rmse_raw_mm"),
+        "no improvement on the drawn scene:\n{toml}\n{r}"
+    );
+}
+
+/// A5: Lin from a white wall, then used for the candle.
+#[test]
+fn calibrate_lin_then_replay_candle_with_it() {
+    let dir = temp();
+    let wall = bundled("white_wall.mcap");
+    let out = run(dir.path(), &["calibrate-lin", wall.to_str().unwrap(), "-o", "lin.json"]);
+    assert_ok(&out);
+    let lin = read_json(&dir.path().join("lin.json"));
+    assert_eq!(lin["format"].as_str(), Some("translucent_tof.lin.v1"));
+    assert_eq!(
+        lin["lin"].as_array().map(|v| v.len() as u64),
+        Some(lin["width"].as_u64().unwrap() * lin["height"].as_u64().unwrap())
+    );
+    let candle = bundled("candle.mcap");
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            candle.to_str().unwrap(),
+            "--lin-calibration",
+            "lin.json",
+            "--out",
+            "out.mcap",
+            "--json",
+            "report.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("report.json"));
+    let src = r["lin_source"]
+        .as_str()
+        .unwrap_or_else(|| panic!("lin_source: {}", r["lin_source"]));
+    assert!(
+        src.contains("calibration file") && !src.contains("no calibration file"),
+        "lin_source does not say the calibration file was used: {src:?}"
+    );
+    assert_in_interval(&r, 0.3);
+}
+
+/// A6: calibrate-xi on the model-validation recording (paper Sec. V-A).
+#[test]
+fn calibrate_xi_on_model_validation_bag() {
+    let dir = temp();
+    let bag = bundled("model_validation_xi072.mcap");
+    let out = run(
+        dir.path(),
+        &["calibrate-xi", bag.to_str().unwrap(), "--json", "xi.json"],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("xi.json"));
+    assert_in_interval(&r, 0.72);
+    let [lo, hi] = interval(&r);
+    assert!((hi - lo) / 2.0 <= 0.05, "interval [{lo}, {hi}] is too wide");
+    let xi = num(&r, "xi");
+    assert!(lo <= xi && xi <= hi, "xi {xi} outside its own interval");
+}
+
+/// A7: `--help` lists the subcommands.
+#[test]
+fn help_lists_subcommands() {
+    let dir = temp();
+    let out = run(dir.path(), &["--help"]);
+    assert_ok(&out);
+    let s = text(&out.stdout);
+    for sub in ["replay", "simulate", "calibrate-xi", "calibrate-lin"] {
+        assert!(s.contains(sub), "--help does not list {sub}:\n{s}");
+    }
+}
+
+// -------------------------------------------------------------- bad input
+
+/// B1
+#[test]
+fn bad_nonexistent_bag() {
+    let dir = temp();
+    replay_fails(
+        dir.path(),
+        "no_such_bag.mcap",
+        &[],
+        &["no_such_bag.mcap", "no such file"],
+        &[],
+    );
+}
+
+/// B1b: the OS error is said once (a repeated cause reads as two failures).
+#[test]
+fn bad_nonexistent_bag_says_the_cause_once() {
+    let dir = temp();
+    let out = run(dir.path(), &["replay", "no_such_bag.mcap", "--out", "out.mcap"]);
+    assert_clean_failure(&out, &["no such file"], dir.path(), &[]);
+    let err = text(&out.stderr);
+    assert_eq!(
+        err.matches("No such file or directory").count(),
+        1,
+        "the OS error is repeated: {err}"
+    );
+}
+
+/// B2
+#[test]
+fn bad_not_mcap() {
+    let dir = temp();
+    std::fs::write(
+        dir.path().join("notes.mcap"),
+        "this is a text file, not a recording\n".repeat(20),
+    )
+    .unwrap();
+    replay_fails(
+        dir.path(),
+        "notes.mcap",
+        &[],
+        &["notes.mcap", "not an MCAP file"],
+        &["notes.mcap"],
+    );
+}
+
+/// B3a: a bag with camera_info only.
+#[test]
+fn bad_only_camera_info_topic() {
+    let dir = temp();
+    let scene = small_scene(3, false);
+    let spec = BagSpec {
+        depth: false,
+        ir: false,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.path().join("info_only.mcap"), &scene, &spec);
+    replay_fails(
+        dir.path(),
+        "info_only.mcap",
+        &[],
+        &["no depth topic", "/tof/depth/camera_info", "--depth-topic"],
+        &["info_only.mcap"],
+    );
+}
+
+/// B3b: depth and camera_info but no IR.
+#[test]
+fn bad_only_depth_topic() {
+    let dir = temp();
+    let scene = small_scene(3, true);
+    let spec = BagSpec {
+        ir: false,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.path().join("depth_only.mcap"), &scene, &spec);
+    replay_fails(
+        dir.path(),
+        "depth_only.mcap",
+        &[],
+        &["no IR topic", "--ir-topic"],
+        &["depth_only.mcap"],
+    );
+}
+
+/// B4: depth 64x48, IR 32x24 at the same stamps.
+#[test]
+fn bad_depth_ir_size_mismatch() {
+    let dir = temp();
+    let scene = small_scene(3, true);
+    let small_ir = |_: usize, f: &SimFrame, h: &Header| {
+        let (w, hh) = (f.ir.width / 2, f.ir.height / 2);
+        let mut data = Vec::with_capacity(w * hh);
+        for r in 0..hh {
+            for c in 0..w {
+                data.push(f.ir.data[(2 * r) * f.ir.width + 2 * c]);
+            }
+        }
+        ir_image(
+            h,
+            &ImageBuf {
+                width: w,
+                height: hh,
+                data,
+            },
+            "16UC1",
+        )
+        .unwrap()
+    };
+    let spec = BagSpec {
+        ir_msg: &small_ir,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.path().join("sizes.mcap"), &scene, &spec);
+    replay_fails(
+        dir.path(),
+        "sizes.mcap",
+        &[],
+        &["64x48", "32x24", "IR"],
+        &["sizes.mcap"],
+    );
+}
+
+/// B5: IR stamped 1 ms after depth: no pairs.
+#[test]
+fn bad_no_shared_stamps() {
+    let dir = temp();
+    let scene = small_scene(3, true);
+    let later = |t: u64| t + 1_000_000;
+    let spec = BagSpec {
+        ir_stamp: &later,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.path().join("stamps.mcap"), &scene, &spec);
+    replay_fails(
+        dir.path(),
+        "stamps.mcap",
+        &[],
+        &["shares its header stamp", "paired by exact stamp"],
+        &["stamps.mcap"],
+    );
+}
+
+/// B6: a depth image in rgb8.
+#[test]
+fn bad_unsupported_depth_encoding() {
+    let dir = temp();
+    let scene = small_scene(3, true);
+    let rgb = |_: usize, f: &SimFrame, h: &Header| Image {
+        header: h.clone(),
+        height: f.depth_z_mm.height as u32,
+        width: f.depth_z_mm.width as u32,
+        encoding: "rgb8".into(),
+        is_bigendian: 0,
+        step: 3 * f.depth_z_mm.width as u32,
+        data: vec![128; 3 * f.depth_z_mm.len()],
+    };
+    let spec = BagSpec {
+        depth_msg: &rgb,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.path().join("rgb.mcap"), &scene, &spec);
+    replay_fails(
+        dir.path(),
+        "rgb.mcap",
+        &[],
+        &["unsupported encoding", "rgb8", "depth"],
+        &["rgb.mcap"],
+    );
+}
+
+fn nan_depth(_: usize, f: &SimFrame, h: &Header) -> Image {
+    let z = ImageBuf {
+        width: f.depth_z_mm.width,
+        height: f.depth_z_mm.height,
+        data: vec![f32::NAN; f.depth_z_mm.len()],
+    };
+    depth_image(h, &z, "32FC1").unwrap()
+}
+
+fn zero_depth(_: usize, f: &SimFrame, h: &Header) -> Image {
+    Image {
+        header: h.clone(),
+        height: f.depth_z_mm.height as u32,
+        width: f.depth_z_mm.width as u32,
+        encoding: "16UC1".into(),
+        is_bigendian: 0,
+        step: 2 * f.depth_z_mm.width as u32,
+        data: vec![0; 2 * f.depth_z_mm.len()],
+    }
+}
+
+/// A 5-frame bag (valid IR) whose depth is invalid everywhere.
+fn invalid_depth_bag(dir: &Path, name: &str, depth: &dyn Fn(usize, &SimFrame, &Header) -> Image) {
+    let spec = BagSpec {
+        depth_msg: depth,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.join(name), &small_scene(3, true), &spec);
+}
+
+/// The error for depth that is invalid everywhere: it must name invalid
+/// depth / valid pixels, and must not claim the scene never changes (the
+/// scene is not the problem, the readings are).
+fn assert_invalid_depth_failure(dir: &Path, name: &str, extra: &[&str]) {
+    let mut args = vec!["replay", name, "--out", "out.mcap", "--json", "report.json"];
+    args.extend_from_slice(extra);
+    let out = run(dir, &args);
+    assert!(
+        !text(&out.stderr).contains("never changes"),
+        "depth invalid everywhere is reported as a scene that never changes (misleading): {}",
+        describe(&out)
+    );
+    assert_clean_failure(&out, &["valid"], dir, &[name]);
+}
+
+/// B7a: 32FC1 depth, NaN everywhere, background detected: no usable background.
+#[test]
+fn bad_all_nan_depth_32fc1() {
+    let dir = temp();
+    invalid_depth_bag(dir.path(), "nan.mcap", &nan_depth);
+    assert_invalid_depth_failure(dir.path(), "nan.mcap", &[]);
+}
+
+/// B7b: as B7a with `--background-frames 3`.
+#[test]
+fn bad_all_nan_depth_32fc1_given_background_frames() {
+    let dir = temp();
+    invalid_depth_bag(dir.path(), "nan.mcap", &nan_depth);
+    assert_invalid_depth_failure(dir.path(), "nan.mcap", &["--background-frames", "3"]);
+}
+
+/// B7c: 16UC1 depth, 0 (invalid) everywhere, background detected.
+#[test]
+fn bad_all_zero_depth_16uc1() {
+    let dir = temp();
+    invalid_depth_bag(dir.path(), "zeros.mcap", &zero_depth);
+    assert_invalid_depth_failure(dir.path(), "zeros.mcap", &[]);
+}
+
+/// B7d: as B7c with `--background-frames 3`.
+#[test]
+fn bad_all_zero_depth_16uc1_given_background_frames() {
+    let dir = temp();
+    invalid_depth_bag(dir.path(), "zeros.mcap", &zero_depth);
+    assert_invalid_depth_failure(dir.path(), "zeros.mcap", &["--background-frames", "3"]);
+}
+
+/// B8: the wall alone, never an object.
+#[test]
+fn bad_scene_never_changes() {
+    let dir = temp();
+    let scene = small_scene(6, false);
+    write_bag(&dir.path().join("wall.mcap"), &scene, &BagSpec::default());
+    replay_fails(
+        dir.path(),
+        "wall.mcap",
+        &[],
+        &["no background", "never changes", "--background-frames"],
+        &["wall.mcap"],
+    );
+}
+
+/// B9: `--background-frames N` with N >= the number of frames.
+#[test]
+fn bad_background_frames_too_many() {
+    let dir = temp();
+    let scene = small_scene(3, true); // 5 frames
+    write_bag(&dir.path().join("five.mcap"), &scene, &BagSpec::default());
+    for n in ["5", "9"] {
+        replay_fails(
+            dir.path(),
+            "five.mcap",
+            &["--background-frames", n],
+            &[&format!("--background-frames {n}"), "5 paired frames"],
+            &["five.mcap"],
+        );
+    }
+}
+
+/// B10: no camera_info.
+#[test]
+fn bad_no_camera_info() {
+    let dir = temp();
+    let scene = small_scene(3, true);
+    let spec = BagSpec {
+        info: false,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.path().join("noinfo.mcap"), &scene, &spec);
+    replay_fails(
+        dir.path(),
+        "noinfo.mcap",
+        &[],
+        &["CameraInfo", "intrinsics", "--info-topic"],
+        &["noinfo.mcap"],
+    );
+}
+
+/// B11: calibrate-xi needs ground truth.
+#[test]
+fn bad_calibrate_xi_without_ground_truth() {
+    let dir = temp();
+    let scene = small_scene(3, true);
+    write_bag(&dir.path().join("notruth.mcap"), &scene, &BagSpec::default());
+    let out = run(dir.path(), &["calibrate-xi", "notruth.mcap", "--json", "xi.json"]);
+    assert_clean_failure(
+        &out,
+        &["ground_truth/depth", "calibrate-xi"],
+        dir.path(),
+        &["notruth.mcap"],
+    );
+    // The same scene with truth calibrates (the failure is the missing truth).
+    let dir2 = temp();
+    let spec = BagSpec {
+        truth: true,
+        ..BagSpec::default()
+    };
+    write_bag(&dir2.path().join("truth.mcap"), &scene, &spec);
+    let out = run(dir2.path(), &["calibrate-xi", "truth.mcap", "--json", "xi.json"]);
+    assert_ok(&out);
+}
+
+/// B12a: a negative background distance.
+#[test]
+fn bad_scene_negative_distance() {
+    let dir = temp();
+    std::fs::write(
+        dir.path().join("neg.toml"),
+        "[background]\ndistance_mm = -2000\n[[stage]]\n[[stage.objects]]\nshape = \"plane\"\ncenter_mm = [0, 0, 1000]\nsize_mm = [300, 300]\nxi = 0.5\nalbedo = 0.6\n",
+    )
+    .unwrap();
+    let out = run(
+        dir.path(),
+        &["simulate", "neg.toml", "-o", "out.mcap", "--json", "sim.json"],
+    );
+    assert_clean_failure(
+        &out,
+        &["neg.toml", "background", "distance_mm"],
+        dir.path(),
+        &["neg.toml"],
+    );
+}
+
+/// B12b: an unknown key.
+#[test]
+fn bad_scene_unknown_key() {
+    let dir = temp();
+    std::fs::write(
+        dir.path().join("typo.toml"),
+        "[background]\ndistance_mm = 2000\ncolour = \"white\"\n",
+    )
+    .unwrap();
+    let out = run(
+        dir.path(),
+        &["simulate", "typo.toml", "-o", "out.mcap", "--json", "sim.json"],
+    );
+    assert_clean_failure(&out, &["typo.toml", "colour"], dir.path(), &["typo.toml"]);
+}
