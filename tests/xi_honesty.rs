@@ -159,3 +159,41 @@ fn cylinders_drawn_from_seeded_ranges_are_covered() {
         );
     }
 }
+
+/// Without a Lin calibration, `Lin` comes from the background taken as white.
+/// On a grey wall that scale is wrong; ξ and `Lin`'s scale trade off, so the
+/// estimate is an effective ξ under that assumption, while the recovered
+/// depth stays right. With the wall's albedo given, ξ is the material's.
+#[test]
+fn unknown_background_albedo_shifts_xi_not_depth() {
+    for seed in [5u64, 6] {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let grey = rng.random_range(0.35..0.7);
+        let mut s = fig5_scene(seed, 0.65, (0.45, 0.75), 1);
+        s.background.albedo = grey;
+        let assumed_white = run_scene(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4);
+        let known = run_scene_with(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4, grey);
+        println!(
+            "wall albedo {grey:.2}: assumed white -> xi {:.3} [{:.3}, {:.3}], error {:.1} mm; given -> xi {:.3} [{:.3}, {:.3}], error {:.1} mm (raw {:.1})",
+            assumed_white.xi,
+            assumed_white.interval[0],
+            assumed_white.interval[1],
+            assumed_white.mean_rmse(),
+            known.xi,
+            known.interval[0],
+            known.interval[1],
+            known.mean_rmse(),
+            known.mean_rmse_raw()
+        );
+        assert!(
+            known.interval[0] <= 0.65 && 0.65 <= known.interval[1],
+            "{:?}",
+            known.interval
+        );
+        assert!(known.mean_rmse() <= 10.6 && assumed_white.mean_rmse() <= 10.6);
+        assert!(
+            assumed_white.xi < 0.6,
+            "a grey wall taken as white lowers the effective xi"
+        );
+    }
+}

@@ -224,7 +224,15 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "xi_method": xi.as_ref().map(|x| x.method.as_str()),
         "xi_mode": a.xi_mode,
         "xi_frames_pooled": pipe.xi_frames(),
-        "xi_note": xi.as_ref().map(|x| x.note.clone()),
+        "xi_note": xi.as_ref().map(|x| {
+            if pipe.config.lin_calibration.is_none() && x.method != XiMethod::Fixed {
+                // Lin's scale and xi trade off: the pair recovers depth, but xi alone is
+                // conditional on the assumed background albedo.
+                format!("{}; xi is conditional on the assumed background albedo {} (Lin from the background): depth recovery is not, a wrong albedo shifts xi instead", x.note, pipe.config.background_albedo)
+            } else {
+                x.note.clone()
+            }
+        }),
         "xi_profile": xi.as_ref().map(|x| x.profile.clone()),
         "translucent_pixels": total_px,
         "per_frame": per_frame,

@@ -309,6 +309,21 @@ pub fn local_planes(
     out
 }
 
+/// Keeps the points whose distance from the camera lies within `k` robust
+/// standard deviations (1.4826 MAD, at least `floor_mm`) of the median.
+fn keep_near_median(points: &mut Vec<Vector3<f64>>, k: f64, floor_mm: f64) {
+    if points.len() < 3 {
+        return;
+    }
+    let mut d: Vec<f64> = points.iter().map(|p| p.norm()).collect();
+    d.sort_by(f64::total_cmp);
+    let med = d[d.len() / 2];
+    let mut dev: Vec<f64> = d.iter().map(|x| (x - med).abs()).collect();
+    dev.sort_by(f64::total_cmp);
+    let cut = (k * 1.4826 * dev[dev.len() / 2]).max(floor_mm);
+    points.retain(|p| (p.norm() - med).abs() <= cut);
+}
+
 /// The plane through the masked, finite points in the window around pixel `i`.
 fn local_plane_at(
     points: &ImageBuf<Vector3<f64>>,
@@ -329,6 +344,9 @@ fn local_plane_at(
             }
         }
     }
+    // A least-squares start is only as good as its worst points: drop those far from the
+    // window's median distance first (pixels of another surface that joined the region).
+    keep_near_median(&mut window, 4.0, 20.0);
     if window.len() < min_points.max(3) {
         return None;
     }

@@ -642,6 +642,9 @@ pub fn calibrate(profiles: &[FrameProfile]) -> Option<XiEstimate> {
 /// best fits. Degenerate (every ξ fits each pixel): the interval is every ξ
 /// within 5 % of the minimum, and the note reports the profile's relative range.
 pub fn eq12_residual(profiles: &[FrameProfile]) -> Option<XiEstimate> {
+    if profiles.is_empty() {
+        return None;
+    }
     let grid = xi_grid();
     let r: Vec<f64> = (0..grid.len())
         .map(|k| profiles.iter().map(|p| p.eq12[k]).sum())

@@ -82,6 +82,11 @@ impl RunFigures {
 /// background frames, ξ pooled over all object frames (or fixed), then each
 /// object frame recovered.
 pub fn run_scene(scene: &Scene, xi: XiChoice, prior_radius_px: usize) -> RunFigures {
+    run_scene_with(scene, xi, prior_radius_px, 1.0)
+}
+
+/// [`run_scene`] with the background's albedo (for `Lin`) given.
+pub fn run_scene_with(scene: &Scene, xi: XiChoice, prior_radius_px: usize, background_albedo: f64) -> RunFigures {
     let frames = render_all(scene);
     let k = scene_intrinsics(scene);
     let config = PipelineConfig {
@@ -91,6 +96,7 @@ pub fn run_scene(scene: &Scene, xi: XiChoice, prior_radius_px: usize) -> RunFigu
             options: Default::default(),
         },
         prior_radius_px,
+        background_albedo,
         ..PipelineConfig::default()
     };
     let mut pipe = Pipeline::new(config.clone(), k);
