@@ -539,6 +539,61 @@ impl Pipeline {
         Ok(self.xi().map(|xi| self.recover(frame, &obs, &xi)))
     }
 
+    /// A frame's calibration evidence (paper Sec. V-A): the model's error at the
+    /// known foreground distances `truth_z_mm` over ξ. `None` when fewer than
+    /// 10 sampled translucent pixels have a known distance.
+    pub fn calibration_profile(
+        &self,
+        frame: &DepthFrame,
+        truth_z_mm: &ImageBuf<f32>,
+    ) -> Result<Option<FrameProfile>, PipelineError> {
+        let obs = self.observe(frame)?;
+        let k = &self.intrinsics;
+        if !truth_z_mm.same_size(&obs.mask) {
+            return Err(PipelineError::SizeMismatch {
+                what: "ground truth",
+                got_w: truth_z_mm.width,
+                got_h: truth_z_mm.height,
+                want_w: k.width,
+                want_h: k.height,
+            });
+        }
+        let mut truth = ImageBuf::filled(k.width, k.height, f64::NAN);
+        for row in 0..k.height {
+            for col in 0..k.width {
+                let i = row * k.width + col;
+                truth.data[i] = truth_z_mm.data[i] as f64 * k.ray_scale(col, row);
+            }
+        }
+        let settings = &self.config.xi_settings;
+        let sample = FrameSample::from_image(
+            &obs.observations,
+            &self.rays,
+            Some(&truth),
+            settings.max_pixels_per_frame,
+        );
+        let with_truth = match &sample.truth_mm {
+            Some(t) => sample
+                .observations
+                .data
+                .iter()
+                .zip(&t.data)
+                .filter(|(o, t)| o.is_some() && t.is_finite())
+                .count(),
+            None => 0,
+        };
+        if with_truth < 10 {
+            return Ok(None);
+        }
+        Ok(Some(translucency::frame_profile(
+            &self.config.model,
+            &self.config.bounds,
+            &sample,
+            settings,
+            translucency::ProfileUse::Calibration,
+        )))
+    }
+
     /// Frames of ξ evidence pooled.
     pub fn xi_frames(&self) -> usize {
         self.profiles.len()

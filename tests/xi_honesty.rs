@@ -8,8 +8,8 @@ use common::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use translucent_tof::physics::{ForwardModel, XiMethod};
-use translucent_tof::pipeline::{BackgroundLatch, DepthFrame, Pipeline, PipelineConfig, XiChoice};
-use translucent_tof::sim::render::{render_all, scene_intrinsics, scene_sensor};
+use translucent_tof::pipeline::{PipelineConfig, XiChoice};
+use translucent_tof::sim::render::scene_sensor;
 use translucent_tof::sim::scene::{BackgroundSpec, ObjectSpec, Scene, StageSpec};
 
 fn plane(z: f64, tilt_y: f64, xi: f64, albedo: f64) -> ObjectSpec {
@@ -48,8 +48,6 @@ fn scene(seed: u64, stages: Vec<StageSpec>, wall: f64) -> Scene {
 /// The pipeline as the node runs it: each frame pools the evidence so far.
 /// Returns the interval after each object frame.
 fn online_intervals(s: &Scene) -> Vec<(f64, [f64; 2])> {
-    let frames = render_all(s);
-    let k = scene_intrinsics(s);
     let config = PipelineConfig {
         xi: XiChoice::Estimate(XiMethod::OneMaterial),
         model: ForwardModel {
@@ -58,17 +56,7 @@ fn online_intervals(s: &Scene) -> Vec<(f64, [f64; 2])> {
         },
         ..PipelineConfig::default()
     };
-    let mut latch = BackgroundLatch::new(k.width, k.height);
-    let df = |f: &translucent_tof::sim::SimFrame| DepthFrame {
-        stamp_ns: f.stamp_ns,
-        z_mm: f.depth_z_mm.clone(),
-        ir: f.ir.clone(),
-    };
-    for f in frames.iter().filter(|f| f.background_only) {
-        latch.push(&df(f), &k).unwrap();
-    }
-    let mut pipe = Pipeline::new(config.clone(), k);
-    pipe.set_background(latch.finish(&k, &config).unwrap());
+    let (mut pipe, frames) = latched(s, config);
     frames
         .iter()
         .filter(|f| !f.background_only)

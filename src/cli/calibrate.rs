@@ -7,64 +7,39 @@ use clap::Args;
 use serde_json::json;
 
 use crate::physics::emitted_light::emitted_light_from_plane;
-use crate::physics::translucency::{self, FrameSample};
-use crate::physics::ImageBuf;
+use crate::physics::translucency;
 use crate::pipeline::{BackgroundLatch, PipelineConfig};
 
-use super::common::{write_atomic, LinFile, ModelArgs, OutputArgs, TopicArgs, LIN_FORMAT};
+use super::common::{write_atomic, LinFile, OutputArgs, PipelineArgs, TopicArgs, LIN_FORMAT};
 use super::recording::load;
-use super::replay::{latched_pipeline, pipeline_config};
 
 /// Arguments of `calibrate-xi`.
 #[derive(Debug, Args)]
 pub struct CalibrateXiArgs {
     /// A recording of the material at known distances, with `ground_truth/depth`.
     pub bag: PathBuf,
-    /// The first N paired frames are the background (default: detect where the scene changes).
-    #[arg(long)]
-    pub background_frames: Option<usize>,
-    /// Segmentation threshold, mm.
-    #[arg(long, default_value_t = 30.0)]
-    pub threshold_mm: f64,
-    /// Albedo assumed for the background when Lin is derived from it.
-    #[arg(long, default_value_t = 1.0)]
-    pub background_albedo: f64,
-    /// Emitted-light calibration from calibrate-lin.
-    #[arg(long)]
-    pub lin_calibration: Option<PathBuf>,
-    /// Exposure of this recording, s (Eq. 14).
-    #[arg(long)]
-    pub exposure_s: Option<f64>,
     #[command(flatten)]
-    pub model: ModelArgs,
-    #[command(flatten)]
-    pub topics: TopicArgs,
+    pub pipeline: PipelineArgs,
     #[command(flatten)]
     pub output: OutputArgs,
 }
 
 /// Runs `calibrate-xi`.
 pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
-    let config = pipeline_config(
-        &a.model,
-        a.threshold_mm,
-        a.background_albedo,
-        a.lin_calibration.as_ref(),
-        a.exposure_s,
-    )?;
-    let rec = load(&a.bag, &a.topics)?;
+    let config = a.pipeline.config()?;
+    let rec = load(&a.bag, &a.pipeline.topics)?;
     if rec.topics.ground_truth.is_none() || rec.truth.is_empty() {
         bail!(
             "bag {}: calibrate-xi needs known foreground distances, and the bag has no ground_truth/depth images (sensor_msgs/Image, 32FC1 z in metres)",
             a.bag.display()
         );
     }
-    let bg = rec.background_frames(a.background_frames, config.threshold_mm, config.min_region_pixels)?;
-    let settings = config.xi_settings;
-    let pipe = latched_pipeline(&rec, config, bg.count)?;
-    let k = rec.intrinsics;
-    let rays = k.unit_ray_map();
-    let scale = k.ray_scale_map();
+    let bg = rec.background_frames(
+        a.pipeline.background_frames,
+        config.threshold_mm,
+        config.min_region_pixels,
+    )?;
+    let pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];
     let pb = a.output.progress(objects.len() as u64, "fitting xi");
     let mut profiles = vec![];
@@ -74,41 +49,10 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
         let Some(truth) = rec.truth.get(&f.stamp_ns) else {
             continue;
         };
-        let obs = pipe.observe(f)?;
-        let truth_ray = ImageBuf {
-            width: k.width,
-            height: k.height,
-            data: truth
-                .data
-                .iter()
-                .zip(&scale.data)
-                .map(|(&z, &s)| z as f64 * s)
-                .collect(),
-        };
-        let sample = FrameSample::from_image(
-            &obs.observations,
-            &rays,
-            Some(&truth_ray),
-            settings.max_pixels_per_frame,
-        );
-        let with_truth = sample
-            .observations
-            .data
-            .iter()
-            .zip(sample.truth_mm.as_ref().map(|t| t.data.as_slice()).unwrap_or(&[]))
-            .filter(|(o, t)| o.is_some() && t.is_finite())
-            .count();
-        if with_truth < 10 {
-            continue;
+        if let Some(profile) = pipe.calibration_profile(f, truth)? {
+            profiles.push(profile);
+            used.push(f.stamp_ns);
         }
-        profiles.push(translucency::frame_profile(
-            &pipe.config.model,
-            &pipe.config.bounds,
-            &sample,
-            &settings,
-            translucency::ProfileUse::Calibration,
-        ));
-        used.push(f.stamp_ns);
     }
     pb.finish_and_clear();
     if profiles.is_empty() {

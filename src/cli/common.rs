@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::bag::TopicOverrides;
 use crate::physics::{ForwardModel, ImageBuf, IrMode, ModelOptions, Sensor, Waveform};
+use crate::pipeline::PipelineConfig;
 
 /// Topic overrides (`--depth-topic`, `--ir-topic`, `--info-topic`).
 #[derive(Debug, Clone, Args, Default)]
@@ -33,6 +34,55 @@ impl TopicArgs {
             ir: self.ir_topic.clone(),
             info: self.info_topic.clone(),
         }
+    }
+}
+
+/// What `replay` and `calibrate-xi` share: the background, the segmentation,
+/// `Lin`, the model and the topics.
+#[derive(Debug, Clone, Args)]
+pub struct PipelineArgs {
+    /// The first N paired frames are the background (default: detect where the scene changes).
+    #[arg(long)]
+    pub background_frames: Option<usize>,
+    /// Segmentation threshold |d - db|, mm.
+    #[arg(long, default_value_t = 30.0)]
+    pub threshold_mm: f64,
+    /// Albedo assumed for the background when Lin is derived from it.
+    #[arg(long, default_value_t = 1.0)]
+    pub background_albedo: f64,
+    /// Emitted-light calibration from calibrate-lin.
+    #[arg(long)]
+    pub lin_calibration: Option<PathBuf>,
+    /// Exposure of this recording, s, to scale the Lin calibration (Eq. 14).
+    #[arg(long)]
+    pub exposure_s: Option<f64>,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    #[command(flatten)]
+    pub topics: TopicArgs,
+}
+
+impl PipelineArgs {
+    /// The pipeline's settings these options give.
+    pub fn config(&self) -> Result<PipelineConfig> {
+        if !(self.threshold_mm.is_finite() && self.threshold_mm > 0.0) {
+            bail!("--threshold-mm must be positive, got {}", self.threshold_mm);
+        }
+        if !(self.background_albedo > 0.0 && self.background_albedo <= 1.0) {
+            bail!("--background-albedo must be in (0, 1], got {}", self.background_albedo);
+        }
+        let lin = self
+            .lin_calibration
+            .as_ref()
+            .map(|p| LinFile::load(p, self.exposure_s))
+            .transpose()?;
+        Ok(PipelineConfig {
+            threshold_mm: self.threshold_mm,
+            background_albedo: self.background_albedo,
+            lin_calibration: lin,
+            model: self.model.model()?,
+            ..PipelineConfig::default()
+        })
     }
 }
 

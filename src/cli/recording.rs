@@ -10,7 +10,7 @@ use crate::bag::{select_topics, BagReader, SelectedTopics};
 use crate::image::{depth_mm, ir_counts};
 use crate::msgs::{CameraInfo, Header, Image};
 use crate::physics::{ImageBuf, Intrinsics};
-use crate::pipeline::{detect_scene_change, DepthFrame};
+use crate::pipeline::{detect_scene_change, BackgroundLatch, DepthFrame, Pipeline, PipelineConfig};
 
 use super::common::TopicArgs;
 
@@ -142,6 +142,19 @@ pub struct BackgroundChoice {
 }
 
 impl Recording {
+    /// A pipeline with the first `background` frames latched as the background.
+    pub fn latched_pipeline(&self, config: PipelineConfig, background: usize) -> Result<Pipeline> {
+        let k = self.intrinsics;
+        let mut latch = BackgroundLatch::new(k.width, k.height);
+        for f in &self.frames[..background] {
+            latch.push(f, &k)?;
+        }
+        let bg = latch.finish(&k, &config).context("latching the background")?;
+        let mut pipe = Pipeline::new(config, k);
+        pipe.set_background(bg);
+        Ok(pipe)
+    }
+
     /// `--background-frames N`, else the first frame where the scene changes.
     pub fn background_frames(
         &self,

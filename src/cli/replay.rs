@@ -11,9 +11,9 @@ use crate::image::{depth_image, mask_image, organized_cloud};
 use crate::msgs::translucent_tof::TranslucencyEstimate;
 use crate::msgs::Header;
 use crate::physics::{ImageBuf, Intrinsics, XiEstimate, XiMethod};
-use crate::pipeline::{rmse_against_truth, BackgroundLatch, FrameOutput, Pipeline, PipelineConfig, XiChoice};
+use crate::pipeline::{rmse_against_truth, FrameOutput, Pipeline, XiChoice};
 
-use super::common::{LinFile, ModelArgs, OutputArgs, TopicArgs};
+use super::common::{OutputArgs, PipelineArgs};
 use super::recording::{load, Recording};
 
 /// Arguments of `replay`.
@@ -21,9 +21,6 @@ use super::recording::{load, Recording};
 pub struct ReplayArgs {
     /// A ROS 2 bag (MCAP file, or a rosbag2 directory holding one).
     pub bag: PathBuf,
-    /// The first N paired frames are the background (default: detect where the scene changes).
-    #[arg(long)]
-    pub background_frames: Option<usize>,
     /// A fixed ξ (e.g. from calibrate-xi); default: estimate it.
     #[arg(long)]
     pub xi: Option<f64>,
@@ -37,64 +34,13 @@ pub struct ReplayArgs {
     /// Output bag (default: BAG's stem + `.recovered.mcap` in the current directory).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Segmentation threshold |d - db|, mm.
-    #[arg(long, default_value_t = 30.0)]
-    pub threshold_mm: f64,
-    /// Albedo assumed for the background when Lin is derived from it.
-    #[arg(long, default_value_t = 1.0)]
-    pub background_albedo: f64,
-    /// Emitted-light calibration from calibrate-lin.
-    #[arg(long)]
-    pub lin_calibration: Option<PathBuf>,
-    /// Exposure of this recording, s, to scale the Lin calibration (Eq. 14).
-    #[arg(long)]
-    pub exposure_s: Option<f64>,
     /// Radius (pixels) of the smooth-surface prior on the recovered layer (0: per-pixel inversion only).
     #[arg(long, default_value_t = 4)]
     pub prior_radius_px: usize,
     #[command(flatten)]
-    pub model: ModelArgs,
-    #[command(flatten)]
-    pub topics: TopicArgs,
+    pub pipeline: PipelineArgs,
     #[command(flatten)]
     pub output: OutputArgs,
-}
-
-/// The pipeline's settings from command-line options shared with calibrate-xi.
-pub(super) fn pipeline_config(
-    model: &ModelArgs,
-    threshold_mm: f64,
-    background_albedo: f64,
-    lin_calibration: Option<&PathBuf>,
-    exposure_s: Option<f64>,
-) -> Result<PipelineConfig> {
-    if !(threshold_mm.is_finite() && threshold_mm > 0.0) {
-        bail!("--threshold-mm must be positive, got {threshold_mm}");
-    }
-    if !(background_albedo > 0.0 && background_albedo <= 1.0) {
-        bail!("--background-albedo must be in (0, 1], got {background_albedo}");
-    }
-    let lin = lin_calibration.map(|p| LinFile::load(p, exposure_s)).transpose()?;
-    Ok(PipelineConfig {
-        threshold_mm,
-        background_albedo,
-        lin_calibration: lin,
-        model: model.model()?,
-        ..PipelineConfig::default()
-    })
-}
-
-/// Latches the background of a recording into a new pipeline.
-pub(super) fn latched_pipeline(rec: &Recording, config: PipelineConfig, background: usize) -> Result<Pipeline> {
-    let k = rec.intrinsics;
-    let mut latch = BackgroundLatch::new(k.width, k.height);
-    for f in &rec.frames[..background] {
-        latch.push(f, &k)?;
-    }
-    let bg = latch.finish(&k, &config).context("latching the background")?;
-    let mut pipe = Pipeline::new(config, k);
-    pipe.set_background(bg);
-    Ok(pipe)
 }
 
 /// Runs `replay`.
@@ -114,21 +60,19 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             bail!("--xi must be in [0, 1), got {x}");
         }
     }
-    let mut config = pipeline_config(
-        &a.model,
-        a.threshold_mm,
-        a.background_albedo,
-        a.lin_calibration.as_ref(),
-        a.exposure_s,
-    )?;
+    let mut config = a.pipeline.config()?;
     config.prior_radius_px = a.prior_radius_px;
     config.xi = match a.xi {
         Some(x) => XiChoice::Fixed(x),
         None => XiChoice::Estimate(method),
     };
-    let rec = load(&a.bag, &a.topics)?;
-    let bg = rec.background_frames(a.background_frames, config.threshold_mm, config.min_region_pixels)?;
-    let mut pipe = latched_pipeline(&rec, config, bg.count)?;
+    let rec = load(&a.bag, &a.pipeline.topics)?;
+    let bg = rec.background_frames(
+        a.pipeline.background_frames,
+        config.threshold_mm,
+        config.min_region_pixels,
+    )?;
+    let mut pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];
     let out_path = a.out.clone().unwrap_or_else(|| {
         let stem = a

@@ -4,11 +4,12 @@
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use translucent_tof::physics::translucency::{self, FrameSample, ProfileUse};
-use translucent_tof::physics::{ForwardModel, ImageBuf, XiEstimate};
+use translucent_tof::physics::translucency;
+use translucent_tof::physics::{ForwardModel, XiEstimate};
 use translucent_tof::pipeline::{rmse_against_truth, BackgroundLatch, DepthFrame, Pipeline, PipelineConfig, XiChoice};
 use translucent_tof::sim::render::{render_all, scene_intrinsics, scene_sensor};
 use translucent_tof::sim::scene::{BackgroundSpec, ObjectSpec, Scene, StageSpec};
+use translucent_tof::sim::SimFrame;
 
 /// The paper's Sec. V-B setting (document holder / file box): a plane at
 /// 500/750/1000/1750 mm in front of a white wall at 2000 mm. Size, offset,
@@ -53,6 +54,28 @@ pub fn fig5_scene(seed: u64, xi: f64, albedo_range: (f64, f64), frames_per_stage
     }
 }
 
+/// A simulated frame as the pipeline takes it.
+pub fn df(f: &SimFrame) -> DepthFrame {
+    DepthFrame {
+        stamp_ns: f.stamp_ns,
+        z_mm: f.depth_z_mm.clone(),
+        ir: f.ir.clone(),
+    }
+}
+
+/// Renders a scene and latches its background frames into a new pipeline.
+pub fn latched(scene: &Scene, config: PipelineConfig) -> (Pipeline, Vec<SimFrame>) {
+    let frames = render_all(scene);
+    let k = scene_intrinsics(scene);
+    let mut latch = BackgroundLatch::new(k.width, k.height);
+    for f in frames.iter().filter(|f| f.background_only) {
+        latch.push(&df(f), &k).unwrap();
+    }
+    let mut pipe = Pipeline::new(config.clone(), k);
+    pipe.set_background(latch.finish(&k, &config).unwrap());
+    (pipe, frames)
+}
+
 /// Figures of one in-memory run.
 #[derive(Debug, Clone)]
 pub struct RunFigures {
@@ -87,8 +110,6 @@ pub fn run_scene(scene: &Scene, xi: XiChoice, prior_radius_px: usize) -> RunFigu
 
 /// [`run_scene`] with the background's albedo (for `Lin`) given.
 pub fn run_scene_with(scene: &Scene, xi: XiChoice, prior_radius_px: usize, background_albedo: f64) -> RunFigures {
-    let frames = render_all(scene);
-    let k = scene_intrinsics(scene);
     let config = PipelineConfig {
         xi,
         model: ForwardModel {
@@ -99,17 +120,7 @@ pub fn run_scene_with(scene: &Scene, xi: XiChoice, prior_radius_px: usize, backg
         background_albedo,
         ..PipelineConfig::default()
     };
-    let mut pipe = Pipeline::new(config.clone(), k);
-    let mut latch = BackgroundLatch::new(k.width, k.height);
-    let df = |f: &translucent_tof::sim::SimFrame| DepthFrame {
-        stamp_ns: f.stamp_ns,
-        z_mm: f.depth_z_mm.clone(),
-        ir: f.ir.clone(),
-    };
-    for f in frames.iter().filter(|f| f.background_only) {
-        latch.push(&df(f), &k).unwrap();
-    }
-    pipe.set_background(latch.finish(&k, &config).unwrap());
+    let (mut pipe, frames) = latched(scene, config);
     let objects: Vec<_> = frames.iter().filter(|f| !f.background_only).collect();
     let observed: Vec<_> = objects.iter().map(|f| pipe.observe(&df(f)).unwrap()).collect();
     for o in &observed {
@@ -190,53 +201,18 @@ pub fn fig4_scene(seed: u64, xi: f64, albedo_range: (f64, f64)) -> Scene {
 /// The paper's Sec. V-A protocol in memory: ξ fitted to the object frames'
 /// known distances, with the given model.
 pub fn calibrate_scene(scene: &Scene, model: ForwardModel) -> XiEstimate {
-    let frames = render_all(scene);
-    let k = scene_intrinsics(scene);
-    let config = PipelineConfig {
-        model,
-        ..PipelineConfig::default()
-    };
-    let mut latch = BackgroundLatch::new(k.width, k.height);
-    let df = |f: &translucent_tof::sim::SimFrame| DepthFrame {
-        stamp_ns: f.stamp_ns,
-        z_mm: f.depth_z_mm.clone(),
-        ir: f.ir.clone(),
-    };
-    for f in frames.iter().filter(|f| f.background_only) {
-        latch.push(&df(f), &k).unwrap();
-    }
-    let mut pipe = Pipeline::new(config.clone(), k);
-    pipe.set_background(latch.finish(&k, &config).unwrap());
-    let rays = k.unit_ray_map();
-    let scale = k.ray_scale_map();
-    let mut profiles = vec![];
-    for f in frames.iter().filter(|f| !f.background_only) {
-        let obs = pipe.observe(&df(f)).unwrap();
-        let truth = ImageBuf {
-            width: k.width,
-            height: k.height,
-            data: f
-                .truth_z_mm
-                .data
-                .iter()
-                .zip(&scale.data)
-                .map(|(&z, &s)| z as f64 * s)
-                .collect(),
-        };
-        let sample = FrameSample::from_image(
-            &obs.observations,
-            &rays,
-            Some(&truth),
-            config.xi_settings.max_pixels_per_frame,
-        );
-        profiles.push(translucency::frame_profile(
-            &config.model,
-            &config.bounds,
-            &sample,
-            &config.xi_settings,
-            ProfileUse::Calibration,
-        ));
-    }
+    let (pipe, frames) = latched(
+        scene,
+        PipelineConfig {
+            model,
+            ..PipelineConfig::default()
+        },
+    );
+    let profiles: Vec<_> = frames
+        .iter()
+        .filter(|f| !f.background_only)
+        .filter_map(|f| pipe.calibration_profile(&df(f), &f.truth_z_mm).unwrap())
+        .collect();
     translucency::calibrate(&profiles).expect("a calibration")
 }
 
