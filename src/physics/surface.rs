@@ -105,74 +105,14 @@ pub fn fit_plane_robust(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: 
 /// noisy layer). Points farther than `k` times the RMS (at least `floor_mm`)
 /// are dropped and the fit repeated, `passes` times.
 pub fn fit_plane_along_rays(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: usize) -> Option<Plane> {
-    let mut keep: Vec<bool> = points
-        .iter()
-        .map(|p| p.z > 0.0 && p.iter().all(|v| v.is_finite()))
-        .collect();
-    let mut plane = None;
-    for pass in 0..=passes {
-        let mut ata = Matrix3::zeros();
-        let mut atb = Vector3::zeros();
-        let mut n = 0;
-        for (p, _) in points.iter().zip(&keep).filter(|(_, k)| **k) {
-            let z2 = p.z * p.z;
-            let w = z2 * z2; // d(1/z) = dz / z^2: weight so residuals are in z units
-            let row = Vector3::new(p.x / p.z, p.y / p.z, 1.0);
-            ata += row * row.transpose() * w;
-            atb += row * (w / p.z);
-            n += 1;
-        }
-        if n < 3 {
-            return plane;
-        }
-        let coef = ata.cholesky()?.solve(&atb);
-        let norm = coef.norm();
-        if !(norm > 0.0) || !coef.iter().all(|v| v.is_finite()) {
-            return plane;
-        }
-        // coef . p = 1; orient the unit normal toward the camera.
-        let (normal, offset) = if coef.z > 0.0 {
-            (-coef / norm, -1.0 / norm)
-        } else {
-            (coef / norm, 1.0 / norm)
-        };
-        let resid = |p: &Vector3<f64>| (p.z - 1.0 / (coef.x * p.x / p.z + coef.y * p.y / p.z + coef.z)).abs();
-        let ss: f64 = points
-            .iter()
-            .zip(&keep)
-            .filter(|(_, k)| **k)
-            .map(|(p, _)| resid(p).powi(2))
-            .sum();
-        let rms = (ss / n as f64).sqrt();
-        // Residuals are in z units under the z^4 weights, so Cov(coef) = rms^2 (A^T W A)^-1;
-        // the normal turns by d(alpha, beta) / |gamma|.
-        let normal_sigma_rad = ata
-            .try_inverse()
-            .map(|inv| rms * (inv[(0, 0)] + inv[(1, 1)]).max(0.0).sqrt() / coef.z.abs())
-            .unwrap_or(f64::INFINITY);
-        plane = Some(Plane {
-            normal,
-            offset,
-            rms_mm: rms,
-            count: n,
-            normal_sigma_rad,
-        });
-        if pass == passes {
-            break;
-        }
-        let cut = (k * rms).max(floor_mm);
-        let mut changed = false;
-        for (p, kp) in points.iter().zip(keep.iter_mut()) {
-            if *kp && resid(p) > cut {
-                *kp = false;
-                changed = true;
-            }
-        }
-        if !changed {
-            break;
-        }
-    }
-    plane
+    let robust = Robust { k, floor_mm, passes };
+    fit_inverse_depth(
+        points,
+        (0.0, 0.0),
+        |a, b| SVector::<f64, 3>::from([1.0, a, b]),
+        3,
+        &robust,
+    )
 }
 
 /// The plane tangent, at the ray `center` (a unit or z = 1 ray), to a smooth
@@ -192,29 +132,48 @@ pub fn fit_tangent_plane_along_rays(
     if center.z <= 0.0 {
         return None;
     }
-    let (a0, b0) = (center.x / center.z, center.y / center.z);
-    let row = |p: &Vector3<f64>| {
-        let (a, b) = (p.x / p.z - a0, p.y / p.z - b0);
-        SVector::<f64, 6>::from([1.0, a, b, a * a, a * b, b * b])
-    };
+    let robust = Robust { k, floor_mm, passes };
+    let quadric = |a: f64, b: f64| SVector::<f64, 6>::from([1.0, a, b, a * a, a * b, b * b]);
+    fit_inverse_depth(points, (center.x / center.z, center.y / center.z), quadric, 10, &robust)
+}
+
+/// Outlier rejection of the fits along the rays.
+struct Robust {
+    k: f64,
+    floor_mm: f64,
+    passes: usize,
+}
+
+/// Weighted least squares of the inverse depth on `terms(a, b)` (whose first
+/// three are `1, a, b`) in image coordinates `(a, b) = (x/z, y/z) - centre`,
+/// with weights `z^4` so residuals are millimetres of z; returns the tangent
+/// plane at the centre, `1/z = c0 + c1 (a - a0) + c2 (b - b0)`.
+fn fit_inverse_depth<const N: usize>(
+    points: &[Vector3<f64>],
+    (a0, b0): (f64, f64),
+    terms: impl Fn(f64, f64) -> SVector<f64, N>,
+    min_points: usize,
+    robust: &Robust,
+) -> Option<Plane> {
+    let row = |p: &Vector3<f64>| terms(p.x / p.z - a0, p.y / p.z - b0);
     let mut keep: Vec<bool> = points
         .iter()
         .map(|p| p.z > 0.0 && p.iter().all(|v| v.is_finite()))
         .collect();
     let mut plane = None;
-    for pass in 0..=passes {
-        let mut ata = SMatrix::<f64, 6, 6>::zeros();
-        let mut atb = SVector::<f64, 6>::zeros();
+    for pass in 0..=robust.passes {
+        let mut ata = SMatrix::<f64, N, N>::zeros();
+        let mut atb = SVector::<f64, N>::zeros();
         let mut n = 0;
         for (p, _) in points.iter().zip(&keep).filter(|(_, k)| **k) {
             let z2 = p.z * p.z;
-            let w = z2 * z2;
+            let w = z2 * z2; // d(1/z) = dz / z^2
             let r = row(p);
             ata += r * r.transpose() * w;
             atb += r * (w / p.z);
             n += 1;
         }
-        if n < 10 {
+        if n < min_points {
             return plane;
         }
         let inv = ata.try_inverse()?;
@@ -223,9 +182,14 @@ pub fn fit_tangent_plane_along_rays(
             return plane;
         }
         let resid = |p: &Vector3<f64>| (p.z - 1.0 / row(p).dot(&c)).abs();
-        let kept = || points.iter().zip(&keep).filter(|(_, k)| **k).map(|(p, _)| p);
-        let rms = (kept().map(|p| resid(p).powi(2)).sum::<f64>() / n as f64).sqrt();
-        // Tangent plane at the centre: 1/z = c0 + c1 (a - a0) + c2 (b - b0), i.e. coef . p = 1.
+        let ss: f64 = points
+            .iter()
+            .zip(&keep)
+            .filter(|(_, k)| **k)
+            .map(|(p, _)| resid(p).powi(2))
+            .sum();
+        let rms = (ss / n as f64).sqrt();
+        // The tangent plane coef . p = 1, its unit normal toward the camera.
         let coef = Vector3::new(c[1], c[2], c[0] - c[1] * a0 - c[2] * b0);
         let norm = coef.norm();
         let (normal, offset) = if coef.z > 0.0 {
@@ -233,6 +197,8 @@ pub fn fit_tangent_plane_along_rays(
         } else {
             (coef / norm, 1.0 / norm)
         };
+        // Residuals are in z units under the z^4 weights, so Cov(c) = rms^2 (A^T W A)^-1;
+        // the normal turns by d(c1, c2) / c0.
         let normal_sigma_rad = rms * (inv[(1, 1)] + inv[(2, 2)]).max(0.0).sqrt() / c[0];
         plane = Some(Plane {
             normal,
@@ -241,10 +207,10 @@ pub fn fit_tangent_plane_along_rays(
             count: n,
             normal_sigma_rad,
         });
-        if pass == passes {
+        if pass == robust.passes {
             break;
         }
-        let cut = (k * rms).max(floor_mm);
+        let cut = (robust.k * rms).max(robust.floor_mm);
         let mut changed = false;
         for (p, kp) in points.iter().zip(keep.iter_mut()) {
             if *kp && resid(p) > cut {
