@@ -386,6 +386,24 @@ pub fn organized_cloud(
     }
 }
 
+/// The CameraInfo of an undistorted pinhole camera (`plumb_bob` with zero
+/// distortion, identity rectification, `P = [K | 0]`).
+pub fn camera_info(header: &Header, k: &crate::physics::Intrinsics) -> crate::msgs::CameraInfo {
+    crate::msgs::CameraInfo {
+        header: header.clone(),
+        height: k.height as u32,
+        width: k.width as u32,
+        distortion_model: "plumb_bob".into(),
+        d: vec![0.0; 5],
+        k: k.k(),
+        r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        p: [k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+        binning_x: 0,
+        binning_y: 0,
+        roi: crate::msgs::RegionOfInterest::default(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -16,7 +16,7 @@ use tempfile::TempDir;
 use translucent_tof::bag::{BagReader, BagWriter};
 use translucent_tof::image::{depth_image, ir_image};
 use translucent_tof::msgs::translucent_tof::TranslucencyEstimate;
-use translucent_tof::msgs::{CameraInfo, Header, Image, PointCloud2, PointField, RegionOfInterest};
+use translucent_tof::msgs::{CameraInfo, Header, Image, PointCloud2, PointField};
 use translucent_tof::physics::ImageBuf;
 use translucent_tof::sim::render::scene_intrinsics;
 use translucent_tof::sim::{render_all, Scene, SimFrame};
@@ -156,20 +156,7 @@ fn small_scene(bg_frames: usize, with_object: bool) -> Scene {
 }
 
 fn camera_info(scene: &Scene, stamp_ns: u64) -> CameraInfo {
-    let k = scene_intrinsics(scene);
-    CameraInfo {
-        header: Header::new(stamp_ns, FRAME_ID),
-        height: k.height as u32,
-        width: k.width as u32,
-        distortion_model: "plumb_bob".into(),
-        d: vec![0.0; 5],
-        k: k.k(),
-        r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        p: [k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-        binning_x: 0,
-        binning_y: 0,
-        roi: RegionOfInterest::default(),
-    }
+    translucent_tof::image::camera_info(&Header::new(stamp_ns, FRAME_ID), &scene_intrinsics(scene))
 }
 
 fn topic(t: &str) -> String {

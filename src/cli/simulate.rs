@@ -7,8 +7,8 @@ use clap::Args;
 use serde_json::json;
 
 use crate::bag::BagWriter;
-use crate::image::{depth_image, ir_image};
-use crate::msgs::{CameraInfo, Header, RegionOfInterest};
+use crate::image::{camera_info, depth_image, ir_image};
+use crate::msgs::Header;
 use crate::physics::ImageBuf;
 use crate::sim::render::{render, scene_intrinsics};
 use crate::sim::Scene;
@@ -42,19 +42,6 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     let topic = |t: &str| format!("{ns}/{t}");
     let mut writer = BagWriter::create(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let pb = a.output.progress(scene.frame_count() as u64, "rendering");
-    let mut info = CameraInfo {
-        header: Header::new(0, c.frame_id.clone()),
-        height: k.height as u32,
-        width: k.width as u32,
-        distortion_model: "plumb_bob".into(),
-        d: vec![0.0; 5],
-        k: k.k(),
-        r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        p: [k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-        binning_x: 0,
-        binning_y: 0,
-        roi: RegionOfInterest::default(),
-    };
     let mut background = 0;
     render(&scene, |_, f| {
         let h = Header::new(f.stamp_ns, c.frame_id.clone());
@@ -69,8 +56,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
                 f.stamp_ns,
                 &ir_image(&h, &f.ir, &c.ir_encoding)?,
             )?;
-            info.header = h.clone();
-            writer.write(&topic("depth/camera_info"), f.stamp_ns, &info)?;
+            writer.write(&topic("depth/camera_info"), f.stamp_ns, &camera_info(&h, &k))?;
             let truth_m = ImageBuf {
                 width: f.truth_z_mm.width,
                 height: f.truth_z_mm.height,
