@@ -25,7 +25,7 @@ fn cameras_drawn_from_seeded_ranges() {
         s.noise.depth_noise_mm = rng.random_range(5.0..15.0);
         // Keep the layers under half the unambiguous range apart, as a user picks the frequency.
         let range = 299_792_458_000.0 / (2.0 * c.modulation_frequency_hz);
-        s.background.distance_mm = (range * 0.45).min(2000.0).max(1200.0);
+        s.background.distance_mm = (range * 0.45).clamp(1200.0, 2000.0);
         s.stages
             .retain(|st| st.objects[0].center_mm[2] < s.background.distance_mm - 300.0);
         let r = run_scene(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4);
