@@ -9,7 +9,9 @@ use serde::Serialize;
 use thiserror::Error;
 
 use crate::physics::emitted_light::{emitted_light_from_plane, EmittedLightError};
-use crate::physics::segmentation::{changed_pixels, remove_small_regions, DEFAULT_THRESHOLD_MM};
+use crate::physics::segmentation::{
+    changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
+};
 use crate::physics::surface::local_planes;
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
@@ -127,6 +129,8 @@ pub struct DepthFrame {
 /// Averages frames into a background (the latch).
 #[derive(Debug, Clone)]
 pub struct BackgroundLatch {
+    range_mm: f64,
+    first: Vec<f64>,
     n: Vec<u32>,
     sum_d: Vec<f64>,
     sum_d2: Vec<f64>,
@@ -149,6 +153,8 @@ pub struct Background {
     pub emitted_light: ImageBuf<f64>,
     /// Where `Lin` came from, in words.
     pub lin_source: String,
+    /// What looks wrong with this background, in words (empty when nothing does).
+    pub warnings: Vec<String>,
     /// Frames averaged.
     pub frames: usize,
     /// Valid pixels.
@@ -159,9 +165,13 @@ pub struct Background {
 
 impl BackgroundLatch {
     /// An empty latch for images of this size.
-    pub fn new(width: usize, height: usize) -> Self {
+    /// `range_mm` is the sensor's unambiguous range: readings are unwrapped
+    /// against each pixel's first one before they are averaged.
+    pub fn new(width: usize, height: usize, range_mm: f64) -> Self {
         let n = width * height;
         Self {
+            range_mm,
+            first: vec![f64::NAN; n],
             n: vec![0; n],
             sum_d: vec![0.0; n],
             sum_d2: vec![0.0; n],
@@ -186,7 +196,11 @@ impl BackgroundLatch {
                 let z = frame.z_mm.data[i] as f64;
                 let ir = frame.ir.data[i] as f64;
                 if z.is_finite() && z > 0.0 && ir.is_finite() && ir > 0.0 {
-                    let d = z * intrinsics.ray_scale(col, row);
+                    let mut d = z * intrinsics.ray_scale(col, row);
+                    if self.first[i].is_nan() {
+                        self.first[i] = d;
+                    }
+                    d = self.first[i] + wrapped_difference(d, self.first[i], self.range_mm);
                     self.n[i] += 1;
                     self.sum_d[i] += d;
                     self.sum_d2[i] += d * d;
@@ -211,7 +225,7 @@ impl BackgroundLatch {
             let n = self.n[i];
             if n >= need {
                 let m = self.sum_d[i] / n as f64;
-                d.data[i] = m;
+                d.data[i] = m.rem_euclid(self.range_mm);
                 ir.data[i] = self.sum_ir[i] / n as f64;
                 if n > 1 {
                     sd.data[i] = ((self.sum_d2[i] / n as f64 - m * m).max(0.0) * n as f64 / (n - 1) as f64).sqrt();
@@ -222,6 +236,10 @@ impl BackgroundLatch {
         if valid < (total / 20).max(10) {
             return Err(PipelineError::BackgroundInvalid { valid, total });
         }
+        let mut noises: Vec<f64> = sd.data.iter().copied().filter(|v| v.is_finite()).collect();
+        noises.sort_by(f64::total_cmp);
+        let median_noise_mm = noises.get(noises.len() / 2).copied().unwrap_or(f64::NAN);
+        let mut warnings = vec![];
         let (lin, lin_source) = match &config.lin_calibration {
             Some(lin) => {
                 if lin.width != self.width || lin.height != self.height {
@@ -237,6 +255,21 @@ impl BackgroundLatch {
             None => {
                 let (lin, plane) =
                     emitted_light_from_plane(&d, &ir, &intrinsics.unit_ray_map(), config.background_albedo)?;
+                let on_plane = lin.data.iter().filter(|v| v.is_finite()).count();
+                // A plane fits a wall to about its noise; far worse, the background is no plane
+                // (or the object was already there) and Lin from it is unreliable.
+                let expected = (5.0 * median_noise_mm).max(20.0);
+                if !(plane.rms_mm <= expected) || on_plane < valid / 2 {
+                    let noise = if median_noise_mm.is_finite() {
+                        format!("{median_noise_mm:.0} mm of noise")
+                    } else {
+                        "noise unknown from one frame".to_string()
+                    };
+                    warnings.push(format!(
+                        "the background is not a plane (fit RMS {:.0} mm against {noise}; {on_plane} of {valid} valid pixels on it): Lin derived from it is unreliable; give --lin-calibration (calibrate-lin), or check that the object was not in the background frames",
+                        plane.rms_mm
+                    ));
+                }
                 let src = format!(
                     "derived from the latched background as a white plane of albedo {} (no calibration file; plane fit RMS {:.1} mm)",
                     config.background_albedo, plane.rms_mm
@@ -244,15 +277,13 @@ impl BackgroundLatch {
                 (lin, src)
             }
         };
-        let mut noises: Vec<f64> = sd.data.iter().copied().filter(|v| v.is_finite()).collect();
-        noises.sort_by(f64::total_cmp);
-        let median_noise_mm = noises.get(noises.len() / 2).copied().unwrap_or(f64::NAN);
         Ok(Background {
             distance_mm: d,
             ir,
             noise_mm: sd,
             emitted_light: lin,
             lin_source,
+            warnings,
             frames: self.frames,
             valid_pixels: valid,
             median_noise_mm,
@@ -376,7 +407,25 @@ impl Pipeline {
                 }
             }
         }
-        let raw = changed_pixels(&d, &bg.distance_mm, self.config.threshold_mm);
+        // The noise of d - db: the pixel's own (measured over the latch) and the latched mean's.
+        let change_noise = (bg.frames >= 3).then(|| ImageBuf {
+            width: k.width,
+            height: k.height,
+            data: bg
+                .noise_mm
+                .data
+                .iter()
+                .map(|s| s * (1.0 + 1.0 / bg.frames as f64).sqrt())
+                .collect(),
+        });
+        let range = self.config.model.sensor.unambiguous_range_mm();
+        let raw = changed_pixels(
+            &d,
+            &bg.distance_mm,
+            self.config.threshold_mm,
+            range,
+            change_noise.as_ref(),
+        );
         let (mask, _) = remove_small_regions(&raw, self.config.min_region_pixels);
         let observations = ImageBuf {
             width: k.width,
@@ -636,30 +685,54 @@ fn nearest_plane(
     best.map(|b| b.1)
 }
 
-/// Finds where the scene changes: the first frame whose readings differ from
-/// the mean of the frames before it by more than `threshold_mm` over a region
-/// of at least `min_region_pixels` (and 0.2 % of the image). `None` if never.
+/// Finds where the scene changes: the first frame whose readings (ray
+/// distances, mm, NaN invalid) differ from the mean of the frames before it
+/// by more than `threshold_mm`, compared as wrapped phases, over a region of
+/// at least `min_region_pixels` (and 0.2 % of the image). `None` if never.
 pub fn detect_scene_change(
-    frames: &[ImageBuf<f32>],
+    frames: &[ImageBuf<f64>],
     threshold_mm: f64,
     min_region_pixels: usize,
+    range_mm: f64,
 ) -> Option<SceneChange> {
     let first = frames.first()?;
     let n = first.len();
+    let mut anchor = vec![f64::NAN; n];
     let mut sum = vec![0.0f64; n];
+    let mut sum2 = vec![0.0f64; n];
     let mut cnt = vec![0u32; n];
     let need = min_region_pixels.max(n / 500);
+    let unwrap = |d: f64, a: f64| a + wrapped_difference(d, a, range_mm);
     for (k, f) in frames.iter().enumerate() {
         if f.len() != n {
             return None;
         }
         if k > 0 {
+            // d - mean(before), with the noise it should have: the pixel's own spread once
+            // three frames are in, before that the spread of this difference over the image.
+            let diff: Vec<f64> = (0..n)
+                .map(|i| {
+                    let d = f.data[i];
+                    if cnt[i] > 0 && d.is_finite() && d > 0.0 {
+                        unwrap(d, anchor[i]) - sum[i] / cnt[i] as f64
+                    } else {
+                        f64::NAN
+                    }
+                })
+                .collect();
+            let global = robust_sigma(diff.iter().copied().filter(|v| v.is_finite()).collect());
             let mut changed = ImageBuf::filled(f.width, f.height, false);
             for i in 0..n {
-                let z = f.data[i] as f64;
-                if cnt[i] > 0 && z.is_finite() && z > 0.0 {
-                    changed.data[i] = (z - sum[i] / cnt[i] as f64).abs() > threshold_mm;
+                if !diff[i].is_finite() {
+                    continue;
                 }
+                let c = cnt[i] as f64;
+                let sigma = if cnt[i] >= 3 {
+                    ((sum2[i] / c - (sum[i] / c).powi(2)).max(0.0) * c / (c - 1.0) * (1.0 + 1.0 / c)).sqrt()
+                } else {
+                    global
+                };
+                changed.data[i] = diff[i].abs() > threshold_mm.max(NOISE_SIGMAS * sigma);
             }
             let (clean, _) = remove_small_regions(&changed, min_region_pixels);
             let count = clean.data.iter().filter(|&&c| c).count();
@@ -671,14 +744,31 @@ pub fn detect_scene_change(
             }
         }
         for i in 0..n {
-            let z = f.data[i] as f64;
-            if z.is_finite() && z > 0.0 {
-                sum[i] += z;
+            let d = f.data[i];
+            if d.is_finite() && d > 0.0 {
+                if anchor[i].is_nan() {
+                    anchor[i] = d;
+                }
+                let u = unwrap(d, anchor[i]);
+                sum[i] += u;
+                sum2[i] += u * u;
                 cnt[i] += 1;
             }
         }
     }
     None
+}
+
+/// 1.4826 times the median absolute deviation from the median (0 for no values).
+fn robust_sigma(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    let med = v[v.len() / 2];
+    let mut dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
+    dev.sort_by(f64::total_cmp);
+    1.4826 * dev[dev.len() / 2]
 }
 
 /// Where the scene changed.

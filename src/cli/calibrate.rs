@@ -10,7 +10,7 @@ use crate::physics::emitted_light::emitted_light_from_plane;
 use crate::physics::translucency;
 use crate::pipeline::{BackgroundLatch, PipelineConfig};
 
-use super::common::{write_atomic, LinFile, OutputArgs, PipelineArgs, TopicArgs, LIN_FORMAT};
+use super::common::{write_atomic, LinFile, ModelArgs, OutputArgs, PipelineArgs, TopicArgs, LIN_FORMAT};
 use super::recording::load;
 
 /// Arguments of `calibrate-xi`.
@@ -34,11 +34,7 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
             a.bag.display()
         );
     }
-    let bg = rec.background_frames(
-        a.pipeline.background_frames,
-        config.threshold_mm,
-        config.min_region_pixels,
-    )?;
+    let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
     let pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];
     let pb = a.output.progress(objects.len() as u64, "fitting xi");
@@ -101,6 +97,8 @@ pub struct CalibrateLinArgs {
     #[arg(long)]
     pub frames: Option<usize>,
     #[command(flatten)]
+    pub model: ModelArgs,
+    #[command(flatten)]
     pub topics: TopicArgs,
     #[command(flatten)]
     pub output: OutputArgs,
@@ -114,7 +112,8 @@ pub fn run_lin(a: CalibrateLinArgs) -> Result<()> {
     if n == 0 {
         bail!("--frames must be at least 1");
     }
-    let mut latch = BackgroundLatch::new(k.width, k.height);
+    let range = a.model.model()?.sensor.unambiguous_range_mm();
+    let mut latch = BackgroundLatch::new(k.width, k.height, range);
     for f in &rec.frames[..n] {
         latch.push(f, &k)?;
     }

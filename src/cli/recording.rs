@@ -145,7 +145,7 @@ impl Recording {
     /// A pipeline with the first `background` frames latched as the background.
     pub fn latched_pipeline(&self, config: PipelineConfig, background: usize) -> Result<Pipeline> {
         let k = self.intrinsics;
-        let mut latch = BackgroundLatch::new(k.width, k.height);
+        let mut latch = BackgroundLatch::new(k.width, k.height, config.model.sensor.unambiguous_range_mm());
         for f in &self.frames[..background] {
             latch.push(f, &k)?;
         }
@@ -156,13 +156,10 @@ impl Recording {
     }
 
     /// `--background-frames N`, else the first frame where the scene changes.
-    pub fn background_frames(
-        &self,
-        given: Option<usize>,
-        threshold_mm: f64,
-        min_region: usize,
-    ) -> Result<BackgroundChoice> {
+    pub fn background_frames(&self, given: Option<usize>, config: &PipelineConfig) -> Result<BackgroundChoice> {
         let n = self.frames.len();
+        let (threshold_mm, min_region) = (config.threshold_mm, config.min_region_pixels);
+        let range_mm = config.model.sensor.unambiguous_range_mm();
         match given {
             Some(0) => bail!("--background-frames must be at least 1"),
             Some(k) if k >= n => {
@@ -182,14 +179,19 @@ impl Recording {
                         first.len()
                     );
                 }
-                let depths: Vec<ImageBuf<f32>> = self.frames.iter().map(|f| f.z_mm.clone()).collect();
-                let change = detect_scene_change(&depths, threshold_mm, min_region).ok_or_else(|| {
+                let scale = self.intrinsics.ray_scale_map();
+                let distances: Vec<ImageBuf<f64>> = self
+                    .frames
+                    .iter()
+                    .map(|f| crate::physics::camera::z_to_ray_distance(&f.z_mm, &scale))
+                    .collect();
+                let change = detect_scene_change(&distances, threshold_mm, min_region, range_mm).ok_or_else(|| {
                     anyhow!("no background: the scene never changes over {n} frames (no object appears in front of the first frame's background); pass --background-frames N if the object is there from the start")
                 })?;
                 Ok(BackgroundChoice {
                     count: change.frame,
                     how: format!(
-                        "scene changes at frame {} (stamp {} ns: {} pixels moved by more than {threshold_mm} mm); frames 0..{} are the background",
+                        "scene changes at frame {} (stamp {} ns: {} pixels moved by more than {threshold_mm} mm and 3 sigma of their noise); frames 0..{} are the background",
                         change.frame,
                         self.frames[change.frame].stamp_ns,
                         change.changed_pixels,

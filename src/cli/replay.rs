@@ -67,11 +67,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         None => XiChoice::Estimate(method),
     };
     let rec = load(&a.bag, &a.pipeline.topics)?;
-    let bg = rec.background_frames(
-        a.pipeline.background_frames,
-        config.threshold_mm,
-        config.min_region_pixels,
-    )?;
+    let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
     let mut pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];
     let out_path = a.out.clone().unwrap_or_else(|| {
@@ -102,6 +98,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let mut per_frame = vec![];
     let mut last: Option<XiEstimate> = None;
     let (mut sum_e2, mut sum_raw2, mut n_err) = (0.0, 0.0, 0usize);
+    let mut seg_truth = 0usize;
     let mut total_px = 0usize;
     for (j, (f, obs)) in objects.iter().zip(&observed).enumerate() {
         if online {
@@ -126,10 +123,16 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             "fit_residual_mm": out.fit_residual_mm,
         });
         if let Some(truth) = rec.truth.get(&f.stamp_ns) {
+            // Raw and recovered over the same pixels: segmented, with truth, recovered.
+            let segmented_with_truth = (0..out.mask.len())
+                .filter(|&i| out.mask.data[i] && truth.data[i].is_finite())
+                .count();
             let mut mask = out.mask.clone();
             for i in 0..mask.len() {
                 mask.data[i] &= out.corrected_z_mm.data[i].is_finite();
             }
+            row["segmented_truth_pixels"] = json!(segmented_with_truth);
+            seg_truth += segmented_with_truth;
             if let (Some((e, n)), Some((raw, _))) = (
                 rmse_against_truth(&out.corrected_z_mm, truth, &mask),
                 rmse_against_truth(&f.z_mm, truth, &mask),
@@ -161,6 +164,13 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "background_choice": bg.how,
         "background_noise_mm": bgd.median_noise_mm,
         "lin_source": bgd.lin_source,
+        "warnings": bgd.warnings,
+        "sensor": {
+            "modulation_frequency_hz": pipe.config.model.sensor.modulation_frequency_hz,
+            "unambiguous_range_mm": pipe.config.model.sensor.unambiguous_range_mm(),
+            "waveform": format!("{:?}", pipe.config.model.sensor.waveform),
+            "model_options": pipe.config.model.options,
+        },
         "topics": {"depth": rec.topics.depth, "ir": rec.topics.ir, "info": rec.topics.info, "ground_truth": rec.topics.ground_truth, "notes": rec.topics.notes},
         "unpaired": {"depth": rec.unpaired.0, "ir": rec.unpaired.1},
         "xi": xi.as_ref().map(|x| x.xi),
@@ -213,6 +223,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     if n_err > 0 {
         report["rmse_mm"] = json!((sum_e2 / n_err as f64).sqrt());
         report["rmse_raw_mm"] = json!((sum_raw2 / n_err as f64).sqrt());
+        // Share of the segmented pixels with truth that got a recovered depth (the errors cover only those).
+        report["coverage"] = json!(n_err as f64 / seg_truth.max(1) as f64);
         let k = frame_rmse.len() as f64;
         report["mean_frame_rmse_mm"] = json!(frame_rmse.iter().map(|r| r.0).sum::<f64>() / k);
         report["mean_frame_rmse_raw_mm"] = json!(frame_rmse.iter().map(|r| r.1).sum::<f64>() / k);
@@ -292,6 +304,15 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         r["background_choice"].as_str().unwrap_or("")
     ));
     s.push_str(&format!("Lin: {}\n", r["lin_source"].as_str().unwrap_or("")));
+    let sensor = &r["sensor"];
+    s.push_str(&format!(
+        "sensor assumed: {:.1} MHz, {} correlation (--modulation-frequency-hz, --waveform)\n",
+        sensor["modulation_frequency_hz"].as_f64().unwrap_or(f64::NAN) / 1e6,
+        sensor["waveform"].as_str().unwrap_or("?").to_lowercase()
+    ));
+    for w in r["warnings"].as_array().into_iter().flatten() {
+        s.push_str(&format!("WARNING: {}\n", w.as_str().unwrap_or("")));
+    }
     if let (Some(x), Some(iv)) = (r["xi"].as_f64(), r["xi_interval"].as_array()) {
         s.push_str(&format!(
             "xi = {x:.3} [{:.3}, {:.3}] by {} over {} frame(s)\n",
@@ -324,7 +345,8 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
     ));
     if let (Some(e), Some(raw)) = (r["mean_frame_rmse_mm"].as_f64(), r["mean_frame_rmse_raw_mm"].as_f64()) {
         s.push_str(&format!(
-            "error against ground truth (mean of per-frame RMS): raw {raw:.1} mm -> recovered {e:.1} mm\n"
+            "error against ground truth (mean of per-frame RMS): raw {raw:.1} mm -> recovered {e:.1} mm, over {:.1} % of the segmented object pixels (the rest have no recovered depth)\n",
+            100.0 * r["coverage"].as_f64().unwrap_or(f64::NAN)
         ));
     }
     s.push_str(&format!("wrote {}", r["out"].as_str().unwrap_or("")));

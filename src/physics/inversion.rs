@@ -241,31 +241,70 @@ pub fn foreground_distance(
     };
     let n = ((hi - lo) / bounds.scan_step_mm).ceil().max(2.0) as usize;
     let step = (hi - lo) / n as f64;
-    let mut best: Option<Sample> = None;
-    let mut chosen: Option<(Sample, f64)> = None; // (root, its distance to the preference)
-    let mut roots = 0u8;
-    let mut prev: Option<Sample> = None;
+    // The scan, with the edge of the admissible region (where X reaches its bound) added as a
+    // sample wherever the scan crosses it, so a root between the last admissible sample and
+    // that edge is bracketed too.
+    let mut samples: Vec<Sample> = Vec::with_capacity(n + 3);
+    let mut prev: Option<(f64, bool)> = None;
     for k in 0..=n {
-        let cur = eval(lo + step * k as f64);
-        if let Some(c) = cur {
-            if best.is_none_or(|b| c.residual.abs() < b.residual.abs()) {
-                best = Some(c);
-            }
-            if let Some(p) = prev {
-                let crosses = (p.residual <= 0.0) != (c.residual <= 0.0);
-                if crosses && (p.residual - c.residual).abs() < range / 4.0 {
-                    if let Some(root) = refine(&eval, p, c) {
-                        roots = roots.saturating_add(1);
-                        let anchor = prefer_mm.unwrap_or(obs.distance_mm);
-                        let dist = sensor.wrapped_difference_mm(root.df, anchor).abs();
-                        if chosen.is_none_or(|(_, d)| dist < d) {
-                            chosen = Some((root, dist));
-                        }
+        let df = lo + step * k as f64;
+        let cur = eval(df);
+        if let Some((pdf, pok)) = prev {
+            if pok != cur.is_some() {
+                let (mut ok_df, mut bad_df) = if pok { (pdf, df) } else { (df, pdf) };
+                for _ in 0..24 {
+                    let m = 0.5 * (ok_df + bad_df);
+                    if eval(m).is_some() {
+                        ok_df = m;
+                    } else {
+                        bad_df = m;
                     }
+                }
+                // Leaving an admissible stretch the edge follows its samples; entering one it
+                // precedes `cur`: either way it goes next, in df order.
+                samples.extend(eval(ok_df));
+                // Mark a gap between admissible stretches so no bracket spans it.
+                if pok {
+                    samples.push(Sample {
+                        df: f64::NAN,
+                        residual: f64::NAN,
+                        x: f64::NAN,
+                    });
                 }
             }
         }
-        prev = cur;
+        if let Some(c) = cur {
+            samples.push(c);
+        }
+        prev = Some((df, cur.is_some()));
+    }
+    let mut best: Option<Sample> = None;
+    let mut chosen: Option<(Sample, f64)> = None; // (root, its distance to the preference)
+    let mut roots = 0u8;
+    for w in samples.windows(2) {
+        let (p, c) = (w[0], w[1]);
+        if !p.df.is_nan() && best.is_none_or(|b| p.residual.abs() < b.residual.abs()) {
+            best = Some(p);
+        }
+        if p.df.is_nan() || c.df.is_nan() || p.df == c.df {
+            continue;
+        }
+        let crosses = (p.residual <= 0.0) != (c.residual <= 0.0);
+        if crosses && (p.residual - c.residual).abs() < range / 4.0 {
+            if let Some(root) = refine(&eval, p, c) {
+                roots = roots.saturating_add(1);
+                let anchor = prefer_mm.unwrap_or(obs.distance_mm);
+                let dist = sensor.wrapped_difference_mm(root.df, anchor).abs();
+                if chosen.is_none_or(|(_, d)| dist < d) {
+                    chosen = Some((root, dist));
+                }
+            }
+        }
+    }
+    if let Some(last) = samples.last().filter(|s| !s.df.is_nan()) {
+        if best.is_none_or(|b| last.residual.abs() < b.residual.abs()) {
+            best = Some(*last);
+        }
     }
     let (s, pinned) = match chosen {
         Some((root, _)) => (root, false),
@@ -427,6 +466,20 @@ mod tests {
         }
         obs.ir = -1.0;
         assert!(foreground_distance(&m, &obs, 0.3, &InversionBounds::default(), None).is_none());
+    }
+
+    #[test]
+    fn a_root_next_to_the_albedo_bound_is_found() {
+        // A bright layer close to the camera: the root lies just below the df where X reaches 1.
+        for w in [Waveform::Sinusoid, Waveform::Triangle] {
+            let m = ForwardModel::paper(Sensor::new(30e6, w));
+            let obs = observe(&m, 184.0, 1500.0, 0.5, 0.9, 1.0);
+            let est = foreground_distance(&m, &obs, 0.5, &InversionBounds::default(), None).unwrap();
+            assert!(
+                !est.pinned && (est.foreground_distance_mm - 184.0).abs() < 0.05,
+                "{w:?}: {est:?}"
+            );
+        }
     }
 
     #[test]

@@ -6,13 +6,37 @@ use super::buffer::ImageBuf;
 /// Default threshold: 3x the SR4000's ~10 mm background noise (the paper's 30 mm).
 pub const DEFAULT_THRESHOLD_MM: f64 = 30.0;
 
-/// `|d - db| > threshold_mm` where both readings are valid (finite, > 0).
-pub fn changed_pixels(distance_mm: &ImageBuf<f64>, background_mm: &ImageBuf<f64>, threshold_mm: f64) -> ImageBuf<bool> {
-    let data = distance_mm
-        .data
-        .iter()
-        .zip(&background_mm.data)
-        .map(|(&d, &db)| valid(d) && valid(db) && (d - db).abs() > threshold_mm)
+/// `a - b` as a phase difference in distance units, in `[-R/2, R/2)`: readings
+/// of a CW ToF camera are known modulo its unambiguous range `R`.
+pub fn wrapped_difference(a: f64, b: f64, range_mm: f64) -> f64 {
+    (a - b + range_mm / 2.0).rem_euclid(range_mm) - range_mm / 2.0
+}
+
+/// How many standard deviations of a pixel's own noise a change must exceed.
+pub const NOISE_SIGMAS: f64 = 3.0;
+
+/// `|d - db| > threshold_mm`, compared as wrapped phases (range `range_mm`),
+/// where both readings are valid (finite, > 0). With `change_noise_mm` (the
+/// standard deviation of `d - db` per pixel, where known), the threshold is
+/// at least [`NOISE_SIGMAS`] of it: the paper's 30 mm is 3x the ~10 mm noise
+/// of its wall, and a farther or darker background is noisier.
+pub fn changed_pixels(
+    distance_mm: &ImageBuf<f64>,
+    background_mm: &ImageBuf<f64>,
+    threshold_mm: f64,
+    range_mm: f64,
+    change_noise_mm: Option<&ImageBuf<f64>>,
+) -> ImageBuf<bool> {
+    let data = (0..distance_mm.len())
+        .map(|i| {
+            let (d, db) = (distance_mm.data[i], background_mm.data[i]);
+            let sigma = change_noise_mm
+                .map(|n| n.data[i])
+                .filter(|s| s.is_finite())
+                .unwrap_or(0.0);
+            let threshold = threshold_mm.max(NOISE_SIGMAS * sigma);
+            valid(d) && valid(db) && wrapped_difference(d, db, range_mm).abs() > threshold
+        })
         .collect();
     ImageBuf {
         width: distance_mm.width,
@@ -81,10 +105,14 @@ mod tests {
     fn threshold_and_validity() {
         let d = ImageBuf::from_vec(4, 1, vec![1000.0, 1969.0, f64::NAN, 0.0]).unwrap();
         let b = ImageBuf::from_vec(4, 1, vec![2000.0, 2000.0, 2000.0, 2000.0]).unwrap();
-        let m = changed_pixels(&d, &b, 30.0);
+        let m = changed_pixels(&d, &b, 30.0, 4996.5, None);
         assert_eq!(m.data, vec![true, true, false, false]);
-        let m = changed_pixels(&d, &b, 31.0);
+        let m = changed_pixels(&d, &b, 31.0, 4996.5, None);
         assert_eq!(m.data, vec![true, false, false, false]);
+        // A wall just past the range reads near 0: the same wall, not a change.
+        let d = ImageBuf::from_vec(2, 1, vec![10.0, 4990.0]).unwrap();
+        let b = ImageBuf::from_vec(2, 1, vec![4990.0, 10.0]).unwrap();
+        assert_eq!(changed_pixels(&d, &b, 30.0, 4996.5, None).data, vec![false, false]);
     }
 
     #[test]

@@ -197,9 +197,10 @@ fn fit_inverse_depth<const N: usize>(
         } else {
             (coef / norm, 1.0 / norm)
         };
-        // Residuals are in z units under the z^4 weights, so Cov(c) = rms^2 (A^T W A)^-1;
+        // Residuals are in z units under the z^4 weights, so Cov(c) = sigma^2 (A^T W A)^-1;
         // the normal turns by d(c1, c2) / c0.
-        let normal_sigma_rad = rms * (inv[(1, 1)] + inv[(2, 2)]).max(0.0).sqrt() / c[0];
+        let sigma = (ss / n.saturating_sub(N).max(1) as f64).sqrt(); // residual scale, N terms fitted
+        let normal_sigma_rad = sigma * (inv[(1, 1)] + inv[(2, 2)]).max(0.0).sqrt() / c[0];
         plane = Some(Plane {
             normal,
             offset,

@@ -182,6 +182,9 @@ impl FrameSample {
 /// near a silhouette the normal, so the albedo it implies, is least reliable.
 const MIN_INCIDENCE_COS: f64 = 0.3;
 
+/// Least scatter of `log rho` within a group of pixels.
+const MIN_ALBEDO_SCATTER: f64 = 0.02;
+
 /// The value a pixel that fits no physical albedo enters the statistics with.
 const CENSORED_ALBEDO: f64 = 2.0;
 
@@ -312,7 +315,10 @@ pub fn frame_profile(
                 }
                 None => {
                     pinned += 1;
-                    eq12 += (o.distance_mm - o.background_distance_mm).powi(2);
+                    eq12 += model
+                        .sensor
+                        .wrapped_difference_mm(o.distance_mm, o.background_distance_mm)
+                        .powi(2);
                 }
             }
         }
@@ -344,12 +350,25 @@ pub fn frame_profile(
             }
             per_group[group_of(i)].push(rho.min(CENSORED_ALBEDO).ln());
         }
-        out.groups.push(
-            per_group
-                .into_iter()
-                .map(|v| group_stat(v, settings.min_group_pixels))
-                .collect(),
-        );
+        // A group whose median is censored carries no albedo at this ξ: out of the objective
+        // (with its pixels counted as pinned, so such a ξ cannot win by it).
+        let stats: Vec<GroupStat> = per_group
+            .into_iter()
+            .map(|v| {
+                let g = group_stat(v, settings.min_group_pixels);
+                if g.median >= MAX_ALBEDO.ln() {
+                    pinned += g.count;
+                    GroupStat {
+                        median: f64::NAN,
+                        std_error: f64::NAN,
+                        count: g.count,
+                    }
+                } else {
+                    g
+                }
+            })
+            .collect();
+        out.groups.push(stats);
         out.pinned_fraction.push(pinned as f64 / ds.len().max(1) as f64);
         out.eq12.push(eq12);
         out.truth.push(fit);
@@ -443,8 +462,10 @@ fn group_stat(mut v: Vec<f64>, min_count: usize) -> GroupStat {
     let med = median_sorted(&v);
     let mut dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
     dev.sort_by(f64::total_cmp);
-    let sigma = 1.4826 * median_sorted(&dev);
-    let se = 1.2533 * sigma.max(1e-6) / (v.len() as f64).sqrt();
+    // No group of real pixels is more uniform than 2 % in albedo (noise, texture): the floor
+    // keeps a group of identical (censored) values from taking all the weight.
+    let sigma = (1.4826 * median_sorted(&dev)).max(MIN_ALBEDO_SCATTER);
+    let se = 1.2533 * sigma / (v.len() as f64).sqrt();
     GroupStat {
         median: med,
         std_error: se,
@@ -544,10 +565,17 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let profile: Vec<(f64, f64)> = grid.iter().copied().zip(q.iter().copied()).collect();
     let xi = refine_minimum(&grid, &q, kmin);
     let poses = distinct_poses(profiles);
-    if groups < 3 || poses < 2 {
+    let at_edge = |j: Option<usize>| j.is_none_or(|j| !q[j].is_finite());
+    let boundary = at_edge(kmin.checked_sub(1)) || at_edge((kmin + 1 < q.len()).then_some(kmin + 1));
+    if groups < 3 || poses < 2 || boundary {
         let (lo, hi) = admissible_range(&grid, &q);
         let why = if groups < 3 {
             format!("{groups} pixel group(s): too few to compare albedos")
+        } else if boundary {
+            format!(
+                "the albedo-consistency objective has no interior minimum (it falls to xi {:.2}, the edge of the admissible range): the data do not determine xi",
+                grid[kmin]
+            )
         } else {
             "the object has been seen in one pose only: one view of one surface does not determine xi (physics.md §3); move it to another distance or give xi".to_string()
         };
@@ -562,9 +590,9 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         });
     }
     let phi = (qmin / (groups as f64 - 2.0)).max(1.0);
-    let interval = threshold_interval(&grid, &q, kmin, qmin + 3.84 * phi);
+    let interval = cover(threshold_interval(&grid, &q, kmin, qmin + 3.84 * phi), xi);
     Some(XiEstimate {
-        xi: xi.clamp(interval[0], interval[1]),
+        xi,
         interval,
         method: XiMethod::OneMaterial,
         frames: profiles.len(),
@@ -600,7 +628,7 @@ pub fn calibrate(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let xi = refine_minimum(&grid, &sse, kmin);
     let n = count.max(2);
     let sigma2 = smin / (n as f64 - 1.0);
-    let mut interval = threshold_interval(&grid, &sse, kmin, smin + 3.84 * sigma2);
+    let mut interval = cover(threshold_interval(&grid, &sse, kmin, smin + 3.84 * sigma2), xi);
     let per_frame: Vec<f64> = profiles
         .iter()
         .filter_map(|p| {
@@ -719,13 +747,24 @@ fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2]
         let t = ((level - v[a]) / (v[b] - v[a])).clamp(0.0, 1.0);
         grid[a] + t * (grid[b] - grid[a])
     };
-    let lo_x = if lo > 0 { cross(lo, lo - 1) - 0.005 } else { 0.0 };
+    // Widened by half the local grid step: the grid resolves no finer.
+    let lo_x = if lo > 0 {
+        cross(lo, lo - 1) - 0.5 * (grid[lo] - grid[lo - 1])
+    } else {
+        0.0
+    };
     let hi_x = if hi + 1 < grid.len() {
-        cross(hi, hi + 1) + 0.005
+        cross(hi, hi + 1) + 0.5 * (grid[hi + 1] - grid[hi])
     } else {
         1.0
     };
     [lo_x.max(0.0), hi_x.min(1.0)]
+}
+
+/// The interval widened, if need be, to contain the estimate (a parabolic
+/// minimum can sit between grid points outside a coarse crossing).
+fn cover(iv: [f64; 2], xi: f64) -> [f64; 2] {
+    [iv[0].min(xi), iv[1].max(xi)]
 }
 
 fn admissible_range(grid: &[f64], v: &[f64]) -> (f64, f64) {
@@ -763,11 +802,14 @@ mod tests {
         let v: Vec<f64> = grid.iter().map(|x| (x - 0.437).powi(2)).collect();
         let (k, _) = argmin(&v).unwrap();
         assert!((refine_minimum(&grid, &v, k) - 0.437).abs() < 1e-9);
+        // The crossings at 0.337 and 0.537 (linear interpolation errs by < 0.003 here),
+        // widened by half the 0.02 grid step.
         let iv = threshold_interval(&grid, &v, k, 0.01);
         assert!(
-            (iv[0] - (0.337 - 0.005)).abs() < 0.003 && (iv[1] - (0.537 + 0.005)).abs() < 0.003,
+            (iv[0] - (0.337 - 0.01)).abs() < 0.003 && (iv[1] - (0.537 + 0.01)).abs() < 0.003,
             "{iv:?}"
         );
+        assert_eq!(cover([0.4, 0.5], 0.52), [0.4, 0.52]);
     }
 
     #[test]

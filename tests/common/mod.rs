@@ -67,7 +67,7 @@ pub fn df(f: &SimFrame) -> DepthFrame {
 pub fn latched(scene: &Scene, config: PipelineConfig) -> (Pipeline, Vec<SimFrame>) {
     let frames = render_all(scene);
     let k = scene_intrinsics(scene);
-    let mut latch = BackgroundLatch::new(k.width, k.height);
+    let mut latch = BackgroundLatch::new(k.width, k.height, config.model.sensor.unambiguous_range_mm());
     for f in frames.iter().filter(|f| f.background_only) {
         latch.push(&df(f), &k).unwrap();
     }
