@@ -52,3 +52,29 @@ fn cameras_drawn_from_seeded_ranges() {
         assert!(r.mean_rmse() < 0.5 * r.mean_rmse_raw(), "seed {seed}");
     }
 }
+
+/// Edge pixels that straddle the layer and the wall (3x3 sub-rays per pixel,
+/// the returns mixed as a real pixel mixes them): ξ still covered, and the
+/// error still within the paper's figures.
+#[test]
+fn mixed_edge_pixels() {
+    for (seed, xi, albedo, paper_mm) in [(31u64, 0.65, (0.45, 0.75), 10.6), (32, 0.94, (0.6, 0.9), 51.7)] {
+        let mut s = fig5_scene(seed, xi, albedo, 1);
+        s.camera.supersample = 3;
+        let r = run_scene(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4);
+        println!(
+            "mixed edges, xi {xi}: {:.3} [{:.3}, {:.3}], error {:.1} -> {:.1} mm",
+            r.xi,
+            r.interval[0],
+            r.interval[1],
+            r.mean_rmse_raw(),
+            r.mean_rmse()
+        );
+        assert!(
+            r.interval[0] <= xi && xi <= r.interval[1],
+            "{:?} misses {xi}",
+            r.interval
+        );
+        assert!(r.mean_rmse() <= paper_mm, "{:.1} mm", r.mean_rmse());
+    }
+}

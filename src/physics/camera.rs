@@ -67,6 +67,11 @@ impl Intrinsics {
         Vector3::new((col as f64 - self.cx) / self.fx, (row as f64 - self.cy) / self.fy, 1.0)
     }
 
+    /// The ray with z = 1 through the image point `(u, v)` (pixel units, centres at integers).
+    pub fn ray_at(&self, u: f64, v: f64) -> Vector3<f64> {
+        Vector3::new((u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0)
+    }
+
     /// Unit ray through pixel `(col, row)`.
     pub fn unit_ray(&self, col: usize, row: usize) -> Vector3<f64> {
         self.ray(col, row).normalize()

@@ -7,8 +7,9 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
 use super::scene::{ObjectSpec, Scene};
+use crate::physics::model::MAX_BOUNCES;
 use crate::physics::noise::ShotNoise;
-use crate::physics::{ForwardModel, ImageBuf, Intrinsics, LayerScene, Sensor, Waveform};
+use crate::physics::{ForwardModel, ImageBuf, Intrinsics, LayerScene, Return, Sensor, Waveform};
 
 /// One rendered frame.
 #[derive(Debug, Clone)]
@@ -128,6 +129,49 @@ fn hit_object(u: &Vector3<f64>, o: &ObjectSpec) -> Option<Hit> {
     }
 }
 
+/// The nearest object hit in front of the background along the unit ray `u`.
+fn foreground_hit<'a>(u: &Vector3<f64>, objects: &'a [ObjectSpec], bg: Option<Hit>) -> Option<(Hit, &'a ObjectSpec)> {
+    objects
+        .iter()
+        .filter_map(|o| hit_object(u, o).map(|h| (h, o)))
+        .filter(|(h, _)| bg.is_none_or(|bh| h.t < bh.t))
+        .min_by(|a, b| a.0.t.total_cmp(&b.0.t))
+}
+
+/// Appends the returns along one ray carrying `lin` of emitted light: the
+/// layer's (Eq. 1-3) in front of the background, or the background alone.
+fn ray_returns(
+    model: &ForwardModel,
+    u: &Vector3<f64>,
+    objects: &[ObjectSpec],
+    (bg_center, bg_rot, bg_albedo): (Vector3<f64>, &Rotation3<f64>, f64),
+    lin: f64,
+    out: &mut Vec<Return>,
+) {
+    let bg = hit_plane(u, bg_center, bg_rot, None);
+    match (foreground_hit(u, objects, bg), bg) {
+        (Some((h, o)), Some(bh)) => {
+            let mut r = [Return::default(); MAX_BOUNCES];
+            let n = model.layer_returns(
+                &LayerScene {
+                    foreground_distance_mm: h.t,
+                    background_distance_mm: bh.t,
+                    translucency: o.xi,
+                    foreground_albedo_cos: o.albedo * h.cos,
+                    background_albedo_cos: bg_albedo * bh.cos,
+                    emitted_light: lin,
+                },
+                &mut r,
+            );
+            out.extend_from_slice(&r[..n]);
+        }
+        (None, Some(bh)) => out.push(ForwardModel::opaque_return(bh.t, bg_albedo * bh.cos, lin)),
+        // A layer with nothing behind it: its first return alone.
+        (Some((h, o)), None) => out.push(ForwardModel::opaque_return(h.t, (1.0 - o.xi) * o.albedo * h.cos, lin)),
+        (None, None) => {}
+    }
+}
+
 /// Renders every frame of the scene: background frames, then each stage's.
 /// `on_frame` receives each frame as it is made (for progress and writing).
 pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result<(), String>) -> Result<(), String> {
@@ -147,11 +191,8 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
     let b = &scene.background;
     let bg_rot = tilt(b.tilt_x_deg, b.tilt_y_deg);
     let bg_center = Vector3::new(0.0, 0.0, b.distance_mm);
-    let background: Vec<Option<Hit>> = rays
-        .data
-        .iter()
-        .map(|u| hit_plane(u, bg_center, &bg_rot, None))
-        .collect();
+    let ss = scene.camera.supersample.max(1);
+    let mut returns: Vec<Return> = Vec::with_capacity(ss * ss * MAX_BOUNCES);
     let period_ns = 1e9 / scene.camera.frame_rate_hz;
     let start_ns = (scene.camera.start_time_s * 1e9) as u64;
     let mut stages: Vec<(&[ObjectSpec], bool)> = vec![(&[], true); b.frames];
@@ -164,33 +205,34 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
         let mut ir = Vec::with_capacity(npx);
         let mut truth = Vec::with_capacity(npx);
         for i in 0..npx {
-            let u = &rays.data[i];
-            let bg = background[i];
-            let fg = objects
-                .iter()
-                .filter_map(|o| hit_object(u, o).map(|h| (h, o)))
-                .filter(|(h, _)| bg.is_none_or(|bh| h.t < bh.t))
-                .min_by(|a, b| a.0.t.total_cmp(&b.0.t));
-            let meas = match (fg, bg) {
-                (Some((h, o)), Some(bh)) => Some(model.measure_layer(&LayerScene {
-                    foreground_distance_mm: h.t,
-                    background_distance_mm: bh.t,
-                    translucency: o.xi,
-                    foreground_albedo_cos: o.albedo * h.cos,
-                    background_albedo_cos: b.albedo * bh.cos,
-                    emitted_light: lin.data[i],
-                })),
-                (None, Some(bh)) => {
-                    Some(model.measure(&[ForwardModel::opaque_return(bh.t, b.albedo * bh.cos, lin.data[i])]))
+            let (col, row) = ((i % k.width) as f64, (i / k.width) as f64);
+            // Sub-rays on a regular grid within the pixel, each with its share of the light:
+            // edges mix the surfaces they straddle, as on a real sensor.
+            returns.clear();
+            for sy in 0..ss {
+                for sx in 0..ss {
+                    let (du, dv) = ((sx as f64 + 0.5) / ss as f64 - 0.5, (sy as f64 + 0.5) / ss as f64 - 0.5);
+                    let u = if ss == 1 {
+                        rays.data[i]
+                    } else {
+                        k.ray_at(col + du, row + dv).normalize()
+                    };
+                    ray_returns(
+                        &model,
+                        &u,
+                        objects,
+                        (bg_center, &bg_rot, b.albedo),
+                        lin.data[i] / (ss * ss) as f64,
+                        &mut returns,
+                    );
                 }
-                // A layer with nothing behind it: its first return alone.
-                (Some((h, o)), None) => Some(model.measure(&[ForwardModel::opaque_return(
-                    h.t,
-                    (1.0 - o.xi) * o.albedo * h.cos,
-                    lin.data[i],
-                )])),
-                (None, None) => None,
-            };
+            }
+            let meas = (!returns.is_empty()).then(|| model.measure(&returns));
+            let fg = foreground_hit(
+                &rays.data[i],
+                objects,
+                hit_plane(&rays.data[i], bg_center, &bg_rot, None),
+            );
             let z: [f64; 3] = [
                 rng.sample(StandardNormal),
                 rng.sample(StandardNormal),

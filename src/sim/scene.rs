@@ -94,6 +94,9 @@ pub struct CameraSpec {
     pub namespace: String,
     /// Stamp of the first frame, seconds.
     pub start_time_s: f64,
+    /// Sub-rays per pixel side (1: one ray through the centre). More mix the
+    /// returns of surfaces a pixel straddles at edges ("flying pixels").
+    pub supersample: usize,
 }
 
 impl Default for CameraSpec {
@@ -112,6 +115,7 @@ impl Default for CameraSpec {
             frame_id: "tof_optical_frame".into(),
             namespace: "/tof".into(),
             start_time_s: 1_700_000_000.0,
+            supersample: 1,
         }
     }
 }
@@ -265,6 +269,9 @@ impl Scene {
         }
         if !(c.hfov_deg > 0.0 && c.hfov_deg < 170.0 && c.vfov_deg > 0.0 && c.vfov_deg < 170.0) {
             return Err("camera field of view must be in (0, 170) degrees".into());
+        }
+        if !(1..=8).contains(&c.supersample) {
+            return Err(format!("camera.supersample {} must be in 1..=8", c.supersample));
         }
         if !pos(c.modulation_frequency_hz) || !pos(c.frame_rate_hz) {
             return Err("camera modulation_frequency_hz and frame_rate_hz must be positive".into());
