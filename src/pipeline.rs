@@ -9,6 +9,7 @@ use serde::Serialize;
 use thiserror::Error;
 
 use crate::physics::emitted_light::{emitted_light_from_plane, EmittedLightError};
+use crate::physics::inversion::reading_sensitivity_to_ir;
 use crate::physics::segmentation::{
     changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
@@ -94,6 +95,9 @@ pub struct PipelineConfig {
     pub prior_radius_px: usize,
     /// ξ estimation settings.
     pub xi_settings: XiSettings,
+    /// A pixel whose layer the reading noise leaves more uncertain than this
+    /// (1 sigma, mm) is not used: a nearly invisible layer is not guessed.
+    pub max_layer_sigma_mm: f64,
 }
 
 impl Default for PipelineConfig {
@@ -108,6 +112,7 @@ impl Default for PipelineConfig {
             lin_calibration: None,
             prior_radius_px: 4,
             xi_settings: XiSettings::default(),
+            max_layer_sigma_mm: 300.0,
         }
     }
 }
@@ -135,6 +140,7 @@ pub struct BackgroundLatch {
     sum_d: Vec<f64>,
     sum_d2: Vec<f64>,
     sum_ir: Vec<f64>,
+    sum_ir2: Vec<f64>,
     frames: usize,
     width: usize,
     height: usize,
@@ -149,6 +155,8 @@ pub struct Background {
     pub ir: ImageBuf<f64>,
     /// Per-pixel standard deviation of the readings over the latch, mm.
     pub noise_mm: ImageBuf<f64>,
+    /// Per-pixel standard deviation of the IR over the latch, counts.
+    pub ir_noise: ImageBuf<f64>,
     /// `Lin`.
     pub emitted_light: ImageBuf<f64>,
     /// Where `Lin` came from, in words.
@@ -176,6 +184,7 @@ impl BackgroundLatch {
             sum_d: vec![0.0; n],
             sum_d2: vec![0.0; n],
             sum_ir: vec![0.0; n],
+            sum_ir2: vec![0.0; n],
             frames: 0,
             width,
             height,
@@ -205,6 +214,7 @@ impl BackgroundLatch {
                     self.sum_d[i] += d;
                     self.sum_d2[i] += d * d;
                     self.sum_ir[i] += ir;
+                    self.sum_ir2[i] += ir * ir;
                 }
             }
         }
@@ -220,6 +230,7 @@ impl BackgroundLatch {
         let mut d = ImageBuf::filled(self.width, self.height, f64::NAN);
         let mut ir = ImageBuf::filled(self.width, self.height, f64::NAN);
         let mut sd = ImageBuf::filled(self.width, self.height, f64::NAN);
+        let mut ir_sd = ImageBuf::filled(self.width, self.height, f64::NAN);
         let mut valid = 0;
         for i in 0..total {
             let n = self.n[i];
@@ -228,7 +239,11 @@ impl BackgroundLatch {
                 d.data[i] = m.rem_euclid(self.range_mm);
                 ir.data[i] = self.sum_ir[i] / n as f64;
                 if n > 1 {
-                    sd.data[i] = ((self.sum_d2[i] / n as f64 - m * m).max(0.0) * n as f64 / (n - 1) as f64).sqrt();
+                    let var = |s: f64, s2: f64| {
+                        ((s2 / n as f64 - (s / n as f64).powi(2)).max(0.0) * n as f64 / (n - 1) as f64).sqrt()
+                    };
+                    sd.data[i] = var(self.sum_d[i], self.sum_d2[i]);
+                    ir_sd.data[i] = var(self.sum_ir[i], self.sum_ir2[i]);
                 }
                 valid += 1;
             }
@@ -281,6 +296,7 @@ impl BackgroundLatch {
             distance_mm: d,
             ir,
             noise_mm: sd,
+            ir_noise: ir_sd,
             emitted_light: lin,
             lin_source,
             warnings,
@@ -342,6 +358,9 @@ pub struct FrameOutput {
     pub recovered_pixels: usize,
     /// Pixels whose per-pixel inversion had no exact root (before the prior).
     pub pinned_pixels: usize,
+    /// Pixels whose layer the reading noise leaves too uncertain to use
+    /// (`max_layer_sigma_mm`); they get the neighbourhood's surface, if any.
+    pub unresolved_pixels: usize,
     /// RMS of the per-pixel model residual, mm.
     pub fit_residual_mm: f64,
 }
@@ -509,6 +528,9 @@ impl Pipeline {
         let mut pinned = 0;
         let mut res2 = 0.0;
         let mut fitted = 0usize;
+        let mut several_roots = vec![];
+        let mut unresolved = 0;
+        let bg = self.background.as_ref();
         for i in 0..n {
             let Some(o) = obs.observations.data[i] else {
                 continue;
@@ -516,8 +538,32 @@ impl Pipeline {
             if let Some(est) = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None) {
                 res2 += est.residual_mm * est.residual_mm;
                 fitted += 1;
+                if est.roots > 1 {
+                    several_roots.push(i);
+                }
+                // Reading and IR noise: the background's, measured over the latch, scaled to
+                // this pixel's light as shot noise; the layer's follows through the model's
+                // slopes (implicit function: d df = -(dF/dI dI - dd) / (dF/d df)).
+                let light = (o.ir / o.background_ir).max(1e-9);
+                let d_sigma = bg
+                    .map(|b| b.noise_mm.data[i])
+                    .filter(|v| v.is_finite())
+                    .unwrap_or(self.config.threshold_mm / 3.0)
+                    / light.sqrt();
+                let ir_sigma = bg.map(|b| b.ir_noise.data[i]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
+                let dfdi = reading_sensitivity_to_ir(
+                    &self.config.model,
+                    &o,
+                    est.foreground_distance_mm,
+                    xi.xi,
+                    self.config.bounds.max_albedo_cos,
+                );
+                let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
+                let layer_sigma = d_sigma.hypot(ir_term) / est.slope.abs();
                 if est.pinned {
                     pinned += 1;
+                } else if !(layer_sigma <= self.config.max_layer_sigma_mm) {
+                    unresolved += 1;
                 } else {
                     df[i] = est.foreground_distance_mm;
                     points.data[i] = self.rays.data[i] * est.foreground_distance_mm;
@@ -527,7 +573,28 @@ impl Pipeline {
             }
         }
         if self.config.prior_radius_px > 0 {
-            let planes = local_planes(&points, &self.rays, &obs.mask, self.config.prior_radius_px, 12);
+            let mut planes = local_planes(&points, &self.rays, &obs.mask, self.config.prior_radius_px, 12);
+            // Where a pixel fits several layers, the one its neighbourhood's surface is nearest
+            // (the first pass took the one nearest the reading); then the surface again.
+            let mut repicked = false;
+            for &i in &several_roots {
+                let (Some(o), Some(p)) = (obs.observations.data[i], planes.data[i]) else {
+                    continue;
+                };
+                let Some(t) = p.ray_distance(&self.rays.data[i]) else {
+                    continue;
+                };
+                if let Some(est) = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, Some(t)) {
+                    if !est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5 {
+                        df[i] = est.foreground_distance_mm;
+                        points.data[i] = self.rays.data[i] * est.foreground_distance_mm;
+                        repicked = true;
+                    }
+                }
+            }
+            if repicked {
+                planes = local_planes(&points, &self.rays, &obs.mask, self.config.prior_radius_px, 12);
+            }
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
             for i in 0..n {
                 if !obs.mask.data[i] {
@@ -572,6 +639,7 @@ impl Pipeline {
             translucent_pixels: obs.translucent_pixels,
             recovered_pixels: recovered,
             pinned_pixels: pinned,
+            unresolved_pixels: unresolved,
             fit_residual_mm: if fitted > 0 {
                 (res2 / fitted as f64).sqrt()
             } else {

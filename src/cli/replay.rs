@@ -120,6 +120,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             "translucent_pixels": out.translucent_pixels,
             "recovered_pixels": out.recovered_pixels,
             "pinned_pixels": out.pinned_pixels,
+            "unresolved_pixels": out.unresolved_pixels,
             "fit_residual_mm": out.fit_residual_mm,
         });
         if let Some(truth) = rec.truth.get(&f.stamp_ns) {

@@ -67,6 +67,10 @@ pub struct LayerEstimate {
     pub roots: u8,
     /// No exact root within the bounds: the best fit is at a bound.
     pub pinned: bool,
+    /// `d f / d df` at the estimate: how far the predicted reading moves per
+    /// millimetre of layer (with the IR held). A reading noise `s` becomes a
+    /// layer noise `s / |slope|`: a nearly invisible layer has a slope near 0.
+    pub slope: f64,
 }
 
 /// `X` for a hypothesis `(df, xi)` from the IR equation (Eq. 7-10).
@@ -194,6 +198,22 @@ pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, 
     model.measure_layer(&scene).distance_mm
 }
 
+/// `d f / d I` at a fixed layer distance: how far the predicted reading
+/// moves per count of IR (through the albedo the IR equation gives). With the
+/// layer's [`LayerEstimate::slope`], IR noise `s` becomes a layer noise
+/// `s |dF/dI| / |slope|`. NaN where the albedo is not admissible.
+pub fn reading_sensitivity_to_ir(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> f64 {
+    let h = (obs.ir.abs() * 1e-3).max(1e-9);
+    let at = |ir: f64| {
+        let o = PixelObservation { ir, ..*obs };
+        albedo_cos(model, &o, df, xi, x_max).map(|x| predicted_reading(model, &o, df, xi, x))
+    };
+    match (at(obs.ir - h), at(obs.ir + h)) {
+        (Some(a), Some(b)) => model.sensor.wrapped_difference_mm(b, a) / (2.0 * h),
+        _ => f64::NAN,
+    }
+}
+
 /// One sample of the residual along `df`.
 #[derive(Clone, Copy)]
 struct Sample {
@@ -310,12 +330,21 @@ pub fn foreground_distance(
         Some((root, _)) => (root, false),
         None => (best?, true),
     };
+    // Central difference where both sides are admissible, else one-sided.
+    let h = 0.5;
+    let slope = match (eval(s.df - h), eval(s.df + h)) {
+        (Some(a), Some(b)) => sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
+        (Some(a), None) => sensor.wrapped_difference_mm(s.residual, a.residual) / h,
+        (None, Some(b)) => sensor.wrapped_difference_mm(b.residual, s.residual) / h,
+        (None, None) => f64::NAN,
+    };
     Some(LayerEstimate {
         foreground_distance_mm: s.df,
         albedo_cos: s.x,
         residual_mm: s.residual,
         roots,
         pinned,
+        slope,
     })
 }
 
@@ -418,6 +447,14 @@ mod tests {
             let obs = observe(&m, df, db, xi, x, 1.0);
             let est = foreground_distance(&m, &obs, xi, &InversionBounds::default(), None).unwrap();
             assert!(!est.pinned, "{w:?} {df}");
+            // The slope against a finite difference of the forward model.
+            let f = |d: f64| predicted_reading(&m, &obs, d, xi, albedo_cos(&m, &obs, d, xi, 1.0).unwrap());
+            let fd = (f(df + 0.01) - f(df - 0.01)) / 0.02;
+            assert!(
+                (est.slope - fd).abs() < 1e-3 * fd.abs().max(1.0),
+                "{w:?} {df}: {} vs {fd}",
+                est.slope
+            );
             assert!((est.foreground_distance_mm - df).abs() < 0.05, "{w:?} df {df}: {est:?}");
             assert!((est.albedo_cos - x).abs() < 1e-3);
         }
