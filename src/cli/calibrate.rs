@@ -93,8 +93,8 @@ pub struct CalibrateLinArgs {
     /// Exposure of the recording, s (kept for Eq. 14 scaling).
     #[arg(long)]
     pub exposure_s: Option<f64>,
-    /// Average only the first N frames (default: all).
-    #[arg(long)]
+    /// Average only the first N frames (default: all); `--background-frames N` says the same.
+    #[arg(long, alias = "background-frames")]
     pub frames: Option<usize>,
     #[command(flatten)]
     pub model: ModelArgs,
