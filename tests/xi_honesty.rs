@@ -10,40 +10,7 @@ use rand_chacha::ChaCha8Rng;
 use translucent_tof::physics::{ForwardModel, XiMethod};
 use translucent_tof::pipeline::{PipelineConfig, XiChoice};
 use translucent_tof::sim::render::scene_sensor;
-use translucent_tof::sim::scene::{BackgroundSpec, ObjectSpec, Scene, StageSpec};
-
-fn plane(z: f64, tilt_y: f64, xi: f64, albedo: f64) -> ObjectSpec {
-    ObjectSpec {
-        shape: "plane".into(),
-        center_mm: [0.0, 0.0, z],
-        size_mm: [260.0, 320.0],
-        tilt_x_deg: 0.0,
-        tilt_y_deg: tilt_y,
-        radius_mm: 0.0,
-        height_mm: 0.0,
-        xi,
-        albedo,
-    }
-}
-
-fn scene(seed: u64, stages: Vec<StageSpec>, wall: f64) -> Scene {
-    Scene {
-        name: "xi honesty".into(),
-        seed,
-        camera: Default::default(),
-        emitter: Default::default(),
-        noise: Default::default(),
-        physics: Default::default(),
-        background: BackgroundSpec {
-            distance_mm: wall,
-            albedo: 1.0,
-            tilt_x_deg: 0.0,
-            tilt_y_deg: 0.0,
-            frames: 10,
-        },
-        stages,
-    }
-}
+use translucent_tof::sim::scene::{ObjectSpec, Scene, StageSpec};
 
 /// The pipeline as the node runs it: each frame pools the evidence so far.
 /// Returns the interval after each object frame.
@@ -78,10 +45,10 @@ fn one_frame_of_one_tilted_plane_is_wide_and_frames_at_new_distances_narrow_it()
             .iter()
             .map(|&z| StageSpec {
                 frames: 1,
-                objects: vec![plane(z, tilt, xi, albedo)],
+                objects: vec![plane([0.0, 0.0, z], [260.0, 320.0], [0.0, tilt], xi, albedo)],
             })
             .collect();
-        let iv = online_intervals(&scene(seed, stages, 2200.0));
+        let iv = online_intervals(&scene_with("tilted plane".into(), seed, 2200.0, stages));
         for (k, (x, i)) in iv.iter().enumerate() {
             println!(
                 "seed {seed} xi {xi:.3}: after {} frame(s) {x:.3} [{:.3}, {:.3}]",
@@ -130,7 +97,7 @@ fn cylinders_drawn_from_seeded_ranges_are_covered() {
                 }],
             })
             .collect();
-        let s = scene(seed, stages, wall);
+        let s = scene_with("cylinders".into(), seed, wall, stages);
         let r = run_scene(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4);
         println!(
             "cylinder seed {seed}: xi {xi:.3} albedo {albedo:.2} r {radius:.0}: estimated {:.3} [{:.3}, {:.3}], error {:.1} mm (raw {:.1})",

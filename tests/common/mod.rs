@@ -11,6 +11,41 @@ use translucent_tof::sim::render::{render_all, scene_intrinsics, scene_sensor};
 use translucent_tof::sim::scene::{BackgroundSpec, ObjectSpec, Scene, StageSpec};
 use translucent_tof::sim::SimFrame;
 
+/// A scene with SR4000 defaults, a white wall at `wall_mm` seen for 10 frames, and the stages.
+pub fn scene_with(name: String, seed: u64, wall_mm: f64, stages: Vec<StageSpec>) -> Scene {
+    Scene {
+        name,
+        seed,
+        camera: Default::default(),
+        emitter: Default::default(),
+        noise: Default::default(),
+        physics: Default::default(),
+        background: BackgroundSpec {
+            distance_mm: wall_mm,
+            albedo: 1.0,
+            tilt_x_deg: 0.0,
+            tilt_y_deg: 0.0,
+            frames: 10,
+        },
+        stages,
+    }
+}
+
+/// A translucent rectangle centred at `center_mm`.
+pub fn plane(center_mm: [f64; 3], size_mm: [f64; 2], tilt_deg: [f64; 2], xi: f64, albedo: f64) -> ObjectSpec {
+    ObjectSpec {
+        shape: "plane".into(),
+        center_mm,
+        size_mm,
+        tilt_x_deg: tilt_deg[0],
+        tilt_y_deg: tilt_deg[1],
+        radius_mm: 0.0,
+        height_mm: 0.0,
+        xi,
+        albedo,
+    }
+}
+
 /// The paper's Sec. V-B setting (document holder / file box): a plane at
 /// 500/750/1000/1750 mm in front of a white wall at 2000 mm. Size, offset,
 /// tilt and albedo are drawn from seeded ranges.
@@ -23,35 +58,16 @@ pub fn fig5_scene(seed: u64, xi: f64, albedo_range: (f64, f64), frames_per_stage
         .iter()
         .map(|&z| StageSpec {
             frames: frames_per_stage,
-            objects: vec![ObjectSpec {
-                shape: "plane".into(),
-                center_mm: [rng.random_range(-30.0..30.0), rng.random_range(-30.0..30.0), z],
-                size_mm: [w, h],
-                tilt_x_deg: rng.random_range(-5.0..5.0),
-                tilt_y_deg: rng.random_range(-5.0..5.0),
-                radius_mm: 0.0,
-                height_mm: 0.0,
+            objects: vec![plane(
+                [rng.random_range(-30.0..30.0), rng.random_range(-30.0..30.0), z],
+                [w, h],
+                [rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0)],
                 xi,
                 albedo,
-            }],
+            )],
         })
         .collect();
-    Scene {
-        name: format!("fig5 xi {xi} seed {seed}"),
-        seed,
-        camera: Default::default(),
-        emitter: Default::default(),
-        noise: Default::default(),
-        physics: Default::default(),
-        background: BackgroundSpec {
-            distance_mm: 2000.0,
-            albedo: 1.0,
-            tilt_x_deg: 0.0,
-            tilt_y_deg: 0.0,
-            frames: 10,
-        },
-        stages,
-    }
+    scene_with(format!("fig5 xi {xi} seed {seed}"), seed, 2000.0, stages)
 }
 
 /// A simulated frame as the pipeline takes it.
@@ -163,39 +179,20 @@ pub fn fig4_scene(seed: u64, xi: f64, albedo_range: (f64, f64)) -> Scene {
     let stages = (7..=26)
         .map(|k| StageSpec {
             frames: 1,
-            objects: vec![ObjectSpec {
-                shape: "plane".into(),
-                center_mm: [
+            objects: vec![plane(
+                [
                     rng.random_range(-20.0..20.0),
                     rng.random_range(-20.0..20.0),
                     k as f64 * 100.0,
                 ],
-                size_mm: [300.0, 380.0],
-                tilt_x_deg: rng.random_range(-2.0..2.0),
-                tilt_y_deg: rng.random_range(-2.0..2.0),
-                radius_mm: 0.0,
-                height_mm: 0.0,
+                [300.0, 380.0],
+                [rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0)],
                 xi,
                 albedo,
-            }],
+            )],
         })
         .collect();
-    Scene {
-        name: format!("fig4 xi {xi} seed {seed}"),
-        seed,
-        camera: Default::default(),
-        emitter: Default::default(),
-        noise: Default::default(),
-        physics: Default::default(),
-        background: BackgroundSpec {
-            distance_mm: 3300.0,
-            albedo: 1.0,
-            tilt_x_deg: 0.0,
-            tilt_y_deg: 0.0,
-            frames: 10,
-        },
-        stages,
-    }
+    scene_with(format!("fig4 xi {xi} seed {seed}"), seed, 3300.0, stages)
 }
 
 /// The paper's Sec. V-A protocol in memory: ξ fitted to the object frames'
