@@ -30,7 +30,7 @@ fn cameras_drawn_from_seeded_ranges() {
             .retain(|st| st.objects[0].center_mm[2] < s.background.distance_mm - 300.0);
         let r = run_scene(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4);
         println!(
-            "seed {seed}: {}x{} {:.0} deg {:.1} MHz {} noise {:.1} mm, wall {:.0} mm: xi {xi:.3} -> {:.3} [{:.3}, {:.3}], error {:.1} -> {:.1} mm",
+            "seed {seed}: {}x{} {:.0} deg {:.1} MHz {} noise {:.1} mm, wall {:.0} mm, truth xi {xi:.3}: {}",
             s.camera.width,
             s.camera.height,
             s.camera.hfov_deg,
@@ -38,17 +38,9 @@ fn cameras_drawn_from_seeded_ranges() {
             s.camera.waveform,
             s.noise.depth_noise_mm,
             s.background.distance_mm,
-            r.xi,
-            r.interval[0],
-            r.interval[1],
-            r.mean_rmse_raw(),
-            r.mean_rmse()
+            r.describe()
         );
-        assert!(
-            r.interval[0] <= xi && xi <= r.interval[1],
-            "seed {seed}: {:?} misses {xi}",
-            r.interval
-        );
+        assert!(r.covers(xi), "seed {seed}: {}", r.describe());
         assert!(r.mean_rmse() < 0.5 * r.mean_rmse_raw(), "seed {seed}");
     }
 }
@@ -62,19 +54,8 @@ fn mixed_edge_pixels() {
         let mut s = fig5_scene(seed, xi, albedo, 1);
         s.camera.supersample = 3;
         let r = run_scene(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4);
-        println!(
-            "mixed edges, xi {xi}: {:.3} [{:.3}, {:.3}], error {:.1} -> {:.1} mm",
-            r.xi,
-            r.interval[0],
-            r.interval[1],
-            r.mean_rmse_raw(),
-            r.mean_rmse()
-        );
-        assert!(
-            r.interval[0] <= xi && xi <= r.interval[1],
-            "{:?} misses {xi}",
-            r.interval
-        );
+        println!("mixed edges, truth xi {xi}: {}", r.describe());
+        assert!(r.covers(xi), "{}", r.describe());
         assert!(r.mean_rmse() <= paper_mm, "{:.1} mm", r.mean_rmse());
     }
 }

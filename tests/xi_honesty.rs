@@ -100,18 +100,10 @@ fn cylinders_drawn_from_seeded_ranges_are_covered() {
         let s = scene_with("cylinders".into(), seed, wall, stages);
         let r = run_scene(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4);
         println!(
-            "cylinder seed {seed}: xi {xi:.3} albedo {albedo:.2} r {radius:.0}: estimated {:.3} [{:.3}, {:.3}], error {:.1} mm (raw {:.1})",
-            r.xi,
-            r.interval[0],
-            r.interval[1],
-            r.mean_rmse(),
-            r.mean_rmse_raw()
+            "cylinder seed {seed}: truth xi {xi:.3} albedo {albedo:.2} r {radius:.0}: {}",
+            r.describe()
         );
-        assert!(
-            r.interval[0] <= xi && xi <= r.interval[1],
-            "seed {seed}: {:?} misses {xi}",
-            r.interval
-        );
+        assert!(r.covers(xi), "seed {seed}: {} misses {xi}", r.describe());
     }
 }
 
@@ -129,22 +121,11 @@ fn unknown_background_albedo_shifts_xi_not_depth() {
         let assumed_white = run_scene(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4);
         let known = run_scene_with(&s, XiChoice::Estimate(XiMethod::OneMaterial), 4, grey);
         println!(
-            "wall albedo {grey:.2}: assumed white -> xi {:.3} [{:.3}, {:.3}], error {:.1} mm; given -> xi {:.3} [{:.3}, {:.3}], error {:.1} mm (raw {:.1})",
-            assumed_white.xi,
-            assumed_white.interval[0],
-            assumed_white.interval[1],
-            assumed_white.mean_rmse(),
-            known.xi,
-            known.interval[0],
-            known.interval[1],
-            known.mean_rmse(),
-            known.mean_rmse_raw()
+            "wall albedo {grey:.2}: assumed white -> {}; given -> {}",
+            assumed_white.describe(),
+            known.describe()
         );
-        assert!(
-            known.interval[0] <= 0.65 && 0.65 <= known.interval[1],
-            "{:?}",
-            known.interval
-        );
+        assert!(known.covers(0.65), "{}", known.describe());
         assert!(known.mean_rmse() <= 10.6 && assumed_white.mean_rmse() <= 10.6);
         assert!(
             assumed_white.xi < 0.6,
