@@ -22,6 +22,19 @@ pub struct PixelObservation {
 }
 
 impl PixelObservation {
+    /// The scene along this pixel's ray for a hypothesis `(df, xi, X)`, with
+    /// the background's `Xb` from its IR (less the model's IR offset).
+    pub fn layer_scene(&self, df: f64, xi: f64, x: f64, ambient_offset: f64) -> LayerScene {
+        LayerScene {
+            foreground_distance_mm: df,
+            background_distance_mm: self.background_distance_mm,
+            translucency: xi,
+            foreground_albedo_cos: x,
+            background_albedo_cos: self.background_albedo_cos(ambient_offset),
+            emitted_light: self.emitted_light,
+        }
+    }
+
     /// `Xb = Ib db^2 / Lin`, the background's albedo times incidence cosine.
     pub fn background_albedo_cos(&self, ambient_offset: f64) -> f64 {
         let db = self.background_distance_mm;
@@ -124,21 +137,11 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
         };
         return (x.is_finite() && x >= 0.0 && x <= x_max).then_some(x);
     }
-    let xb = obs.background_albedo_cos(o.ambient_offset);
-    let scene = |x: f64| LayerScene {
-        foreground_distance_mm: df,
-        background_distance_mm: obs.background_distance_mm,
-        translucency: xi,
-        foreground_albedo_cos: x,
-        background_albedo_cos: xb,
-        emitted_light: obs.emitted_light,
-    };
-    let g = |x: f64| model.layer_ir(&scene(x)) - obs.ir;
+    let g = |x: f64| model.layer_ir(&obs.layer_scene(df, xi, x, o.ambient_offset)) - obs.ir;
     // Bracket the first crossing on a coarse scan (the amplitude need not be monotone in X).
     const SCAN: usize = 16;
     let mut lo = 0.0;
-    let mut g_lo = g(lo);
-    if g_lo > 0.0 {
+    if g(lo) > 0.0 {
         return None;
     }
     for k in 1..=SCAN {
@@ -157,9 +160,7 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
             return Some(0.5 * (a + b));
         }
         lo = hi;
-        g_lo = g_hi;
     }
-    let _ = g_lo;
     None
 }
 
@@ -170,15 +171,7 @@ pub fn albedo_cos_clamped(model: &ForwardModel, obs: &PixelObservation, df: f64,
     if let Some(x) = albedo_cos(model, obs, df, xi, x_max) {
         return (x, false);
     }
-    let scene = LayerScene {
-        foreground_distance_mm: df,
-        background_distance_mm: obs.background_distance_mm,
-        translucency: xi,
-        foreground_albedo_cos: x_max,
-        background_albedo_cos: obs.background_albedo_cos(model.options.ambient_offset),
-        emitted_light: obs.emitted_light,
-    };
-    if model.layer_ir(&scene) < obs.ir {
+    if model.layer_ir(&obs.layer_scene(df, xi, x_max, model.options.ambient_offset)) < obs.ir {
         (x_max, true)
     } else {
         (0.0, true)
@@ -187,15 +180,7 @@ pub fn albedo_cos_clamped(model: &ForwardModel, obs: &PixelObservation, df: f64,
 
 /// The reading the model predicts for `(df, xi, X)` at this pixel (Eq. 11), mm.
 pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x: f64) -> f64 {
-    let scene = LayerScene {
-        foreground_distance_mm: df,
-        background_distance_mm: obs.background_distance_mm,
-        translucency: xi,
-        foreground_albedo_cos: x,
-        background_albedo_cos: obs.background_albedo_cos(model.options.ambient_offset),
-        emitted_light: obs.emitted_light,
-    };
-    model.measure_layer(&scene).distance_mm
+    model.measure_layer(&obs.layer_scene(df, xi, x, model.options.ambient_offset)).distance_mm
 }
 
 /// `d f / d I` at a fixed layer distance: how far the predicted reading

@@ -433,15 +433,7 @@ fn add_truth_error(
 
 /// `1 / var(d)` up to a constant, for shot noise: `|A + iB|^2 / total light`.
 fn noise_weight(model: &ForwardModel, o: &PixelObservation, df: f64, xi: f64, x: f64) -> f64 {
-    let scene = super::model::LayerScene {
-        foreground_distance_mm: df,
-        background_distance_mm: o.background_distance_mm,
-        translucency: xi,
-        foreground_albedo_cos: x,
-        background_albedo_cos: o.background_albedo_cos(model.options.ambient_offset),
-        emitted_light: o.emitted_light,
-    };
-    let m = model.measure_layer(&scene);
+    let m = model.measure_layer(&o.layer_scene(df, xi, x, model.options.ambient_offset));
     let amp2 = m.buckets.a * m.buckets.a + m.buckets.b * m.buckets.b;
     if m.total_light > 0.0 {
         amp2 / m.total_light
