@@ -13,6 +13,7 @@ use crate::physics::inversion::reading_sensitivity_to_ir;
 use crate::physics::segmentation::{
     changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
+use crate::physics::stats::median_and_sigma;
 use crate::physics::surface::local_planes;
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
@@ -788,7 +789,8 @@ pub fn detect_scene_change(
                     }
                 })
                 .collect();
-            let global = robust_sigma(diff.iter().copied().filter(|v| v.is_finite()).collect());
+            let mut finite: Vec<f64> = diff.iter().copied().filter(|v| v.is_finite()).collect();
+            let global = median_and_sigma(&mut finite).map_or(0.0, |(_, s)| s);
             let mut changed = ImageBuf::filled(f.width, f.height, false);
             for i in 0..n {
                 if !diff[i].is_finite() {
@@ -825,18 +827,6 @@ pub fn detect_scene_change(
         }
     }
     None
-}
-
-/// 1.4826 times the median absolute deviation from the median (0 for no values).
-fn robust_sigma(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    let med = v[v.len() / 2];
-    let mut dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
-    dev.sort_by(f64::total_cmp);
-    1.4826 * dev[dev.len() / 2]
 }
 
 /// Where the scene changed.

@@ -180,7 +180,9 @@ pub fn albedo_cos_clamped(model: &ForwardModel, obs: &PixelObservation, df: f64,
 
 /// The reading the model predicts for `(df, xi, X)` at this pixel (Eq. 11), mm.
 pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x: f64) -> f64 {
-    model.measure_layer(&obs.layer_scene(df, xi, x, model.options.ambient_offset)).distance_mm
+    model
+        .measure_layer(&obs.layer_scene(df, xi, x, model.options.ambient_offset))
+        .distance_mm
 }
 
 /// `d f / d I` at a fixed layer distance: how far the predicted reading

@@ -19,6 +19,7 @@ pub use inversion::{foreground_distance, InversionBounds, LayerEstimate, PixelOb
 pub mod camera;
 pub mod emitted_light;
 pub mod segmentation;
+pub mod stats;
 pub mod surface;
 pub use camera::Intrinsics;
 pub mod translucency;

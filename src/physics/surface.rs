@@ -4,6 +4,7 @@
 use nalgebra::{Matrix3, SMatrix, SVector, SymmetricEigen, Vector3};
 
 use super::buffer::ImageBuf;
+use super::stats::median_and_sigma;
 
 /// A plane `normal . p = offset`, with the fit's spread.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -283,11 +284,10 @@ fn keep_near_median(points: &mut Vec<Vector3<f64>>, k: f64, floor_mm: f64) {
         return;
     }
     let mut d: Vec<f64> = points.iter().map(|p| p.norm()).collect();
-    d.sort_by(f64::total_cmp);
-    let med = d[d.len() / 2];
-    let mut dev: Vec<f64> = d.iter().map(|x| (x - med).abs()).collect();
-    dev.sort_by(f64::total_cmp);
-    let cut = (k * 1.4826 * dev[dev.len() / 2]).max(floor_mm);
+    let Some((med, sigma)) = median_and_sigma(&mut d) else {
+        return;
+    };
+    let cut = (k * sigma).max(floor_mm);
     points.retain(|p| (p.norm() - med).abs() <= cut);
 }
 

@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::buffer::ImageBuf;
 use super::inversion::{albedo_cos_clamped, foreground_distance, predicted_reading, InversionBounds, PixelObservation};
 use super::model::ForwardModel;
+use super::stats::median_and_sigma;
 use super::surface::local_planes_adaptive;
 
 /// How ξ was chosen.
@@ -443,34 +444,26 @@ fn noise_weight(model: &ForwardModel, o: &PixelObservation, df: f64, xi: f64, x:
 }
 
 fn group_stat(mut v: Vec<f64>, min_count: usize) -> GroupStat {
-    if v.len() < min_count.max(3) {
+    let count = v.len();
+    let stats = if count >= min_count.max(3) {
+        median_and_sigma(&mut v)
+    } else {
+        None
+    };
+    let Some((median, spread)) = stats else {
         return GroupStat {
             median: f64::NAN,
             std_error: f64::NAN,
-            count: v.len(),
+            count,
         };
-    }
-    v.sort_by(f64::total_cmp);
-    let med = median_sorted(&v);
-    let mut dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
-    dev.sort_by(f64::total_cmp);
+    };
     // No group of real pixels is more uniform than 2 % in albedo (noise, texture): the floor
     // keeps a group of identical (censored) values from taking all the weight.
-    let sigma = (1.4826 * median_sorted(&dev)).max(MIN_ALBEDO_SCATTER);
-    let se = 1.2533 * sigma / (v.len() as f64).sqrt();
+    let sigma = spread.max(MIN_ALBEDO_SCATTER);
     GroupStat {
-        median: med,
-        std_error: se,
-        count: v.len(),
-    }
-}
-
-fn median_sorted(v: &[f64]) -> f64 {
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
+        median,
+        std_error: 1.2533 * sigma / (count as f64).sqrt(),
+        count,
     }
 }
 
