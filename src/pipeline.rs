@@ -8,6 +8,7 @@ use nalgebra::Vector3;
 use serde::Serialize;
 use thiserror::Error;
 
+use crate::physics::camera::z_to_ray_distance;
 use crate::physics::emitted_light::{emitted_light_from_plane, EmittedLightError};
 use crate::physics::inversion::reading_sensitivity_to_ir;
 use crate::physics::segmentation::{
@@ -374,6 +375,8 @@ pub struct Pipeline {
     /// Camera.
     pub intrinsics: Intrinsics,
     rays: ImageBuf<Vector3<f64>>,
+    /// `ray distance / z` per pixel.
+    scale: ImageBuf<f64>,
     background: Option<Background>,
     profiles: Vec<FrameProfile>,
     estimate: Option<XiEstimate>,
@@ -383,10 +386,12 @@ impl Pipeline {
     /// A pipeline for a camera; no background yet.
     pub fn new(config: PipelineConfig, intrinsics: Intrinsics) -> Self {
         let rays = intrinsics.unit_ray_map();
+        let scale = intrinsics.ray_scale_map();
         Self {
             config,
             intrinsics,
             rays,
+            scale,
             background: None,
             profiles: vec![],
             estimate: None,
@@ -417,16 +422,7 @@ impl Pipeline {
         check_size(frame, &self.intrinsics)?;
         let bg = self.background.as_ref().ok_or(PipelineError::NoBackground)?;
         let k = &self.intrinsics;
-        let mut d = ImageBuf::filled(k.width, k.height, f64::NAN);
-        for row in 0..k.height {
-            for col in 0..k.width {
-                let i = row * k.width + col;
-                let z = frame.z_mm.data[i] as f64;
-                if z.is_finite() && z > 0.0 {
-                    d.data[i] = z * k.ray_scale(col, row);
-                }
-            }
-        }
+        let d = z_to_ray_distance(&frame.z_mm, &self.scale);
         // The noise of d - db: the pixel's own (measured over the latch) and the latched mean's.
         let change_noise = (bg.frames >= 3).then(|| ImageBuf {
             width: k.width,
@@ -619,17 +615,14 @@ impl Pipeline {
         }
         let mut corrected = frame.z_mm.clone();
         let mut recovered = 0;
-        for row in 0..k.height {
-            for col in 0..k.width {
-                let i = row * k.width + col;
-                if obs.mask.data[i] {
-                    corrected.data[i] = if df[i].is_finite() {
-                        recovered += 1;
-                        (df[i] / k.ray_scale(col, row)) as f32
-                    } else {
-                        f32::NAN
-                    };
-                }
+        for i in 0..n {
+            if obs.mask.data[i] {
+                corrected.data[i] = if df[i].is_finite() {
+                    recovered += 1;
+                    (df[i] / self.scale.data[i]) as f32
+                } else {
+                    f32::NAN
+                };
             }
         }
         FrameOutput {
@@ -676,13 +669,7 @@ impl Pipeline {
                 want_h: k.height,
             });
         }
-        let mut truth = ImageBuf::filled(k.width, k.height, f64::NAN);
-        for row in 0..k.height {
-            for col in 0..k.width {
-                let i = row * k.width + col;
-                truth.data[i] = truth_z_mm.data[i] as f64 * k.ray_scale(col, row);
-            }
-        }
+        let truth = z_to_ray_distance(truth_z_mm, &self.scale);
         let settings = &self.config.xi_settings;
         let sample = FrameSample::from_image(
             &obs.observations,

@@ -84,27 +84,19 @@ impl Intrinsics {
 
     /// `ray distance / z` for every pixel.
     pub fn ray_scale_map(&self) -> ImageBuf<f64> {
-        let mut data = Vec::with_capacity(self.width * self.height);
-        for row in 0..self.height {
-            for col in 0..self.width {
-                data.push(self.ray_scale(col, row));
-            }
-        }
-        ImageBuf {
-            width: self.width,
-            height: self.height,
-            data,
-        }
+        self.per_pixel(|col, row| self.ray_scale(col, row))
     }
 
     /// Unit rays for every pixel.
     pub fn unit_ray_map(&self) -> ImageBuf<Vector3<f64>> {
-        let mut data = Vec::with_capacity(self.width * self.height);
-        for row in 0..self.height {
-            for col in 0..self.width {
-                data.push(self.unit_ray(col, row));
-            }
-        }
+        self.per_pixel(|col, row| self.unit_ray(col, row))
+    }
+
+    fn per_pixel<T>(&self, f: impl Fn(usize, usize) -> T) -> ImageBuf<T> {
+        let data = (0..self.height)
+            .flat_map(|row| (0..self.width).map(move |col| (col, row)))
+            .map(|(c, r)| f(c, r))
+            .collect();
         ImageBuf {
             width: self.width,
             height: self.height,
@@ -113,9 +105,21 @@ impl Intrinsics {
     }
 }
 
-/// Converts a z-depth image (mm, NaN invalid) to ray distances (mm).
+/// Converts a z-depth image (mm) to ray distances (mm); invalid readings
+/// (non-finite or not positive) become NaN.
 pub fn z_to_ray_distance(z_mm: &ImageBuf<f32>, scale: &ImageBuf<f64>) -> ImageBuf<f64> {
-    let data = z_mm.data.iter().zip(&scale.data).map(|(&z, &s)| z as f64 * s).collect();
+    let data = z_mm
+        .data
+        .iter()
+        .zip(&scale.data)
+        .map(|(&z, &s)| {
+            if z.is_finite() && z > 0.0 {
+                z as f64 * s
+            } else {
+                f64::NAN
+            }
+        })
+        .collect();
     ImageBuf {
         width: z_mm.width,
         height: z_mm.height,
