@@ -17,6 +17,8 @@ python="${PYTHON:-python3}"
 ROSBAGS_VERSION="0.11.9"
 MCAP_VERSION="1.6.0"
 MCAP_ROS2_VERSION="0.6.0"
+# Eclipse Cyclone DDS: the independent DDS peer of tests/dds_peer.rs.
+CYCLONEDDS_VERSION="11.0.1"
 
 if [ ! -x "$venv/bin/python" ]; then
     echo "creating venv at $venv"
@@ -25,10 +27,11 @@ fi
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
     "rosbags==$ROSBAGS_VERSION" \
     "mcap==$MCAP_VERSION" \
-    "mcap-ros2-support==$MCAP_ROS2_VERSION"
+    "mcap-ros2-support==$MCAP_ROS2_VERSION" \
+    "cyclonedds==$CYCLONEDDS_VERSION"
 "$venv/bin/python" - <<'PY'
 import importlib.metadata as md
-for name in ("rosbags", "mcap", "mcap-ros2-support"):
+for name in ("rosbags", "mcap", "mcap-ros2-support", "cyclonedds"):
     print(f"{name}=={md.version(name)}")
 PY
 echo "ok: run the interop tests with: cargo test --test bag_interop"

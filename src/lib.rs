@@ -9,6 +9,9 @@
 //! - [`image`]: sensor_msgs/Image encodings <-> physics buffers;
 //! - [`sim`]: the scene simulator;
 //! - [`pipeline`]: background latch, segmentation, recovery per frame;
+//! - [`outputs`]: the node's output messages for a frame;
+//! - [`node`]: the ROS 2 node (ros2-client / RustDDS);
+//! - [`viz`]: Rerun logging off the processing path;
 //! - [`cli`]: the subcommands.
 
 // Image code indexes several parallel buffers by pixel, and `!(x > 0.0)` is
@@ -19,6 +22,9 @@ pub mod bag;
 pub mod cli;
 pub mod image;
 pub mod msgs;
+pub mod node;
+pub mod outputs;
 pub mod physics;
 pub mod pipeline;
 pub mod sim;
+pub mod viz;

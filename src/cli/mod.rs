@@ -2,13 +2,15 @@
 
 mod calibrate;
 mod common;
+mod demo;
+mod node;
 mod recording;
 mod replay;
 mod simulate;
 
 use clap::{Parser, Subcommand};
 
-pub use common::PhysicsFile;
+pub use common::{write_atomic, PhysicsFile};
 
 /// Recovers the true depth of translucent objects seen by a continuous-wave
 /// Time-of-Flight camera (Shim & Lee's two-layer model).
@@ -29,6 +31,25 @@ enum Command {
     CalibrateXi(calibrate::CalibrateXiArgs),
     /// Emitted-light map from a recording of a white plane (paper Eq. 13-14).
     CalibrateLin(calibrate::CalibrateLinArgs),
+    /// The ROS 2 node: subscribes to a ToF camera, latches a background on
+    /// ~/latch_background, publishes corrected depth, points, mask and ξ.
+    Node(node::NodeArgs),
+    /// The whole graph on loopback: a bundled bag played as a driver, the node, the latch service; a summary.
+    Demo(demo::DemoArgs),
+    /// The latency benchmark's transport baseline: answers each depth image at once with same-size outputs.
+    #[command(hide = true)]
+    DdsEcho(EchoArgs),
+}
+
+/// Arguments of the hidden `dds-echo`.
+#[derive(Debug, clap::Args)]
+struct EchoArgs {
+    /// Namespace of the inputs.
+    #[arg(long, default_value = "/tof")]
+    namespace: String,
+    /// Fully qualified name to answer as.
+    #[arg(long, default_value = "/tof/translucent_tof")]
+    node: String,
 }
 
 /// Parses the arguments and runs the subcommand.
@@ -39,5 +60,14 @@ pub fn run() -> anyhow::Result<()> {
         Command::Simulate(a) => simulate::run(a),
         Command::CalibrateXi(a) => calibrate::run_xi(a),
         Command::CalibrateLin(a) => calibrate::run_lin(a),
+        Command::Node(a) => node::run(a).map(|_| ()),
+        Command::Demo(a) => demo::run(a),
+        Command::DdsEcho(a) => {
+            let domain = std::env::var("ROS_DOMAIN_ID")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(0);
+            crate::node::echo::run(domain, &a.namespace, &a.node)
+        }
     }
 }

@@ -7,10 +7,9 @@ use clap::Args;
 use serde_json::json;
 
 use crate::bag::BagWriter;
-use crate::image::{depth_image, mask_image, organized_cloud};
-use crate::msgs::translucent_tof::TranslucencyEstimate;
 use crate::msgs::Header;
-use crate::physics::{ImageBuf, Intrinsics, XiEstimate, XiMethod};
+use crate::outputs::output_messages;
+use crate::physics::{ImageBuf, XiEstimate, XiMethod};
 use crate::pipeline::{rmse_against_truth, FrameOutput, Pipeline, XiChoice};
 
 use super::common::{OutputArgs, PipelineArgs};
@@ -243,56 +242,12 @@ fn write_outputs(
     pipe: &Pipeline,
 ) -> Result<()> {
     let t = out.stamp_ns;
-    let enc = if rec.depth_encoding == "32FC1" {
-        "32FC1"
-    } else {
-        "16UC1"
-    };
-    writer.write(
-        "/translucent_tof/depth/corrected",
-        t,
-        &depth_image(header, &out.corrected_z_mm, enc)?,
-    )?;
-    writer.write("/translucent_tof/translucent_mask", t, &mask_image(header, &out.mask))?;
-    let xyz = points_m(&rec.intrinsics, &out.corrected_z_mm);
-    writer.write(
-        "/translucent_tof/points",
-        t,
-        &organized_cloud(header, &xyz, ir, &out.mask),
-    )?;
-    let est = TranslucencyEstimate {
-        header: header.clone(),
-        xi: out.xi.xi,
-        xi_lower: out.xi.interval[0],
-        xi_upper: out.xi.interval[1],
-        method: out.xi.method.as_str().into(),
-        translucent_pixels: out.translucent_pixels as u32,
-        fit_residual_mm: out.fit_residual_mm,
-        frames_pooled: pipe.xi_frames() as u32,
-    };
-    writer.write("/translucent_tof/translucency", t, &est)?;
+    let m = output_messages(header, &rec.intrinsics, out, ir, &rec.depth_encoding, pipe.xi_frames())?;
+    writer.write("/translucent_tof/depth/corrected", t, &m.corrected)?;
+    writer.write("/translucent_tof/translucent_mask", t, &m.mask)?;
+    writer.write("/translucent_tof/points", t, &m.points)?;
+    writer.write("/translucent_tof/translucency", t, &m.estimate)?;
     Ok(())
-}
-
-/// Points in the optical frame, metres, NaN where the depth is invalid.
-pub(super) fn points_m(k: &Intrinsics, z_mm: &ImageBuf<f32>) -> ImageBuf<[f32; 3]> {
-    let mut data = Vec::with_capacity(z_mm.len());
-    for row in 0..k.height {
-        for col in 0..k.width {
-            let z = z_mm.data[row * k.width + col] as f64 / 1000.0;
-            if z.is_finite() && z > 0.0 {
-                let r = k.ray(col, row) * z;
-                data.push([r.x as f32, r.y as f32, r.z as f32]);
-            } else {
-                data.push([f32::NAN; 3]);
-            }
-        }
-    }
-    ImageBuf {
-        width: k.width,
-        height: k.height,
-        data,
-    }
 }
 
 fn summary(r: &serde_json::Value, rec: &Recording) -> String {

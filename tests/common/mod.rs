@@ -2,6 +2,8 @@
 //! in-memory pipeline run.
 #![allow(dead_code)]
 
+pub mod netns;
+
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use translucent_tof::physics::translucency;

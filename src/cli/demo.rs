@@ -1,0 +1,373 @@
+//! `demo`: the whole graph on loopback. A bundled bag is played as a ToF
+//! driver would (at its recorded rate, fresh stamps), the node runs as a
+//! separate process, the latch service is called while the empty scene
+//! streams, then the object frames play; the outputs are collected, compared
+//! with the bag's ground truth, and kept as a bag and a Rerun recording.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use clap::Args;
+use serde_json::json;
+
+use crate::bag::{select_topics, BagReader, BagWriter, TopicOverrides};
+use crate::image::depth_mm;
+use crate::msgs::{CameraInfo, Header, Image};
+use crate::node::peer::{restamp, Peer};
+use crate::pipeline::{rmse_against_truth, PipelineConfig};
+
+use super::common::{OutputArgs, TopicArgs};
+use super::recording::load;
+
+/// Arguments of `demo`.
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// The bag to play (default: the bundled document holder).
+    #[arg(long)]
+    pub bag: Option<PathBuf>,
+    /// Where the output bag, the Rerun recording and the node's log go.
+    #[arg(long, default_value = "out/demo")]
+    pub out_dir: PathBuf,
+    /// Fix ξ in the node (default: the node estimates it).
+    #[arg(long)]
+    pub xi: Option<f64>,
+    /// Rerun: a .rrd path, a viewer address, or off (default: OUT_DIR/demo.rrd).
+    #[arg(long)]
+    pub rerun: Option<String>,
+    /// DDS domain (default: ROS_DOMAIN_ID, else 0). Traffic stays on 127.0.0.1.
+    #[arg(long)]
+    pub domain_id: Option<u16>,
+    /// Play this many times faster than recorded.
+    #[arg(long, default_value_t = 1.0)]
+    pub speed: f64,
+    /// The node's queue of paired frames (its `queue_depth`): the demo keeps
+    /// every frame by default; a live robot keeps 2 and drops the oldest.
+    #[arg(long, default_value_t = 64)]
+    pub queue_depth: usize,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+/// The bundled bags' folder (next to the crate's sources).
+pub fn bundled_bags() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("bags")
+}
+
+struct RawFrames {
+    info: CameraInfo,
+    pairs: Vec<(Image, Image)>,
+}
+
+fn raw_frames(path: &Path) -> Result<RawFrames> {
+    let reader = BagReader::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let sel = select_topics(&reader.topics(), &TopicOverrides::default())?;
+    let (mut depth, mut ir) = (BTreeMap::new(), BTreeMap::new());
+    let mut info = None;
+    for raw in reader.messages() {
+        let raw = raw?;
+        if raw.topic == sel.depth {
+            let m: Image = BagReader::decode(&raw)?;
+            depth.insert(m.header.stamp.as_log_time_ns(), m);
+        } else if raw.topic == sel.ir {
+            let m: Image = BagReader::decode(&raw)?;
+            ir.insert(m.header.stamp.as_log_time_ns(), m);
+        } else if Some(raw.topic) == sel.info.as_deref() && info.is_none() {
+            info = Some(BagReader::decode::<CameraInfo>(&raw)?);
+        }
+    }
+    let info = info.ok_or_else(|| anyhow!("{}: no camera_info", path.display()))?;
+    let pairs = depth
+        .into_iter()
+        .filter_map(|(s, d)| ir.remove(&s).map(|i| (d, i)))
+        .collect();
+    Ok(RawFrames { info, pairs })
+}
+
+fn now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0)
+}
+
+struct NodeProcess {
+    child: Child,
+}
+
+impl NodeProcess {
+    fn interrupt_and_wait(mut self, timeout: Duration) -> Result<std::process::ExitStatus> {
+        let pid = self.child.id().to_string();
+        let _ = Command::new("kill").args(["-INT", &pid]).status();
+        let t0 = Instant::now();
+        loop {
+            if let Some(st) = self.child.try_wait()? {
+                return Ok(st);
+            }
+            if t0.elapsed() > timeout {
+                let _ = self.child.kill();
+                bail!("the node did not exit within {:.0} s of SIGINT", timeout.as_secs_f64());
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for NodeProcess {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+/// Runs `demo`.
+pub fn run(a: DemoArgs) -> Result<()> {
+    let bag = a
+        .bag
+        .clone()
+        .unwrap_or_else(|| bundled_bags().join("document_holder.mcap"));
+    if !(a.speed.is_finite() && a.speed > 0.0) {
+        bail!("--speed must be positive, got {}", a.speed);
+    }
+    std::fs::create_dir_all(&a.out_dir).with_context(|| format!("creating {}", a.out_dir.display()))?;
+    let stage = |s: &str| {
+        if !a.output.json_on_stdout() {
+            eprintln!("demo: {s}");
+        }
+    };
+    stage(&format!("reading {}", bag.display()));
+    let rec = load(&bag, &TopicArgs::default())?;
+    let config = PipelineConfig::default();
+    let bg = rec.background_frames(None, &config)?;
+    let raw = raw_frames(&bag)?;
+    if raw.pairs.len() != rec.frames.len() {
+        bail!("{}: paired frames differ between readers", bag.display());
+    }
+    let period_ns = {
+        let s: Vec<u64> = rec.frames.iter().map(|f| f.stamp_ns).collect();
+        let d: Vec<u64> = s
+            .windows(2)
+            .map(|w| w[1].saturating_sub(w[0]))
+            .filter(|d| *d > 0)
+            .collect();
+        let mut d = d;
+        d.sort_unstable();
+        d.get(d.len() / 2).copied().unwrap_or(100_000_000)
+    };
+    let period = Duration::from_nanos((period_ns as f64 / a.speed) as u64);
+    let domain = match a.domain_id {
+        Some(d) => d,
+        None => std::env::var("ROS_DOMAIN_ID")
+            .ok()
+            .and_then(|v| v.trim().parse().ok())
+            .unwrap_or(0),
+    };
+    let latch_frames = bg.count.clamp(1, 10);
+    let rerun = a.rerun.clone().unwrap_or_else(|| {
+        if cfg!(feature = "rerun") {
+            a.out_dir.join("demo.rrd").display().to_string()
+        } else {
+            "off".into()
+        }
+    });
+    let stats_path = a.out_dir.join("node_stats.json");
+    let log_path = a.out_dir.join("node.log");
+    let mut cmd = Command::new(std::env::current_exe().context("locating this executable")?);
+    cmd.arg("node")
+        .arg("--stats-json")
+        .arg(&stats_path)
+        .args(["--ros-args", "-r", "__ns:=/tof"])
+        .args(["-p", &format!("background_frames:={latch_frames}")])
+        .args(["-p", &format!("rerun:={rerun}")])
+        .args(["-p", "latch_timeout_s:=30"])
+        .args(["-p", &format!("queue_depth:={}", a.queue_depth.max(1))])
+        .env("ROS_DOMAIN_ID", domain.to_string())
+        .env("ROS_LOCALHOST_ONLY", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?);
+    if let Some(x) = a.xi {
+        cmd.args(["-p", &format!("xi:={x}")]);
+    }
+    stage(&format!(
+        "starting the node (domain {domain}, localhost only; log {})",
+        log_path.display()
+    ));
+    let mut node = NodeProcess {
+        child: cmd.spawn().context("starting the node process")?,
+    };
+
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    let played = rt.block_on(async {
+        let ctx = crate::node::context(domain, true)?;
+        let mut peer = Peer::new(
+            &ctx,
+            "tof_driver",
+            "/tof",
+            "/tof/translucent_tof",
+            ros2_client::ServiceMapping::Enhanced,
+        )?;
+        stage("waiting for the node on DDS");
+        peer.wait_for_node(Duration::from_secs(30)).await?;
+        // The empty scene streams (cycling the background frames) while the latch runs.
+        stage(&format!(
+            "streaming the empty scene and calling ~/latch_background ({latch_frames} frames)"
+        ));
+        let mut next = now_ns();
+        let reply = peer
+            .latch_while_streaming(&raw.info, &raw.pairs[..bg.count], period, &mut next, period_ns)
+            .await?;
+        let mut tick = tokio::time::interval(period);
+        if !reply.success {
+            bail!("~/latch_background failed: {}", reply.message);
+        }
+        stage(&format!("latched: {}", reply.message));
+        stage(&format!(
+            "playing {} object frames at {:.1} Hz",
+            raw.pairs.len() - bg.count,
+            1e9 / period.as_nanos() as f64
+        ));
+        let mut stamps = BTreeMap::new();
+        for (j, (d, ir)) in raw.pairs.iter().enumerate().skip(bg.count) {
+            tick.tick().await;
+            next += period_ns;
+            let mut info = raw.info.clone();
+            info.header = Header::new(next, raw.info.header.frame_id.clone());
+            peer.publish(&info, &restamp(d, next), &restamp(ir, next))?;
+            stamps.insert(next, j);
+            peer.drain();
+        }
+        // The last frame's outputs, or give up after a while.
+        let last = *stamps
+            .keys()
+            .next_back()
+            .ok_or_else(|| anyhow!("the bag has no object frames"))?;
+        // The node may still be working through its queue.
+        peer.wait_for(last, Duration::from_secs(120)).await;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        peer.drain();
+        Ok::<_, anyhow::Error>((std::mem::take(&mut peer.received), stamps, reply))
+    });
+    let (peer_received, stamps, latch_reply) = match played {
+        Ok(v) => v,
+        Err(e) => {
+            let exited = node.child.try_wait().ok().flatten();
+            let log = std::fs::read_to_string(&log_path).unwrap_or_default();
+            let tail: Vec<&str> = log
+                .lines()
+                .rev()
+                .take(5)
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
+            return Err(e.context(format!(
+                "the node {} (last lines of {}:\n{})",
+                exited
+                    .map(|s| format!("exited with {s}"))
+                    .unwrap_or_else(|| "is running".into()),
+                log_path.display(),
+                tail.join("\n")
+            )));
+        }
+    };
+    stage("stopping the node");
+    let status = node.interrupt_and_wait(Duration::from_secs(30))?;
+    if !status.success() {
+        bail!("the node exited with {status}; see {}", log_path.display());
+    }
+    let node_stats: serde_json::Value = std::fs::read_to_string(&stats_path)
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or(serde_json::Value::Null);
+
+    // Outputs against the bag's ground truth.
+    let (mut e2, mut raw2, mut n) = (0.0, 0.0, 0usize);
+    let out_bag = a.out_dir.join("demo.mcap");
+    let mut w = BagWriter::create(&out_bag).with_context(|| format!("creating {}", out_bag.display()))?;
+    let mut translucent = 0usize;
+    for (stamp, img) in &peer_received.corrected {
+        w.write("/tof/translucent_tof/depth/corrected", *stamp, img)?;
+        if let Some(m) = peer_received.mask.get(stamp) {
+            w.write("/tof/translucent_tof/translucent_mask", *stamp, m)?;
+        }
+        if let Some(p) = peer_received.points.get(stamp) {
+            w.write("/tof/translucent_tof/points", *stamp, p)?;
+        }
+        let (Some(&j), Some(mask_img)) = (stamps.get(stamp), peer_received.mask.get(stamp)) else {
+            continue;
+        };
+        let frame = &rec.frames[j];
+        let Some(truth) = rec.truth.get(&frame.stamp_ns) else {
+            continue;
+        };
+        let corrected = depth_mm(img)?;
+        let mut mask = crate::physics::ImageBuf::filled(corrected.width, corrected.height, false);
+        for (k, v) in mask_img.data.iter().enumerate().take(mask.len()) {
+            mask.data[k] = *v == 255 && corrected.data[k].is_finite();
+        }
+        translucent += mask.data.iter().filter(|m| **m).count();
+        if let (Some((e, k)), Some((r, _))) = (
+            rmse_against_truth(&corrected, truth, &mask),
+            rmse_against_truth(&frame.z_mm, truth, &mask),
+        ) {
+            e2 += e * e * k as f64;
+            raw2 += r * r * k as f64;
+            n += k;
+        }
+    }
+    for est in &peer_received.estimates {
+        w.write(
+            "/tof/translucent_tof/translucency",
+            est.header.stamp.as_log_time_ns(),
+            est,
+        )?;
+    }
+    w.finish()?;
+    let last = peer_received.estimates.last();
+    let object_frames = stamps.len();
+    let report = json!({
+        "bag": bag.display().to_string(),
+        "latch": latch_reply.message,
+        "object_frames_played": object_frames,
+        "frames_received": peer_received.corrected.len(),
+        "xi": last.map(|e| e.xi),
+        "xi_interval": last.map(|e| [e.xi_lower, e.xi_upper]),
+        "xi_method": last.map(|e| e.method.clone()),
+        "translucent_pixels": translucent,
+        "rmse_raw_mm": (n > 0).then(|| (raw2 / n as f64).sqrt()),
+        "rmse_mm": (n > 0).then(|| (e2 / n as f64).sqrt()),
+        "truth_pixels": n,
+        "out_bag": out_bag.display().to_string(),
+        "rerun": rerun,
+        "node": node_stats,
+    });
+    let mut s = format!(
+        "demo over DDS on loopback: {} of {} object frames came back from the node\n",
+        peer_received.corrected.len(),
+        object_frames
+    );
+    if let Some(e) = last {
+        s.push_str(&format!(
+            "xi = {:.3} [{:.3}, {:.3}] by {} over {} frames\n",
+            e.xi, e.xi_lower, e.xi_upper, e.method, e.frames_pooled
+        ));
+    }
+    if n > 0 {
+        s.push_str(&format!(
+            "error against ground truth over {n} translucent pixels: raw {:.1} mm -> recovered {:.1} mm\n",
+            (raw2 / n as f64).sqrt(),
+            (e2 / n as f64).sqrt()
+        ));
+    }
+    s.push_str(&format!("wrote {} and {}", out_bag.display(), rerun));
+    a.output.summary(&s);
+    a.output.write_json(&report)
+}

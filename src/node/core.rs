@@ -1,0 +1,374 @@
+//! What the node does with each paired frame, without DDS: validate, latch
+//! the background on request, run the pipeline, build the output messages,
+//! count what had to be dropped and why.
+
+use std::collections::BTreeMap;
+
+use crate::image::{depth_mm, ir_counts};
+use crate::msgs::{CameraInfo, Image, TriggerResponse};
+use crate::outputs::{output_messages, OutputMessages};
+use crate::physics::Intrinsics;
+use crate::pipeline::{Background, BackgroundLatch, DepthFrame, FrameOutput, Pipeline, PipelineConfig};
+
+/// Why a frame was dropped (each logged once, then counted).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DropCause {
+    /// Depth or IR in an encoding the node does not read, or a malformed buffer.
+    BadImage,
+    /// Depth and IR, or images and camera_info, of different sizes.
+    SizeMismatch,
+    /// A depth or IR image whose partner with the same stamp never came.
+    Unpaired,
+    /// No camera_info received yet (the intrinsics are needed).
+    NoCameraInfo,
+    /// A camera_info without a usable focal length.
+    BadCameraInfo,
+    /// No background latched yet (call `~/latch_background`).
+    NoBackground,
+    /// Frames arrived faster than they were processed: the oldest was dropped.
+    QueueFull,
+    /// ξ not determined yet (too few translucent pixels so far).
+    NoXiYet,
+    /// The pipeline refused the frame.
+    Pipeline,
+}
+
+impl DropCause {
+    /// What to do about it, for the first log line of each cause.
+    pub fn advice(self) -> &'static str {
+        match self {
+            DropCause::BadImage => "depth must be 16UC1/mono16 (mm) or 32FC1 (m); IR 16UC1, mono16, mono8 or 32FC1",
+            DropCause::SizeMismatch => {
+                "depth, IR and camera_info must come from the same sensor at the same resolution"
+            }
+            DropCause::Unpaired => "depth and IR are paired by exact header stamp; check the driver stamps both alike",
+            DropCause::NoCameraInfo => "waiting for depth/camera_info (remap it if the driver uses another name)",
+            DropCause::BadCameraInfo => "camera_info K must have positive fx, fy",
+            DropCause::NoBackground => "call ~/latch_background with the scene empty of the translucent object",
+            DropCause::QueueFull => "frames arrive faster than they are processed; the oldest are dropped",
+            DropCause::NoXiYet => "xi is estimated from the translucent pixels seen so far; set -p xi:=X to fix it",
+            DropCause::Pipeline => "see the message",
+        }
+    }
+}
+
+/// Counters of dropped frames by cause; `record` says whether this is the first of its cause.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct DropCounters {
+    /// Count per cause.
+    pub by_cause: BTreeMap<DropCause, u64>,
+}
+
+impl DropCounters {
+    /// Counts one drop; true the first time this cause is seen.
+    pub fn record(&mut self, cause: DropCause) -> bool {
+        let n = self.by_cause.entry(cause).or_insert(0);
+        *n += 1;
+        *n == 1
+    }
+
+    /// Count for a cause.
+    pub fn get(&self, cause: DropCause) -> u64 {
+        self.by_cause.get(&cause).copied().unwrap_or(0)
+    }
+
+    /// All drops.
+    pub fn total(&self) -> u64 {
+        self.by_cause.values().sum()
+    }
+}
+
+/// A background latch in progress, on behalf of a service request.
+#[derive(Debug)]
+struct LatchInProgress<T> {
+    token: T,
+    latch: BackgroundLatch,
+    intrinsics: Intrinsics,
+    started: std::time::Instant,
+}
+
+/// What a frame produced.
+#[derive(Debug, Default)]
+pub struct FrameResult<T> {
+    /// The messages to publish (none when the frame was dropped or latched).
+    pub outputs: Option<(OutputMessages, FrameOutput)>,
+    /// A frame dropped, why, and a message when it is the first of its cause.
+    pub dropped: Option<(DropCause, Option<String>)>,
+    /// Service replies now due (a latch that completed or failed).
+    pub replies: Vec<(T, TriggerResponse)>,
+}
+
+/// The node's state between frames. `T` identifies a pending service call.
+#[derive(Debug)]
+pub struct NodeCore<T> {
+    config: PipelineConfig,
+    background_frames: usize,
+    latch_timeout: std::time::Duration,
+    info: Option<(CameraInfo, Intrinsics)>,
+    pipeline: Option<Pipeline>,
+    latch: Option<LatchInProgress<T>>,
+    /// Drops so far.
+    pub drops: DropCounters,
+    /// Frames that produced outputs.
+    pub processed: u64,
+}
+
+impl<T> NodeCore<T> {
+    /// A node that latches `background_frames` frames per request and gives
+    /// up on a latch that has not completed in `latch_timeout`.
+    pub fn new(config: PipelineConfig, background_frames: usize, latch_timeout: std::time::Duration) -> Self {
+        Self {
+            config,
+            background_frames: background_frames.max(1),
+            latch_timeout,
+            info: None,
+            pipeline: None,
+            latch: None,
+            drops: DropCounters::default(),
+            processed: 0,
+        }
+    }
+
+    /// The latched background, if any.
+    pub fn background(&self) -> Option<&Background> {
+        self.pipeline.as_ref().and_then(|p| p.background())
+    }
+
+    /// The camera, once camera_info has come.
+    pub fn intrinsics(&self) -> Option<Intrinsics> {
+        self.info.as_ref().map(|(_, k)| *k)
+    }
+
+    /// ξ frames pooled so far.
+    pub fn xi_frames(&self) -> usize {
+        self.pipeline.as_ref().map(|p| p.xi_frames()).unwrap_or(0)
+    }
+
+    /// Takes a camera_info. A change of size or intrinsics forgets the
+    /// background (it no longer lines up); returns a message when that happens.
+    pub fn on_camera_info(&mut self, info: &CameraInfo) -> Result<Option<String>, DropCause> {
+        if self
+            .info
+            .as_ref()
+            .is_some_and(|(old, _)| old.k == info.k && old.width == info.width && old.height == info.height)
+        {
+            return Ok(None);
+        }
+        let k =
+            Intrinsics::from_k(info.width as usize, info.height as usize, &info.k).ok_or(DropCause::BadCameraInfo)?;
+        let had_background = self.background().is_some();
+        let note = self.info.as_ref().map(|(old, _)| {
+            format!(
+                "camera_info changed ({}x{} -> {}x{}){}",
+                old.width,
+                old.height,
+                info.width,
+                info.height,
+                if had_background {
+                    ": background forgotten, latch again"
+                } else {
+                    ""
+                }
+            )
+        });
+        self.info = Some((info.clone(), k));
+        self.pipeline = Some(Pipeline::new(self.config.clone(), k));
+        Ok(note)
+    }
+
+    /// Starts latching the next frames; replies at once if it cannot.
+    pub fn start_latch(&mut self, token: T) -> Result<(), (T, TriggerResponse)> {
+        if self.latch.is_some() {
+            return Err((token, failure("a latch is already in progress; wait for its reply")));
+        }
+        let Some((_, k)) = &self.info else {
+            return Err((
+                token,
+                failure("no camera_info received yet: cannot latch without the intrinsics (is depth/camera_info remapped right?)"),
+            ));
+        };
+        self.latch = Some(LatchInProgress {
+            token,
+            latch: BackgroundLatch::new(k.width, k.height, self.config.model.sensor.unambiguous_range_mm()),
+            intrinsics: *k,
+            started: std::time::Instant::now(),
+        });
+        Ok(())
+    }
+
+    /// Forgets the background (and cancels a latch in progress).
+    pub fn clear(&mut self) -> (TriggerResponse, Option<(T, TriggerResponse)>) {
+        let cancelled = self
+            .latch
+            .take()
+            .map(|l| (l.token, failure("cancelled by ~/clear_background")));
+        let had = self.background().is_some();
+        if let Some(p) = &mut self.pipeline {
+            p.clear_background();
+        }
+        let msg = if had {
+            "background cleared; frames are passed through dropped until ~/latch_background is called"
+        } else {
+            "no background was latched"
+        };
+        (
+            TriggerResponse {
+                success: true,
+                message: msg.into(),
+            },
+            cancelled,
+        )
+    }
+
+    /// A latch that has waited too long for frames fails (called on every
+    /// wake-up, with or without frames).
+    pub fn check_latch_timeout(&mut self) -> Option<(T, TriggerResponse)> {
+        let late = self
+            .latch
+            .as_ref()
+            .is_some_and(|l| l.started.elapsed() > self.latch_timeout);
+        if !late {
+            return None;
+        }
+        let l = self.latch.take()?;
+        Some((
+            l.token,
+            failure(&format!(
+                "only {} of {} background frames arrived in {:.1} s (are depth and IR being published with equal stamps?)",
+                l.latch.frames(),
+                self.background_frames,
+                self.latch_timeout.as_secs_f64()
+            )),
+        ))
+    }
+
+    /// Handles one depth + IR pair (same stamp).
+    pub fn on_frame(&mut self, depth: &Image, ir: &Image) -> FrameResult<T> {
+        let mut result = FrameResult {
+            outputs: None,
+            dropped: None,
+            replies: vec![],
+        };
+        match self.frame(depth, ir, &mut result) {
+            Ok(()) => {}
+            Err((cause, detail)) => {
+                let first = self.drops.record(cause);
+                result.dropped = Some((cause, first.then(|| format!("{detail} ({})", cause.advice()))));
+            }
+        }
+        result
+    }
+
+    fn frame(&mut self, depth: &Image, ir: &Image, result: &mut FrameResult<T>) -> Result<(), (DropCause, String)> {
+        let stamp = depth.header.stamp.as_log_time_ns();
+        let Some((_, k)) = &self.info else {
+            return Err((
+                DropCause::NoCameraInfo,
+                format!("frame at stamp {stamp} ns dropped: no camera_info yet"),
+            ));
+        };
+        let k = *k;
+        let z_mm =
+            depth_mm(depth).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
+        let ir_buf =
+            ir_counts(ir).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
+        for (what, w, h) in [("depth", z_mm.width, z_mm.height), ("IR", ir_buf.width, ir_buf.height)] {
+            if w != k.width || h != k.height {
+                return Err((
+                    DropCause::SizeMismatch,
+                    format!(
+                        "frame at stamp {stamp} ns dropped: {what} is {w}x{h} but camera_info says {}x{}",
+                        k.width, k.height
+                    ),
+                ));
+            }
+        }
+        let frame = DepthFrame {
+            stamp_ns: stamp,
+            z_mm,
+            ir: ir_buf,
+        };
+        if let Some(l) = &mut self.latch {
+            l.latch.push(&frame, &l.intrinsics).map_err(|e| {
+                (
+                    DropCause::Pipeline,
+                    format!("background frame at stamp {stamp} ns: {e}"),
+                )
+            })?;
+            if l.latch.frames() >= self.background_frames {
+                if let Some(l) = self.latch.take() {
+                    result.replies.push(self.finish_latch(l));
+                }
+            }
+            return Ok(());
+        }
+        let Some(pipe) = &mut self.pipeline else {
+            return Err((
+                DropCause::NoCameraInfo,
+                format!("frame at stamp {stamp} ns dropped: no camera_info yet"),
+            ));
+        };
+        if pipe.background().is_none() {
+            return Err((
+                DropCause::NoBackground,
+                format!("frame at stamp {stamp} ns dropped: no background latched"),
+            ));
+        }
+        let obs = pipe
+            .observe(&frame)
+            .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns dropped: {e}")))?;
+        pipe.add_xi_evidence(&obs);
+        let Some(xi) = pipe.xi() else {
+            return Err((
+                DropCause::NoXiYet,
+                format!(
+                    "frame at stamp {stamp} ns not published: xi not determined yet ({} translucent pixels)",
+                    obs.translucent_pixels
+                ),
+            ));
+        };
+        let out = pipe.recover(&frame, &obs, &xi);
+        let msgs = output_messages(&depth.header, &k, &out, &frame.ir, &depth.encoding, pipe.xi_frames())
+            .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns: {e}")))?;
+        self.processed += 1;
+        result.outputs = Some((msgs, out));
+        Ok(())
+    }
+
+    fn finish_latch(&mut self, l: LatchInProgress<T>) -> (T, TriggerResponse) {
+        let reply = match l.latch.finish(&l.intrinsics, &self.config) {
+            Ok(bg) => {
+                let msg = format!(
+                    "latched {} frames: {} valid pixels of {}, median noise {:.1} mm; Lin {}{}",
+                    bg.frames,
+                    bg.valid_pixels,
+                    l.intrinsics.width * l.intrinsics.height,
+                    bg.median_noise_mm,
+                    bg.lin_source,
+                    bg.warnings
+                        .iter()
+                        .map(|w| format!("; WARNING: {w}"))
+                        .collect::<String>()
+                );
+                let pipe = self
+                    .pipeline
+                    .get_or_insert_with(|| Pipeline::new(self.config.clone(), l.intrinsics));
+                pipe.set_background(bg);
+                TriggerResponse {
+                    success: true,
+                    message: msg,
+                }
+            }
+            Err(e) => failure(&format!("could not latch a background: {e}")),
+        };
+        (l.token, reply)
+    }
+}
+
+fn failure(msg: &str) -> TriggerResponse {
+    TriggerResponse {
+        success: false,
+        message: msg.into(),
+    }
+}

@@ -1,0 +1,229 @@
+//! The node's added latency over DDS on loopback, against a bare
+//! publish/subscribe of the same messages ([`super::echo`]), and its memory
+//! over a long run. Both run as separate processes of this binary; the
+//! driver here publishes a bag's object frames at a fixed rate and times each
+//! frame from its publication to the arrival of its `~/depth/corrected`.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use serde::Serialize;
+
+use super::peer::{restamp, Peer};
+use crate::msgs::{CameraInfo, Image};
+
+/// What to measure.
+#[derive(Debug, Clone)]
+pub struct LatencyConfig {
+    /// A bag with depth, IR, camera_info (the first `background` pairs are the empty scene).
+    pub bag: PathBuf,
+    /// Background pairs at the start of the bag.
+    pub background: usize,
+    /// Object frames to publish (cycling the bag's).
+    pub frames: usize,
+    /// Publication rate, Hz.
+    pub rate_hz: f64,
+    /// Extra `-p` parameters for the node (e.g. `xi:=0.65`).
+    pub node_params: Vec<String>,
+    /// DDS domain.
+    pub domain_id: u16,
+}
+
+/// One side of the comparison.
+#[derive(Debug, Clone, Serialize)]
+pub struct LatencyRun {
+    /// Frames published.
+    pub sent: usize,
+    /// Frames whose output came back.
+    pub received: usize,
+    /// Publication to output arrival, ms: median, 95th percentile, max.
+    pub latency_ms: [f64; 3],
+}
+
+/// The comparison.
+#[derive(Debug, Clone, Serialize)]
+pub struct LatencyReport {
+    /// Through the bare echo (transport only).
+    pub bare: LatencyRun,
+    /// Through the node.
+    pub node: LatencyRun,
+    /// Node median minus bare median, ms.
+    pub added_median_ms: f64,
+    /// Node 95th percentile minus bare 95th percentile, ms.
+    pub added_p95_ms: f64,
+    /// The node's own counters and timings (`--stats-json`).
+    pub node_stats: serde_json::Value,
+}
+
+struct Proc(Child);
+
+impl Proc {
+    fn stop(mut self) -> Result<()> {
+        let _ = Command::new("kill").args(["-INT", &self.0.id().to_string()]).status();
+        let t0 = Instant::now();
+        while self.0.try_wait()?.is_none() {
+            if t0.elapsed() > Duration::from_secs(30) {
+                let _ = self.0.kill();
+                bail!("process {} did not stop on SIGINT", self.0.id());
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if let Ok(None) = self.0.try_wait() {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+}
+
+fn frames(bag: &Path) -> Result<(CameraInfo, Vec<(Image, Image)>)> {
+    use crate::bag::{select_topics, BagReader, TopicOverrides};
+    let reader = BagReader::open(bag).with_context(|| format!("opening {}", bag.display()))?;
+    let sel = select_topics(&reader.topics(), &TopicOverrides::default())?;
+    let (mut d, mut i) = (std::collections::BTreeMap::new(), std::collections::BTreeMap::new());
+    let mut info = None;
+    for m in reader.messages() {
+        let m = m?;
+        if m.topic == sel.depth {
+            let x: Image = BagReader::decode(&m)?;
+            d.insert(x.header.stamp.as_log_time_ns(), x);
+        } else if m.topic == sel.ir {
+            let x: Image = BagReader::decode(&m)?;
+            i.insert(x.header.stamp.as_log_time_ns(), x);
+        } else if Some(m.topic) == sel.info.as_deref() && info.is_none() {
+            info = Some(BagReader::decode::<CameraInfo>(&m)?);
+        }
+    }
+    let pairs = d
+        .into_iter()
+        .filter_map(|(s, x)| i.remove(&s).map(|y| (x, y)))
+        .collect();
+    Ok((info.ok_or_else(|| anyhow!("{}: no camera_info", bag.display()))?, pairs))
+}
+
+/// Plays the frames to whatever serves `/tof/translucent_tof` and times them.
+async fn drive(cfg: &LatencyConfig, info: &CameraInfo, pairs: &[(Image, Image)], tag: &str) -> Result<LatencyRun> {
+    let ctx = super::context(cfg.domain_id, false)?;
+    let mut peer = Peer::new(
+        &ctx,
+        &format!("latency_driver_{tag}"),
+        "/tof",
+        "/tof/translucent_tof",
+        ros2_client::ServiceMapping::Enhanced,
+    )?;
+    peer.wait_for_node(Duration::from_secs(30)).await?;
+    let mut stamp = 1_000_000_000u64;
+    let bg = cfg.background.max(1).min(pairs.len());
+    let reply = peer
+        .latch_while_streaming(info, &pairs[..bg], Duration::from_millis(30), &mut stamp, 1_000_000)
+        .await?;
+    if !reply.success {
+        bail!("latch failed: {}", reply.message);
+    }
+    let objects = &pairs[bg..];
+    if objects.is_empty() {
+        bail!("{}: no object frames after {bg} background frames", cfg.bag.display());
+    }
+    let period = Duration::from_secs_f64(1.0 / cfg.rate_hz);
+    let mut tick = tokio::time::interval(period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    // Warm-up: the first frames (ξ pooling, page faults) are not timed.
+    let warmup = 5.min(cfg.frames);
+    let mut sent = Vec::with_capacity(cfg.frames);
+    for j in 0..cfg.frames + warmup {
+        tick.tick().await;
+        let (d, i) = &objects[j % objects.len()];
+        stamp += 1_000_000;
+        let (d, i) = (restamp(d, stamp), restamp(i, stamp));
+        peer.publish(info, &d, &i)?;
+        if j >= warmup {
+            sent.push((stamp, Instant::now()));
+        }
+        peer.drain();
+        if peer.received.corrected.len() > 64 {
+            // Keep only arrival times: memory stays flat over long runs.
+            peer.received.corrected.clear();
+            peer.received.mask.clear();
+            peer.received.points.clear();
+            peer.received.estimates.clear();
+        }
+    }
+    if let Some(&(last, _)) = sent.last() {
+        peer.wait_for(last, Duration::from_secs(10)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    peer.drain();
+    let mut lat: Vec<f64> = sent
+        .iter()
+        .filter_map(|(s, t0)| {
+            peer.received
+                .arrival
+                .get(s)
+                .map(|t1| t1.duration_since(*t0).as_secs_f64() * 1e3)
+        })
+        .collect();
+    let received = lat.len();
+    Ok(LatencyRun {
+        sent: sent.len(),
+        received,
+        latency_ms: super::percentiles(&mut lat),
+    })
+}
+
+/// Runs the bare echo, then the node, on the same frames; compares.
+pub fn measure(cfg: &LatencyConfig) -> Result<LatencyReport> {
+    if !(cfg.rate_hz.is_finite() && cfg.rate_hz > 0.0) {
+        bail!("rate must be positive");
+    }
+    let (info, pairs) = frames(&cfg.bag)?;
+    let exe = std::env::current_exe().context("locating this executable")?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    let quiet = |c: &mut Command| {
+        c.env("ROS_DOMAIN_ID", cfg.domain_id.to_string())
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null());
+    };
+    let mut echo = Command::new(&exe);
+    echo.args(["dds-echo", "--namespace", "/tof", "--node", "/tof/translucent_tof"]);
+    quiet(&mut echo);
+    let echo = Proc(echo.spawn().context("starting the echo")?);
+    let bare = rt.block_on(drive(cfg, &info, &pairs, "bare"))?;
+    echo.stop()?;
+
+    let dir = std::env::temp_dir().join(format!("ttof_latency_{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let stats = dir.join("node_stats.json");
+    let mut node = Command::new(&exe);
+    node.arg("node").arg("--stats-json").arg(&stats);
+    node.args(["--ros-args", "-r", "__ns:=/tof", "-p", "background_frames:=5"]);
+    for p in &cfg.node_params {
+        node.args(["-p", p]);
+    }
+    quiet(&mut node);
+    let node = Proc(node.spawn().context("starting the node")?);
+    let through = rt.block_on(drive(cfg, &info, &pairs, "node"))?;
+    node.stop()?;
+    let node_stats = std::fs::read_to_string(&stats)
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or(serde_json::Value::Null);
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(LatencyReport {
+        added_median_ms: through.latency_ms[0] - bare.latency_ms[0],
+        added_p95_ms: through.latency_ms[1] - bare.latency_ms[1],
+        bare,
+        node: through,
+        node_stats,
+    })
+}

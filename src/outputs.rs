@@ -1,0 +1,73 @@
+//! The node's output messages for one recovered frame, shared by the node and
+//! `replay` so that both publish exactly the same thing.
+#![deny(missing_docs)]
+
+use crate::image::{depth_image, mask_image, organized_cloud, ImageError};
+use crate::msgs::translucent_tof::TranslucencyEstimate;
+use crate::msgs::{Header, Image, PointCloud2};
+use crate::physics::{ImageBuf, Intrinsics};
+use crate::pipeline::FrameOutput;
+
+/// What the node publishes for one frame.
+#[derive(Debug, Clone)]
+pub struct OutputMessages {
+    /// `~/depth/corrected`: the input's size, stamp and encoding.
+    pub corrected: Image,
+    /// `~/translucent_mask`: `mono8`, 255 where translucent.
+    pub mask: Image,
+    /// `~/points`: organized cloud of the corrected depth.
+    pub points: PointCloud2,
+    /// `~/translucency`.
+    pub estimate: TranslucencyEstimate,
+}
+
+/// Builds the outputs of `out`. `header` is the input depth image's;
+/// `depth_encoding` its encoding (`32FC1` is kept, anything else becomes `16UC1`).
+pub fn output_messages(
+    header: &Header,
+    intrinsics: &Intrinsics,
+    out: &FrameOutput,
+    ir: &ImageBuf<f32>,
+    depth_encoding: &str,
+    frames_pooled: usize,
+) -> Result<OutputMessages, ImageError> {
+    let enc = if depth_encoding == "32FC1" { "32FC1" } else { "16UC1" };
+    let xyz = points_m(intrinsics, &out.corrected_z_mm);
+    Ok(OutputMessages {
+        corrected: depth_image(header, &out.corrected_z_mm, enc)?,
+        mask: mask_image(header, &out.mask),
+        points: organized_cloud(header, &xyz, ir, &out.mask),
+        estimate: TranslucencyEstimate {
+            header: header.clone(),
+            xi: out.xi.xi,
+            xi_lower: out.xi.interval[0],
+            xi_upper: out.xi.interval[1],
+            method: out.xi.method.as_str().into(),
+            translucent_pixels: u32::try_from(out.translucent_pixels).unwrap_or(u32::MAX),
+            fit_residual_mm: out.fit_residual_mm,
+            frames_pooled: u32::try_from(frames_pooled).unwrap_or(u32::MAX),
+        },
+    })
+}
+
+/// Points in the optical frame (REP 103: x right, y down, z forward), metres,
+/// NaN where the depth is invalid.
+pub fn points_m(k: &Intrinsics, z_mm: &ImageBuf<f32>) -> ImageBuf<[f32; 3]> {
+    let mut data = Vec::with_capacity(z_mm.len());
+    for row in 0..k.height {
+        for col in 0..k.width {
+            let z = z_mm.data.get(row * k.width + col).copied().unwrap_or(f32::NAN) as f64 / 1000.0;
+            if z.is_finite() && z > 0.0 {
+                let r = k.ray(col, row) * z;
+                data.push([r.x as f32, r.y as f32, r.z as f32]);
+            } else {
+                data.push([f32::NAN; 3]);
+            }
+        }
+    }
+    ImageBuf {
+        width: k.width,
+        height: k.height,
+        data,
+    }
+}

@@ -1,0 +1,260 @@
+//! Rerun logging: one recording stream fed from its own thread through a
+//! bounded channel, so that logging never blocks the processing path (a frame
+//! the logger cannot take is dropped and counted).
+//!
+//! Entities: `camera/depth/raw`, `camera/depth/recovered` (depth images, mm),
+//! `camera/translucent_mask`, `points/raw` (the translucent pixels' readings,
+//! red), `points/recovered` (their recovered depth, cyan), `points/scene`
+//! (the rest, grey), `translucency/xi`, `translucency/xi_lower`,
+//! `translucency/xi_upper`, `translucency/pixels`; timelines `stamp` (the
+//! header stamp) and `frame`.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{sync_channel, SyncSender};
+use std::sync::Arc;
+
+use crate::outputs::points_m;
+use crate::physics::{ImageBuf, Intrinsics};
+
+/// Where Rerun data goes (parameter / flag `rerun`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum RerunTarget {
+    /// No logging.
+    Off,
+    /// A `.rrd` file.
+    File(PathBuf),
+    /// A viewer's gRPC address (`rerun+http://HOST:PORT/proxy`, or `HOST:PORT`).
+    Viewer(String),
+}
+
+impl RerunTarget {
+    /// `off` (or empty), a path ending in `.rrd`, or a viewer address.
+    pub fn parse(s: &str) -> Result<Self, String> {
+        let s = s.trim();
+        if s.is_empty() || s.eq_ignore_ascii_case("off") || s == "false" {
+            return Ok(RerunTarget::Off);
+        }
+        if s.ends_with(".rrd") {
+            return Ok(RerunTarget::File(PathBuf::from(s)));
+        }
+        if s.starts_with("rerun+http://") || s.starts_with("rerun+https://") {
+            return Ok(RerunTarget::Viewer(s.to_string()));
+        }
+        let host_port = s
+            .rsplit_once(':')
+            .is_some_and(|(h, p)| !h.is_empty() && p.parse::<u16>().is_ok());
+        if host_port {
+            return Ok(RerunTarget::Viewer(format!("rerun+http://{s}/proxy")));
+        }
+        Err(format!(
+            "rerun {s:?}: expected off, a path ending in .rrd, or a viewer address (HOST:PORT or rerun+http://HOST:PORT/proxy)"
+        ))
+    }
+}
+
+/// One frame's worth of what is logged.
+#[derive(Debug, Clone)]
+pub struct FrameViz {
+    /// Header stamp, ns.
+    pub stamp_ns: u64,
+    /// Frame counter.
+    pub frame: u64,
+    /// Camera.
+    pub intrinsics: Intrinsics,
+    /// Reading, z mm.
+    pub raw_z_mm: ImageBuf<f32>,
+    /// Corrected, z mm.
+    pub recovered_z_mm: ImageBuf<f32>,
+    /// Translucent pixels.
+    pub mask: ImageBuf<bool>,
+    /// ξ and its interval, when known.
+    pub xi: Option<(f64, [f64; 2])>,
+}
+
+/// A running logger. Dropping it (or [`VizSink::finish`]) flushes the recording.
+pub struct VizSink {
+    tx: Option<SyncSender<FrameViz>>,
+    dropped: Arc<AtomicU64>,
+    thread: Option<std::thread::JoinHandle<Result<u64, String>>>,
+}
+
+impl VizSink {
+    /// Starts logging to `target` (None for [`RerunTarget::Off`]). The queue
+    /// holds `queue` frames; more are dropped while the logger is busy.
+    pub fn start(target: &RerunTarget, app_id: &'static str, queue: usize) -> Result<Option<Self>, String> {
+        if *target == RerunTarget::Off {
+            return Ok(None);
+        }
+        let rec = backend::open(target, app_id)?;
+        let (tx, rx) = sync_channel::<FrameViz>(queue.max(1));
+        let thread = std::thread::Builder::new()
+            .name("rerun".into())
+            .spawn(move || {
+                let mut n = 0;
+                for f in rx {
+                    backend::log_frame(&rec, &f)?;
+                    n += 1;
+                }
+                backend::close(rec)?;
+                Ok(n)
+            })
+            .map_err(|e| format!("starting the Rerun thread: {e}"))?;
+        Ok(Some(Self {
+            tx: Some(tx),
+            dropped: Arc::new(AtomicU64::new(0)),
+            thread: Some(thread),
+        }))
+    }
+
+    /// Queues a frame without waiting; returns false (and counts it) when the logger is behind.
+    pub fn log(&self, f: FrameViz) -> bool {
+        let sent = self.tx.as_ref().is_some_and(|tx| tx.try_send(f).is_ok());
+        if !sent {
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+        }
+        sent
+    }
+
+    /// Frames the logger could not take.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+
+    /// Logs what is queued, closes the recording; returns the frames logged.
+    pub fn finish(mut self) -> Result<u64, String> {
+        self.tx.take();
+        match self.thread.take().map(|t| t.join()) {
+            Some(Ok(r)) => r,
+            Some(Err(_)) => Err("the Rerun thread panicked".into()),
+            None => Ok(0),
+        }
+    }
+}
+
+impl Drop for VizSink {
+    fn drop(&mut self) {
+        self.tx.take();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The translucent pixels' points (raw, recovered) and the rest of the scene.
+pub fn split_clouds(f: &FrameViz) -> [Vec<[f32; 3]>; 3] {
+    let raw = points_m(&f.intrinsics, &f.raw_z_mm);
+    let rec = points_m(&f.intrinsics, &f.recovered_z_mm);
+    let (mut r, mut c, mut s) = (vec![], vec![], vec![]);
+    for i in 0..f.mask.len().min(raw.len()).min(rec.len()) {
+        let ok = |p: &[f32; 3]| p.iter().all(|v| v.is_finite());
+        if f.mask.data[i] {
+            if ok(&raw.data[i]) {
+                r.push(raw.data[i]);
+            }
+            if ok(&rec.data[i]) {
+                c.push(rec.data[i]);
+            }
+        } else if ok(&rec.data[i]) {
+            s.push(rec.data[i]);
+        }
+    }
+    [r, c, s]
+}
+
+#[cfg(feature = "rerun")]
+mod backend {
+    use super::{split_clouds, FrameViz, RerunTarget};
+    use rerun::{ChannelDatatype, Color, DepthImage, Points3D, RecordingStream, RecordingStreamBuilder, Scalars};
+
+    pub fn open(target: &RerunTarget, app_id: &'static str) -> Result<RecordingStream, String> {
+        let b = RecordingStreamBuilder::new(app_id);
+        match target {
+            RerunTarget::File(p) => b
+                .save(p)
+                .map_err(|e| format!("rerun: cannot write {}: {e}", p.display())),
+            RerunTarget::Viewer(url) => b
+                .connect_grpc_opts(url.clone())
+                .map_err(|e| format!("rerun: cannot connect to {url}: {e}")),
+            RerunTarget::Off => Err("rerun is off".into()),
+        }
+    }
+
+    fn depth(z: &crate::physics::ImageBuf<f32>) -> DepthImage {
+        let bytes: Vec<u8> = z.data.iter().flat_map(|v| v.to_le_bytes()).collect();
+        DepthImage::from_data_type_and_bytes(bytes, [z.width as u32, z.height as u32], ChannelDatatype::F32)
+            .with_meter(1000.0)
+    }
+
+    pub fn log_frame(rec: &RecordingStream, f: &FrameViz) -> Result<(), String> {
+        let err = |e: rerun::RecordingStreamError| format!("rerun: {e}");
+        rec.set_time_sequence("frame", f.frame as i64);
+        rec.set_timestamp_nanos_since_epoch("stamp", f.stamp_ns as i64);
+        rec.log("camera/depth/raw", &depth(&f.raw_z_mm)).map_err(err)?;
+        rec.log("camera/depth/recovered", &depth(&f.recovered_z_mm))
+            .map_err(err)?;
+        let mask: Vec<u8> = f.mask.data.iter().map(|&m| u8::from(m) * 255).collect();
+        rec.log(
+            "camera/translucent_mask",
+            &DepthImage::from_data_type_and_bytes(
+                mask,
+                [f.mask.width as u32, f.mask.height as u32],
+                ChannelDatatype::U8,
+            ),
+        )
+        .map_err(err)?;
+        let [raw, recovered, scene] = split_clouds(f);
+        rec.log(
+            "points/raw",
+            &Points3D::new(raw)
+                .with_colors([Color::from_rgb(230, 40, 40)])
+                .with_radii([0.003]),
+        )
+        .map_err(err)?;
+        rec.log(
+            "points/recovered",
+            &Points3D::new(recovered)
+                .with_colors([Color::from_rgb(0, 220, 230)])
+                .with_radii([0.003]),
+        )
+        .map_err(err)?;
+        rec.log(
+            "points/scene",
+            &Points3D::new(scene)
+                .with_colors([Color::from_rgb(150, 150, 150)])
+                .with_radii([0.002]),
+        )
+        .map_err(err)?;
+        if let Some((xi, [lo, hi])) = f.xi {
+            rec.log("translucency/xi", &Scalars::new([xi])).map_err(err)?;
+            rec.log("translucency/xi_lower", &Scalars::new([lo])).map_err(err)?;
+            rec.log("translucency/xi_upper", &Scalars::new([hi])).map_err(err)?;
+        }
+        let n = f.mask.data.iter().filter(|&&m| m).count();
+        rec.log("translucency/pixels", &Scalars::new([n as f64])).map_err(err)?;
+        Ok(())
+    }
+
+    pub fn close(rec: RecordingStream) -> Result<(), String> {
+        rec.flush_blocking().map_err(|e| format!("rerun: flushing: {e}"))
+    }
+}
+
+#[cfg(not(feature = "rerun"))]
+mod backend {
+    use super::{FrameViz, RerunTarget};
+
+    pub struct Never;
+
+    pub fn open(_: &RerunTarget, _: &'static str) -> Result<Never, String> {
+        Err("this build has no Rerun support (rebuild with the default `rerun` feature), so `rerun` must be off".into())
+    }
+
+    pub fn log_frame(_: &Never, _: &FrameViz) -> Result<(), String> {
+        Ok(())
+    }
+
+    pub fn close(_: Never) -> Result<(), String> {
+        Ok(())
+    }
+}

@@ -1,0 +1,324 @@
+//! The node over real DDS (RustDDS on loopback, in a private network
+//! namespace): the demo end to end, faults, and a queue under overload.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::netns::isolated;
+use translucent_tof::bag::BagReader;
+use translucent_tof::image::{depth_mm, CLOUD_POINT_STEP};
+use translucent_tof::msgs::{CameraInfo, Image, PointCloud2};
+use translucent_tof::node::peer::{restamp, Peer};
+
+fn exe() -> &'static str {
+    env!("CARGO_BIN_EXE_translucent_tof")
+}
+
+fn bag(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("bags").join(name)
+}
+
+#[test]
+fn demo_runs_the_graph_and_recovers_the_document_holder() {
+    if !isolated("demo_runs_the_graph_and_recovers_the_document_holder") {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(exe())
+        .args(["demo", "--speed", "3", "--json", "-", "--out-dir"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "demo failed: {stderr}");
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).expect("demo --json - prints JSON");
+    eprintln!("{}", serde_json::to_string_pretty(&r).unwrap());
+    let played = r["object_frames_played"].as_u64().unwrap();
+    let got = r["frames_received"].as_u64().unwrap();
+    assert!(
+        played > 0 && got * 10 >= played * 9,
+        "{got} of {played} frames came back"
+    );
+    let (raw, rec) = (r["rmse_raw_mm"].as_f64().unwrap(), r["rmse_mm"].as_f64().unwrap());
+    assert!(rec < raw / 5.0, "recovered {rec} mm vs raw {raw} mm");
+    let xi = r["xi"].as_f64().unwrap();
+    let iv = r["xi_interval"].as_array().unwrap();
+    assert!(iv[0].as_f64().unwrap() <= xi && xi <= iv[1].as_f64().unwrap());
+    assert!(r["node"]["published"].as_u64().unwrap() >= got);
+    // The outputs kept as a bag: corrected depth as the input, an organized cloud.
+    let reader = BagReader::open(&dir.path().join("demo.mcap")).unwrap();
+    let (mut images, mut clouds) = (0, 0);
+    for m in reader.messages() {
+        let m = m.unwrap();
+        if m.topic == "/tof/translucent_tof/depth/corrected" {
+            let img: Image = BagReader::decode(&m).unwrap();
+            assert_eq!((img.width, img.height, img.encoding.as_str()), (176, 144, "16UC1"));
+            assert_eq!(img.header.stamp.as_log_time_ns(), m.log_time_ns);
+            depth_mm(&img).unwrap();
+            images += 1;
+        } else if m.topic == "/tof/translucent_tof/points" {
+            let c: PointCloud2 = BagReader::decode(&m).unwrap();
+            assert_eq!((c.width, c.height, c.point_step), (176, 144, CLOUD_POINT_STEP));
+            let names: Vec<&str> = c.fields.iter().map(|f| f.name.as_str()).collect();
+            assert_eq!(names, ["x", "y", "z", "intensity", "translucent"]);
+            assert_eq!(c.data.len(), 176 * 144 * CLOUD_POINT_STEP as usize);
+            clouds += 1;
+        }
+    }
+    assert_eq!(images as u64, got);
+    assert_eq!(clouds as u64, got);
+    let rrd = std::fs::metadata(dir.path().join("demo.rrd"))
+        .map(|m| m.len())
+        .unwrap_or(0);
+    if cfg!(feature = "rerun") {
+        assert!(rrd > 10_000, "demo.rrd is {rrd} bytes");
+    }
+}
+
+struct NodeChild {
+    child: Child,
+    stats: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+impl NodeChild {
+    fn start(params: &[&str]) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let stats = dir.path().join("stats.json");
+        let mut cmd = Command::new(exe());
+        cmd.arg("node").arg("--stats-json").arg(&stats);
+        cmd.args(["--ros-args", "-r", "__ns:=/tof"]);
+        for p in params {
+            cmd.args(["-p", p]);
+        }
+        let child = cmd.stdin(Stdio::null()).spawn().unwrap();
+        NodeChild {
+            child,
+            stats,
+            _dir: dir,
+        }
+    }
+
+    fn stop(mut self) -> serde_json::Value {
+        let pid = self.child.id().to_string();
+        Command::new("kill").args(["-INT", &pid]).status().unwrap();
+        let t0 = Instant::now();
+        let status = loop {
+            if let Some(s) = self.child.try_wait().unwrap() {
+                break s;
+            }
+            assert!(t0.elapsed() < Duration::from_secs(20), "node did not stop on SIGINT");
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        assert!(status.success(), "node exited with {status}");
+        serde_json::from_str(&std::fs::read_to_string(&self.stats).unwrap()).unwrap()
+    }
+}
+
+impl Drop for NodeChild {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The bundled document holder's frames: camera_info and depth + IR pairs.
+fn frames() -> (CameraInfo, Vec<(Image, Image)>, usize) {
+    let reader = BagReader::open(&bag("document_holder.mcap")).unwrap();
+    let (mut d, mut i, mut info) = (vec![], vec![], None);
+    for m in reader.messages() {
+        let m = m.unwrap();
+        if m.topic.ends_with("depth/image_raw") {
+            d.push(BagReader::decode::<Image>(&m).unwrap());
+        } else if m.topic.ends_with("ir/image_raw") {
+            i.push(BagReader::decode::<Image>(&m).unwrap());
+        } else if m.topic.ends_with("camera_info") && info.is_none() {
+            info = Some(BagReader::decode::<CameraInfo>(&m).unwrap());
+        }
+    }
+    // The bundled scene's background lasts 10 frames.
+    (info.unwrap(), d.into_iter().zip(i).collect(), 10)
+}
+
+fn stamped(img: &Image, ns: u64) -> Image {
+    restamp(img, ns)
+}
+
+fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+#[test]
+fn faults_are_dropped_counted_and_the_node_keeps_running() {
+    if !isolated("faults_are_dropped_counted_and_the_node_keeps_running") {
+        return;
+    }
+    let node = NodeChild::start(&["background_frames:=3", "xi:=0.65", "latch_timeout_s:=20"]);
+    let (info, pairs, bg) = frames();
+    let rt = rt();
+    let clock = std::cell::Cell::new(1_000_000_000u64);
+    let next = || {
+        clock.set(clock.get() + 33_000_000);
+        clock.get()
+    };
+    let pause = || std::thread::sleep(Duration::from_millis(60));
+    rt.block_on(async {
+        let ctx = translucent_tof::node::context(0, false).unwrap();
+        let mut peer = Peer::new(
+            &ctx,
+            "fault_peer",
+            "/tof",
+            "/tof/translucent_tof",
+            ros2_client::ServiceMapping::Enhanced,
+        )
+        .unwrap();
+        peer.wait_for_node(Duration::from_secs(30)).await.unwrap();
+        let (d0, i0) = &pairs[0];
+        // 1. Frames before any camera_info.
+        for _ in 0..2 {
+            let s = next();
+            peer.publish_one(true, &stamped(d0, s)).unwrap();
+            peer.publish_one(false, &stamped(i0, s)).unwrap();
+            pause();
+        }
+        // 2. A latch before camera_info fails with the reason.
+        let r = peer.call(true, Duration::from_secs(10)).await.unwrap();
+        assert!(!r.success && r.message.contains("camera_info"), "{r:?}");
+        peer.publish_info(&info).unwrap();
+        pause();
+        // 3. Frames before a background.
+        for _ in 0..2 {
+            let s = next();
+            peer.publish(&info, &stamped(d0, s), &stamped(i0, s)).unwrap();
+            pause();
+        }
+        // 4. Wrong encoding.
+        let s = next();
+        let mut bad = stamped(d0, s);
+        bad.encoding = "rgb8".into();
+        peer.publish(&info, &bad, &stamped(i0, s)).unwrap();
+        pause();
+        // 5. Depth and IR of different sizes.
+        let s = next();
+        let mut small = stamped(i0, s);
+        small.width /= 2;
+        small.step /= 2;
+        small.data.truncate(small.data.len() / 2);
+        peer.publish(&info, &stamped(d0, s), &small).unwrap();
+        pause();
+        // 6. Depth without IR, then a pair (the unpaired ones expire).
+        for _ in 0..3 {
+            peer.publish_one(true, &stamped(d0, next())).unwrap();
+        }
+        let s = next();
+        peer.publish(&info, &stamped(d0, s), &stamped(i0, s)).unwrap();
+        pause();
+        // 7. Latch over background frames, streaming until the reply.
+        let mut s7 = next();
+        let reply = peer
+            .latch_while_streaming(&info, &pairs[..bg], Duration::from_millis(40), &mut s7, 1_000)
+            .await
+            .unwrap();
+        clock.set(s7);
+        assert!(reply.success, "{reply:?}");
+        assert!(reply.message.contains("latched 3 frames"), "{}", reply.message);
+        // 8. Object frames come back recovered.
+        let mut last = 0;
+        for (d, i) in pairs.iter().skip(bg).take(4) {
+            last = next();
+            peer.publish(&info, &stamped(d, last), &stamped(i, last)).unwrap();
+            pause();
+        }
+        assert!(
+            peer.wait_for(last, Duration::from_secs(20)).await,
+            "no output for the last frame"
+        );
+        // 9. Clear: frames are dropped again, and a second clear says so.
+        let r = peer.call(false, Duration::from_secs(10)).await.unwrap();
+        assert!(r.success && r.message.contains("cleared"), "{r:?}");
+        let s = next();
+        peer.publish(&info, &stamped(d0, s), &stamped(i0, s)).unwrap();
+        pause();
+        let r = peer.call(false, Duration::from_secs(10)).await.unwrap();
+        assert!(r.message.contains("no background"), "{r:?}");
+    });
+    let st = node.stop();
+    eprintln!("{}", serde_json::to_string_pretty(&st).unwrap());
+    let dropped = &st["dropped"];
+    for cause in [
+        "no_camera_info",
+        "no_background",
+        "bad_image",
+        "size_mismatch",
+        "unpaired",
+    ] {
+        assert!(
+            dropped[cause].as_u64().unwrap_or(0) >= 1,
+            "no {cause} drop counted: {dropped}"
+        );
+    }
+    assert!(dropped["no_background"].as_u64().unwrap() >= 3);
+    assert!(dropped["unpaired"].as_u64().unwrap() >= 3);
+    assert!(st["published"].as_u64().unwrap() >= 4);
+    assert_eq!(st["services"], serde_json::json!([2, 2]));
+}
+
+#[test]
+fn overload_drops_the_oldest_frames_and_memory_stays_bounded() {
+    if !isolated("overload_drops_the_oldest_frames_and_memory_stays_bounded") {
+        return;
+    }
+    // ξ estimated per frame: slower than the burst below.
+    let node = NodeChild::start(&["background_frames:=3", "queue_depth:=2"]);
+    let (info, pairs, bg) = frames();
+    let rt = rt();
+    let n_burst = 300u64;
+    rt.block_on(async {
+        let ctx = translucent_tof::node::context(0, false).unwrap();
+        let mut peer = Peer::new(
+            &ctx,
+            "load_peer",
+            "/tof",
+            "/tof/translucent_tof",
+            ros2_client::ServiceMapping::Enhanced,
+        )
+        .unwrap();
+        peer.wait_for_node(Duration::from_secs(30)).await.unwrap();
+        let mut t = 5_000_000_000u64;
+        let reply = peer
+            .latch_while_streaming(&info, &pairs[..bg], Duration::from_millis(40), &mut t, 1_000_000)
+            .await
+            .unwrap();
+        assert!(reply.success, "{reply:?}");
+        let objects = &pairs[bg..];
+        for j in 0..n_burst {
+            let (d, i) = &objects[j as usize % objects.len()];
+            t += 1_000_000;
+            peer.publish(&info, &stamped(d, t), &stamped(i, t)).unwrap();
+            // Paced at ~1 ms: far above what the node processes per frame.
+            tokio::time::sleep(Duration::from_millis(1)).await;
+            peer.drain();
+        }
+        assert!(
+            peer.wait_for(t, Duration::from_secs(30)).await,
+            "the newest frame was not processed"
+        );
+    });
+    let st = node.stop();
+    eprintln!("{}", serde_json::to_string_pretty(&st).unwrap());
+    let queue_full = st["dropped"]["queue_full"].as_u64().unwrap_or(0);
+    let published = st["published"].as_u64().unwrap();
+    assert!(queue_full > 0, "no frame dropped under overload: {st}");
+    assert!(
+        published < n_burst,
+        "published {published} of a {n_burst} burst: no overload?"
+    );
+    assert!(published + queue_full <= st["pairs"].as_u64().unwrap());
+}
