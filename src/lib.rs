@@ -9,6 +9,7 @@
 //! - [`image`]: sensor_msgs/Image encodings <-> physics buffers;
 //! - [`sim`]: the scene simulator;
 //! - [`pipeline`]: background latch, segmentation, recovery per frame;
+//! - [`bench`]: benchmark frames, cases and the plain reference inversion;
 //! - [`cli`]: the subcommands.
 
 // Image code indexes several parallel buffers by pixel, and `!(x > 0.0)` is
@@ -16,6 +17,7 @@
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod bag;
+pub mod bench;
 pub mod cli;
 pub mod image;
 pub mod msgs;

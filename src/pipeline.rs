@@ -412,6 +412,11 @@ impl Pipeline {
         self.estimate = None;
     }
 
+    /// Unit rays of the camera's pixels.
+    pub fn rays(&self) -> &ImageBuf<Vector3<f64>> {
+        &self.rays
+    }
+
     /// The latched background.
     pub fn background(&self) -> Option<&Background> {
         self.background.as_ref()
