@@ -2,6 +2,7 @@
 //! smooth-surface prior on a recovered layer (local planes over a window).
 
 use nalgebra::{Matrix3, SMatrix, SVector, SymmetricEigen, Vector3};
+use rayon::prelude::*;
 
 use super::buffer::ImageBuf;
 use super::stats::median_and_sigma;
@@ -156,23 +157,49 @@ fn fit_inverse_depth<const N: usize>(
     min_points: usize,
     robust: &Robust,
 ) -> Option<Plane> {
-    let row = |p: &Vector3<f64>| terms(p.x / p.z - a0, p.y / p.z - b0);
-    let mut keep: Vec<bool> = points
+    // Each point's row, weight and right-hand side once (the passes only drop points).
+    struct Term<const N: usize> {
+        row: SVector<f64, N>,
+        z: f64,
+        w: f64,
+        rhs: f64,
+        keep: bool,
+        resid: f64,
+    }
+    let mut t: Vec<Term<N>> = points
         .iter()
-        .map(|p| p.z > 0.0 && p.iter().all(|v| v.is_finite()))
+        .map(|p| {
+            let z2 = p.z * p.z;
+            let w = z2 * z2; // d(1/z) = dz / z^2
+            Term {
+                row: terms(p.x / p.z - a0, p.y / p.z - b0),
+                z: p.z,
+                w,
+                rhs: w / p.z,
+                keep: p.z > 0.0 && p.iter().all(|v| v.is_finite()),
+                resid: 0.0,
+            }
+        })
         .collect();
     let mut plane = None;
     for pass in 0..=robust.passes {
         let mut ata = SMatrix::<f64, N, N>::zeros();
         let mut atb = SVector::<f64, N>::zeros();
         let mut n = 0;
-        for (p, _) in points.iter().zip(&keep).filter(|(_, k)| **k) {
-            let z2 = p.z * p.z;
-            let w = z2 * z2; // d(1/z) = dz / z^2
-            let r = row(p);
-            ata += r * r.transpose() * w;
-            atb += r * (w / p.z);
+        for p in t.iter().filter(|p| p.keep) {
+            // The upper triangle; the matrix is symmetric.
+            for j in 0..N {
+                for i in 0..=j {
+                    ata[(i, j)] += p.row[i] * p.row[j] * p.w;
+                }
+            }
+            atb += p.row * p.rhs;
             n += 1;
+        }
+        for j in 0..N {
+            for i in j + 1..N {
+                ata[(i, j)] = ata[(j, i)];
+            }
         }
         if n < min_points {
             return plane;
@@ -182,13 +209,11 @@ fn fit_inverse_depth<const N: usize>(
         if !c.iter().all(|v| v.is_finite()) || c[0] <= 0.0 {
             return plane;
         }
-        let resid = |p: &Vector3<f64>| (p.z - 1.0 / row(p).dot(&c)).abs();
-        let ss: f64 = points
-            .iter()
-            .zip(&keep)
-            .filter(|(_, k)| **k)
-            .map(|(p, _)| resid(p).powi(2))
-            .sum();
+        let mut ss = 0.0;
+        for p in t.iter_mut().filter(|p| p.keep) {
+            p.resid = (p.z - 1.0 / p.row.dot(&c)).abs();
+            ss += p.resid.powi(2);
+        }
         let rms = (ss / n as f64).sqrt();
         // The tangent plane coef . p = 1, its unit normal toward the camera.
         let coef = Vector3::new(c[1], c[2], c[0] - c[1] * a0 - c[2] * b0);
@@ -214,9 +239,9 @@ fn fit_inverse_depth<const N: usize>(
         }
         let cut = (robust.k * rms).max(robust.floor_mm);
         let mut changed = false;
-        for (p, kp) in points.iter().zip(keep.iter_mut()) {
-            if *kp && resid(p) > cut {
-                *kp = false;
+        for p in t.iter_mut() {
+            if p.keep && p.resid > cut {
+                p.keep = false;
                 changed = true;
             }
         }
@@ -238,21 +263,30 @@ pub fn local_planes_adaptive(
     min_points: usize,
     max_normal_sigma_rad: f64,
 ) -> ImageBuf<Option<Plane>> {
-    let mut out = ImageBuf::filled(points.width, points.height, None);
-    for i in 0..out.len() {
+    let plane_at = |i: usize| {
         if !mask.data[i] || !points.data[i].x.is_finite() {
-            continue;
+            return None;
         }
+        let mut out = None;
         for (k, &r) in radii.iter().enumerate() {
             if let Some(p) = local_plane_at(points, rays, mask, i, r, min_points) {
-                out.data[i] = Some(p);
+                out = Some(p);
                 if k + 1 == radii.len() || p.normal_sigma_rad <= max_normal_sigma_rad {
                     break;
                 }
             }
         }
+        out
+    };
+    ImageBuf {
+        width: points.width,
+        height: points.height,
+        data: (0..points.len())
+            .into_par_iter()
+            .with_min_len(64)
+            .map(plane_at)
+            .collect(),
     }
-    out
 }
 
 /// Local planes over a `(2 radius + 1)^2` window: for every pixel where
@@ -268,13 +302,23 @@ pub fn local_planes(
     radius: usize,
     min_points: usize,
 ) -> ImageBuf<Option<Plane>> {
-    let mut out = ImageBuf::filled(points.width, points.height, None);
-    for i in 0..out.len() {
-        if mask.data[i] {
-            out.data[i] = local_plane_at(points, rays, mask, i, radius, min_points);
-        }
+    // Pixels in parallel over the current rayon pool.
+    let data = (0..points.len())
+        .into_par_iter()
+        .with_min_len(64)
+        .map(|i| {
+            if mask.data[i] {
+                local_plane_at(points, rays, mask, i, radius, min_points)
+            } else {
+                None
+            }
+        })
+        .collect();
+    ImageBuf {
+        width: points.width,
+        height: points.height,
+        data,
     }
-    out
 }
 
 /// Keeps the points whose distance from the camera lies within `k` robust
