@@ -198,6 +198,14 @@ pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, 
 /// `s |dF/dI| / |slope|`. NaN where the albedo is not admissible.
 pub fn reading_sensitivity_to_ir(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> f64 {
     let h = (obs.ir.abs() * 1e-3).max(1e-9);
+    let fast = |ir: f64| FastPixel::new(model, &PixelObservation { ir, ..*obs }, xi, x_max);
+    if let (Some(lo), Some(hi)) = (fast(obs.ir - h), fast(obs.ir + h)) {
+        // Both residuals are against the same reading: their difference is the readings'.
+        return match (lo.eval(df), hi.eval(df)) {
+            (Some(a), Some(b)) => model.sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
+            _ => f64::NAN,
+        };
+    }
     let at = |ir: f64| {
         let o = PixelObservation { ir, ..*obs };
         albedo_cos(model, &o, df, xi, x_max).map(|x| predicted_reading(model, &o, df, xi, x))
@@ -375,7 +383,7 @@ struct FastPixel {
     l1: f64,
     /// L2 per `X^p`: `Xb xi^2 Lin / db^2`.
     l2: f64,
-    /// Transmission power `p`.
+    /// Transmission power `p` (0, 1 or 2).
     p: f64,
     /// Largest admissible `X`.
     x_max: f64,
@@ -543,7 +551,8 @@ fn foreground_distance_fast(
                 let (mut ok_df, mut bad_df) = if pok { (pdf, df) } else { (df, pdf) };
                 for _ in 0..24 {
                     let m = 0.5 * (ok_df + bad_df);
-                    if full(m).is_some() {
+                    // Admissible where X is (a phasor of exactly zero has measure zero).
+                    if fast.albedo(m).is_some() {
                         ok_df = m;
                     } else {
                         bad_df = m;

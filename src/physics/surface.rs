@@ -183,24 +183,21 @@ fn fit_inverse_depth<const N: usize>(
         .collect();
     let mut plane = None;
     for pass in 0..=robust.passes {
-        let mut ata = SMatrix::<f64, N, N>::zeros();
+        // The upper triangle only (the matrix is symmetric), in plain arrays.
+        let mut acc = [[0.0f64; N]; N];
         let mut atb = SVector::<f64, N>::zeros();
         let mut n = 0;
         for p in t.iter().filter(|p| p.keep) {
-            // The upper triangle; the matrix is symmetric.
-            for j in 0..N {
-                for i in 0..=j {
-                    ata[(i, j)] += p.row[i] * p.row[j] * p.w;
+            let r: [f64; N] = p.row.into();
+            for (j, col) in acc.iter_mut().enumerate() {
+                for (i, a) in col.iter_mut().enumerate().take(j + 1) {
+                    *a += r[i] * r[j] * p.w;
                 }
             }
             atb += p.row * p.rhs;
             n += 1;
         }
-        for j in 0..N {
-            for i in j + 1..N {
-                ata[(i, j)] = ata[(j, i)];
-            }
-        }
+        let ata = SMatrix::<f64, N, N>::from_fn(|i, j| if i <= j { acc[j][i] } else { acc[i][j] });
         if n < min_points {
             return plane;
         }
