@@ -211,19 +211,20 @@ pub struct Row {
     pub agreement: Option<reference::Agreement>,
 }
 
-/// Median and 95th percentile, ms, of `samples` runs of `f` after one warm-up run.
-pub fn time_ms(samples: usize, mut f: impl FnMut()) -> (f64, f64) {
+/// Median and 95th percentile, ms, and the runs timed: up to `samples` runs of `f`
+/// after one warm-up run, stopping early (after at least 3) once `budget_s` seconds are spent.
+pub fn time_ms(samples: usize, budget_s: f64, mut f: impl FnMut()) -> (f64, f64, usize) {
     f();
-    let mut t: Vec<f64> = (0..samples.max(1))
-        .map(|_| {
-            let start = Instant::now();
-            f();
-            start.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
+    let started = Instant::now();
+    let mut t: Vec<f64> = vec![];
+    while t.len() < samples.max(1) && (t.len() < 3 || started.elapsed().as_secs_f64() < budget_s) {
+        let start = Instant::now();
+        f();
+        t.push(start.elapsed().as_secs_f64() * 1e3);
+    }
     t.sort_by(f64::total_cmp);
     let q = |p: f64| t[((t.len() - 1) as f64 * p).round() as usize];
-    (q(0.5), q(0.95))
+    (q(0.5), q(0.95), t.len())
 }
 
 /// The pipeline's per-pixel inversion ([`crate::physics::foreground_distance`])
@@ -250,6 +251,8 @@ pub fn fast_per_pixel(pipeline: &Pipeline, obs: &Observed, xi: f64) -> (ImageBuf
 pub struct RunSettings {
     /// Timed repetitions per case (after one warm-up).
     pub samples: usize,
+    /// Seconds a case may spend on its repetitions (at least 3 are timed).
+    pub budget_s: f64,
     /// Worker threads (1: one core).
     pub threads: usize,
     /// Time the plain reference too, and compare depths.
@@ -276,23 +279,23 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
     let frame = scene.near_frame();
     let obs = scene.observe(frame);
     let xi = XiEstimate::fixed(BENCH_XI);
-    let samples = settings.samples;
-    let (median_ms, p95_ms) = pool.install(|| match case {
-        Case::Recover => time_ms(samples, || {
+    let (samples, budget) = (settings.samples, settings.budget_s);
+    let (median_ms, p95_ms, samples) = pool.install(|| match case {
+        Case::Recover => time_ms(samples, budget, || {
             std::hint::black_box(scene.pipeline.recover(frame, &obs, &xi));
         }),
-        Case::Observe => time_ms(samples, || {
+        Case::Observe => time_ms(samples, budget, || {
             std::hint::black_box(scene.observe(frame));
         }),
-        Case::XiEstimate => time_ms(samples, || {
+        Case::XiEstimate => time_ms(samples, budget, || {
             std::hint::black_box(scene.xi_by_shape(&obs));
         }),
         Case::Replay => {
-            let (m, p) = time_ms(samples, || {
+            let (m, p, k) = time_ms(samples, budget, || {
                 std::hint::black_box(scene.replay());
             });
             let n = scene.frames.len() as f64;
-            (m / n, p / n)
+            (m / n, p / n, k)
         }
     });
     let (mut reference_ms, mut agreement) = (None, None);

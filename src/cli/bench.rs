@@ -15,6 +15,9 @@ pub struct BenchArgs {
     /// Timed repetitions per case (after one warm-up run); the table gives their median and 95th percentile.
     #[arg(long, default_value_t = 50)]
     pub frames: usize,
+    /// Seconds each case may spend on its repetitions (at least 3 are timed).
+    #[arg(long, default_value_t = 10.0)]
+    pub max_seconds: f64,
     /// Worker-thread counts to run each case with, comma-separated (1 = one core).
     #[arg(long, value_delimiter = ',', default_value = "1,2")]
     pub threads: Vec<usize>,
@@ -76,6 +79,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 pb.set_message(format!("{} {w}x{h} {threads} thread(s)", case.name()));
                 let settings = RunSettings {
                     samples: a.frames,
+                    budget_s: a.max_seconds,
                     threads,
                     // The reference is single-threaded: once per case and size.
                     reference: !a.no_reference && k == 0,
@@ -87,8 +91,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
     }
     pb.finish_and_clear();
     let mut text = format!(
-        "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {} mm, replay over the frames at {:?} mm; {} timed runs each\n",
-        STAGES_MM[0], STAGES_MM, a.frames
+        "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case)\n",
+        STAGES_MM[0], STAGES_MM, a.frames, a.max_seconds
     );
     text.push_str(&format!(
         "{:<12} {:>8} {:>7} {:>10} {:>10} {:>10} {:>13} {:>9} {:>9} {}\n",
@@ -111,10 +115,11 @@ pub fn run(a: BenchArgs) -> Result<()> {
             )
         });
         text.push_str(&format!(
-            "{:<12} {:>8} {:>7} {:>10.3} {:>10.3} {:>10} {:>13} {:>9} {:>8.0}% {}\n",
+            "{:<12} {:>8} {:>7} {:>5} {:>10.3} {:>10.3} {:>10} {:>13} {:>9} {:>8.0}% {}\n",
             r.name,
             r.size,
             r.threads,
+            r.samples,
             r.median_ms,
             r.p95_ms,
             ms(r.target_ms),
@@ -132,6 +137,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             "wall_mm": 2000.0,
         },
         "frames": a.frames,
+        "max_seconds": a.max_seconds,
         "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
         "rows": rows,
     }))?;
