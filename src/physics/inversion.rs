@@ -438,7 +438,16 @@ impl FastPixel {
         if self.ir <= 0.0 {
             return None;
         }
-        albedo_closed_form(self.a, self.l1 / (df * df), self.ir, self.p, self.x_max).filter(|&x| x > 0.0)
+        // albedo_closed_form's closed forms, inlined.
+        let (a, b, ir) = (self.a, self.l1 / (df * df), self.ir);
+        let x = if self.p == 2.0 {
+            2.0 * ir / (b + (b * b + 4.0 * a * ir).sqrt())
+        } else if self.p == 0.0 {
+            (ir - a) / b
+        } else {
+            ir / (a + b)
+        };
+        (x.is_finite() && x > 0.0 && x <= self.x_max).then_some(x)
     }
 
     /// L1 and L2 at `(df, X)`.

@@ -324,12 +324,16 @@ fn keep_near_median(points: &mut Vec<Vector3<f64>>, k: f64, floor_mm: f64) {
     if points.len() < 3 {
         return;
     }
-    let mut d: Vec<f64> = points.iter().map(|p| p.norm()).collect();
-    let Some((med, sigma)) = median_and_sigma(&mut d) else {
+    let norms: Vec<f64> = points.iter().map(|p| p.norm()).collect();
+    let Some((med, sigma)) = median_and_sigma(&mut norms.clone()) else {
         return;
     };
     let cut = (k * sigma).max(floor_mm);
-    points.retain(|p| (p.norm() - med).abs() <= cut);
+    let mut i = 0;
+    points.retain(|_| {
+        i += 1;
+        (norms[i - 1] - med).abs() <= cut
+    });
 }
 
 /// The plane through the masked, finite points in the window around pixel `i`.
