@@ -12,6 +12,7 @@
 //! - [`outputs`]: the node's output messages for a frame;
 //! - [`node`]: the ROS 2 node (ros2-client / RustDDS);
 //! - [`viz`]: Rerun logging off the processing path;
+//! - [`bench`]: benchmark frames, cases and the plain reference inversion;
 //! - [`cli`]: the subcommands.
 
 // Image code indexes several parallel buffers by pixel, and `!(x > 0.0)` is
@@ -19,6 +20,7 @@
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod bag;
+pub mod bench;
 pub mod cli;
 pub mod image;
 pub mod msgs;

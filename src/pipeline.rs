@@ -5,6 +5,7 @@
 //! Buffers in, buffers out: no ROS, no files.
 
 use nalgebra::Vector3;
+use rayon::prelude::*;
 use serde::Serialize;
 use thiserror::Error;
 
@@ -18,8 +19,8 @@ use crate::physics::stats::median_and_sigma;
 use crate::physics::surface::local_planes;
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
-    foreground_distance, ForwardModel, ImageBuf, Intrinsics, InversionBounds, PixelObservation, Sensor, XiEstimate,
-    XiMethod,
+    foreground_distance, ForwardModel, ImageBuf, Intrinsics, InversionBounds, LayerEstimate, PixelObservation, Sensor,
+    XiEstimate, XiMethod,
 };
 
 /// Why a frame or a latch could not be processed.
@@ -412,6 +413,11 @@ impl Pipeline {
         self.estimate = None;
     }
 
+    /// Unit rays of the camera's pixels.
+    pub fn rays(&self) -> &ImageBuf<Vector3<f64>> {
+        &self.rays
+    }
+
     /// The latched background.
     pub fn background(&self) -> Option<&Background> {
         self.background.as_ref()
@@ -528,16 +534,14 @@ impl Pipeline {
         let mut several_roots = vec![];
         let mut unresolved = 0;
         let bg = self.background.as_ref();
-        for i in 0..n {
-            let Some(o) = obs.observations.data[i] else {
-                continue;
-            };
-            if let Some(est) = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None) {
-                res2 += est.residual_mm * est.residual_mm;
-                fitted += 1;
-                if est.roots > 1 {
-                    several_roots.push(i);
-                }
+        // Each pixel on its own (in parallel over the current rayon pool), then the counts in
+        // pixel order.
+        let per_pixel: Vec<Option<(LayerEstimate, f64)>> = (0..n)
+            .into_par_iter()
+            .with_min_len(256)
+            .map(|i| {
+                let o = obs.observations.data[i]?;
+                let est = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None)?;
                 // Reading and IR noise: the background's, measured over the latch, scaled to
                 // this pixel's light as shot noise; the layer's follows through the model's
                 // slopes (implicit function: d df = -(dF/dI dI - dd) / (dF/d df)).
@@ -556,7 +560,19 @@ impl Pipeline {
                     self.config.bounds.max_albedo_cos,
                 );
                 let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
-                let layer_sigma = d_sigma.hypot(ir_term) / est.slope.abs();
+                Some((est, d_sigma.hypot(ir_term) / est.slope.abs()))
+            })
+            .collect();
+        for i in 0..n {
+            if obs.observations.data[i].is_none() {
+                continue;
+            }
+            if let Some((est, layer_sigma)) = per_pixel[i] {
+                res2 += est.residual_mm * est.residual_mm;
+                fitted += 1;
+                if est.roots > 1 {
+                    several_roots.push(i);
+                }
                 if est.pinned {
                     pinned += 1;
                 } else if !(layer_sigma <= self.config.max_layer_sigma_mm) {
@@ -573,20 +589,22 @@ impl Pipeline {
             let mut planes = local_planes(&points, &self.rays, &obs.mask, self.config.prior_radius_px, 12);
             // Where a pixel fits several layers, the one its neighbourhood's surface is nearest
             // (the first pass took the one nearest the reading); then the surface again.
+            let repicks: Vec<Option<f64>> = several_roots
+                .par_iter()
+                .map(|&i| {
+                    let (o, p) = (obs.observations.data[i]?, planes.data[i]?);
+                    let t = p.ray_distance(&self.rays.data[i])?;
+                    let est = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, Some(t))?;
+                    (!est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5)
+                        .then_some(est.foreground_distance_mm)
+                })
+                .collect();
             let mut repicked = false;
-            for &i in &several_roots {
-                let (Some(o), Some(p)) = (obs.observations.data[i], planes.data[i]) else {
-                    continue;
-                };
-                let Some(t) = p.ray_distance(&self.rays.data[i]) else {
-                    continue;
-                };
-                if let Some(est) = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, Some(t)) {
-                    if !est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5 {
-                        df[i] = est.foreground_distance_mm;
-                        points.data[i] = self.rays.data[i] * est.foreground_distance_mm;
-                        repicked = true;
-                    }
+            for (&i, d) in several_roots.iter().zip(repicks) {
+                if let Some(d) = d {
+                    df[i] = d;
+                    points.data[i] = self.rays.data[i] * d;
+                    repicked = true;
                 }
             }
             if repicked {

@@ -1,5 +1,6 @@
 //! The `translucent_tof` command line: one binary, one subcommand per job.
 
+mod bench;
 mod calibrate;
 mod common;
 mod demo;
@@ -36,6 +37,8 @@ enum Command {
     Node(node::NodeArgs),
     /// The whole graph on loopback: a bundled bag played as a driver, the node, the latch service; a summary.
     Demo(demo::DemoArgs),
+    /// Time the real-time path (recovery, segmentation, ξ estimation, replay) against the plain 1 mm grid search.
+    Bench(bench::BenchArgs),
     /// The latency benchmark's transport baseline: answers each depth image at once with same-size outputs.
     #[command(hide = true)]
     DdsEcho(EchoArgs),
@@ -69,5 +72,6 @@ pub fn run() -> anyhow::Result<()> {
                 .unwrap_or(0);
             crate::node::echo::run(domain, &a.namespace, &a.node)
         }
+        Command::Bench(a) => bench::run(a),
     }
 }

@@ -4,7 +4,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::model::{ForwardModel, IrMode, LayerScene};
+use super::model::{ForwardModel, IrMode, LayerScene, ModelOptions};
+use super::sensor::Waveform;
 
 /// What is known at one translucent pixel (physics.md §3).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -103,39 +104,7 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
         // I = b X + a X^p with a = xi^2 Ib, b = (1 - xi) Lin / df^2 (Eq. 7).
         let a = xi * xi * (obs.background_ir - o.ambient_offset).max(0.0);
         let b = (1.0 - xi) * obs.emitted_light / (df * df);
-        let p = o.transmission_albedo_power;
-        let x = if p == 2.0 {
-            // Eq. 10; the rationalised form keeps precision when a -> 0 (a = 0 gives X = I / b).
-            2.0 * ir / (b + (b * b + 4.0 * a * ir).sqrt())
-        } else if p == 0.0 {
-            (ir - a) / b
-        } else if p == 1.0 {
-            ir / (a + b)
-        } else {
-            // Monotone in X: Newton from the linear guess, kept in a bracket.
-            let (mut lo, mut hi) = (0.0, x_max);
-            let mut x = (ir / (a + b)).clamp(lo, hi);
-            for _ in 0..60 {
-                let g = b * x + a * x.powf(p) - ir;
-                if g > 0.0 {
-                    hi = x
-                } else {
-                    lo = x
-                }
-                let dg = b + a * p * x.powf(p - 1.0);
-                let next = x - g / dg;
-                x = if next.is_finite() && next > lo && next < hi {
-                    next
-                } else {
-                    0.5 * (lo + hi)
-                };
-                if (hi - lo) < 1e-12 || g.abs() < 1e-12 * ir {
-                    break;
-                }
-            }
-            x
-        };
-        return (x.is_finite() && x >= 0.0 && x <= x_max).then_some(x);
+        return albedo_closed_form(a, b, ir, o.transmission_albedo_power, x_max);
     }
     let g = |x: f64| model.layer_ir(&obs.layer_scene(df, xi, x, o.ambient_offset)) - obs.ir;
     // Bracket the first crossing on a coarse scan (the amplitude need not be monotone in X).
@@ -162,6 +131,44 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
         lo = hi;
     }
     None
+}
+
+/// The non-negative root of `b X + a X^p = ir` (the IR equation of two
+/// returns, Eq. 7-10) within `[0, x_max]`.
+#[inline]
+fn albedo_closed_form(a: f64, b: f64, ir: f64, p: f64, x_max: f64) -> Option<f64> {
+    let x = if p == 2.0 {
+        // Eq. 10; the rationalised form keeps precision when a -> 0 (a = 0 gives X = I / b).
+        2.0 * ir / (b + (b * b + 4.0 * a * ir).sqrt())
+    } else if p == 0.0 {
+        (ir - a) / b
+    } else if p == 1.0 {
+        ir / (a + b)
+    } else {
+        // Monotone in X: Newton from the linear guess, kept in a bracket.
+        let (mut lo, mut hi) = (0.0, x_max);
+        let mut x = (ir / (a + b)).clamp(lo, hi);
+        for _ in 0..60 {
+            let g = b * x + a * x.powf(p) - ir;
+            if g > 0.0 {
+                hi = x
+            } else {
+                lo = x
+            }
+            let dg = b + a * p * x.powf(p - 1.0);
+            let next = x - g / dg;
+            x = if next.is_finite() && next > lo && next < hi {
+                next
+            } else {
+                0.5 * (lo + hi)
+            };
+            if (hi - lo) < 1e-12 || g.abs() < 1e-12 * ir {
+                break;
+            }
+        }
+        x
+    };
+    (x.is_finite() && x >= 0.0 && x <= x_max).then_some(x)
 }
 
 /// [`albedo_cos`] kept within `[0, x_max]`: where noise puts the IR outside
@@ -191,6 +198,14 @@ pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, 
 /// `s |dF/dI| / |slope|`. NaN where the albedo is not admissible.
 pub fn reading_sensitivity_to_ir(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> f64 {
     let h = (obs.ir.abs() * 1e-3).max(1e-9);
+    let fast = |ir: f64| FastPixel::new(model, &PixelObservation { ir, ..*obs }, xi, x_max);
+    if let (Some(lo), Some(hi)) = (fast(obs.ir - h), fast(obs.ir + h)) {
+        // Both residuals are against the same reading: their difference is the readings'.
+        return match (lo.eval(df), hi.eval(df)) {
+            (Some(a), Some(b)) => model.sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
+            _ => f64::NAN,
+        };
+    }
     let at = |ir: f64| {
         let o = PixelObservation { ir, ..*obs };
         albedo_cos(model, &o, df, xi, x_max).map(|x| predicted_reading(model, &o, df, xi, x))
@@ -224,13 +239,29 @@ pub fn foreground_distance(
     bounds: &InversionBounds,
     prefer_mm: Option<f64>,
 ) -> Option<LayerEstimate> {
-    let sensor = &model.sensor;
-    let range = sensor.unambiguous_range_mm();
     let lo = bounds.min_distance_mm;
     let hi = obs.background_distance_mm - bounds.min_separation_mm;
     if !(hi > lo) || !obs.distance_mm.is_finite() || !obs.ir.is_finite() {
         return None;
     }
+    match FastPixel::new(model, obs, xi, bounds.max_albedo_cos) {
+        Some(fast) => foreground_distance_fast(&fast, model, obs, bounds, prefer_mm, lo, hi),
+        None => foreground_distance_generic(model, obs, xi, bounds, prefer_mm, lo, hi),
+    }
+}
+
+/// [`foreground_distance`] on any forward model, one model evaluation per sample.
+fn foreground_distance_generic(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    xi: f64,
+    bounds: &InversionBounds,
+    prefer_mm: Option<f64>,
+    lo: f64,
+    hi: f64,
+) -> Option<LayerEstimate> {
+    let sensor = &model.sensor;
+    let range = sensor.unambiguous_range_mm();
     let eval = |df: f64| -> Option<Sample> {
         let x = albedo_cos(model, obs, df, xi, bounds.max_albedo_cos)?;
         if x <= 0.0 {
@@ -318,6 +349,274 @@ pub fn foreground_distance(
         None => (best?, true),
     };
     // Central difference where both sides are admissible, else one-sided.
+    let h = 0.5;
+    let slope = match (eval(s.df - h), eval(s.df + h)) {
+        (Some(a), Some(b)) => sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
+        (Some(a), None) => sensor.wrapped_difference_mm(s.residual, a.residual) / h,
+        (None, Some(b)) => sensor.wrapped_difference_mm(b.residual, s.residual) / h,
+        (None, None) => f64::NAN,
+    };
+    Some(LayerEstimate {
+        foreground_distance_mm: s.df,
+        albedo_cos: s.x,
+        residual_mm: s.residual,
+        roots,
+        pinned,
+        slope,
+    })
+}
+
+/// The inversion's evaluations for the paper's two returns on a sinusoidal
+/// sensor (transmission power 0, 1 or 2, any IR offset and subsurface delay), with the
+/// pixel's constants computed once: `X` in closed form (Eq. 10) and the mixed
+/// phasor of Eq. 5 rotated by the reading's phase, whose angle is the wrapped
+/// residual of Eq. 11. The same numbers as [`predicted_reading`] up to
+/// rounding (test `fast_path_matches_the_forward_model`); [`FastPixel::new`]
+/// declines (the generic path runs) for any model option it does not know.
+#[derive(Debug, Clone, Copy)]
+struct FastPixel {
+    /// IR less the offset.
+    ir: f64,
+    /// `xi^2 (Ib - offset)`: the IR equation's `a`.
+    a: f64,
+    /// `(1 - xi) Lin`: the IR equation's `b` times `df^2`, and L1's scale.
+    l1: f64,
+    /// L2 per `X^p`: `Xb xi^2 Lin / db^2`.
+    l2: f64,
+    /// Transmission power `p` (0, 1 or 2).
+    p: f64,
+    /// Largest admissible `X`.
+    x_max: f64,
+    /// `2 pi / R`, radians per mm.
+    k: f64,
+    /// The reading's phase less the subsurface delay's, radians.
+    phi_d: f64,
+    /// The background's phasor rotated by minus the reading's phase.
+    bg: (f64, f64),
+}
+
+impl FastPixel {
+    fn new(model: &ForwardModel, obs: &PixelObservation, xi: f64, x_max: f64) -> Option<Self> {
+        let o = &model.options;
+        // Only the options handled here may differ from the paper's; any other (an effect
+        // added later) sends the pixel down the generic path.
+        #[allow(clippy::needless_update)] // the update is for options added later
+        let known = ModelOptions {
+            bounces: 2,
+            ir_mode: IrMode::Sum,
+            transmission_albedo_power: o.transmission_albedo_power,
+            ambient_offset: o.ambient_offset,
+            subsurface_delay_mm: o.subsurface_delay_mm,
+            ..ModelOptions::default()
+        };
+        // Powers with a closed-form albedo only (others iterate: the generic path).
+        let closed = [0.0, 1.0, 2.0].contains(&o.transmission_albedo_power);
+        if *o != known || !closed || model.sensor.waveform != Waveform::Sinusoid {
+            return None;
+        }
+        let k = std::f64::consts::TAU / model.sensor.unambiguous_range_mm();
+        let db = obs.background_distance_mm;
+        let xb = obs.background_albedo_cos(o.ambient_offset);
+        let phi_d = k * obs.distance_mm;
+        let (s, c) = (k * db - phi_d).sin_cos();
+        Some(Self {
+            ir: obs.ir - o.ambient_offset,
+            a: xi * xi * (obs.background_ir - o.ambient_offset).max(0.0),
+            l1: (1.0 - xi) * obs.emitted_light,
+            l2: xb * xi * xi * obs.emitted_light / (db * db),
+            p: o.transmission_albedo_power,
+            x_max,
+            k,
+            phi_d: phi_d - k * o.subsurface_delay_mm,
+            bg: (c, s),
+        })
+    }
+
+    /// `X` at `df` (Eq. 10), if admissible (`0 < X <= x_max`).
+    #[inline]
+    fn albedo(&self, df: f64) -> Option<f64> {
+        if self.ir <= 0.0 {
+            return None;
+        }
+        // albedo_closed_form's closed forms, inlined.
+        let (a, b, ir) = (self.a, self.l1 / (df * df), self.ir);
+        let x = if self.p == 2.0 {
+            2.0 * ir / (b + (b * b + 4.0 * a * ir).sqrt())
+        } else if self.p == 0.0 {
+            (ir - a) / b
+        } else {
+            ir / (a + b)
+        };
+        (x.is_finite() && x > 0.0 && x <= self.x_max).then_some(x)
+    }
+
+    /// L1 and L2 at `(df, X)`.
+    #[inline]
+    fn strengths(&self, df: f64, x: f64) -> (f64, f64) {
+        let xp = if self.p == 2.0 {
+            x * x
+        } else if self.p == 0.0 {
+            1.0
+        } else {
+            x
+        };
+        (self.l1 * x / (df * df), self.l2 * xp)
+    }
+
+    /// The mixed phasor, rotated by minus the reading's phase.
+    #[inline]
+    fn phasor(&self, df: f64, x: f64) -> (f64, f64) {
+        let (l1, l2) = self.strengths(df, x);
+        let (s, c) = (self.k * df - self.phi_d).sin_cos();
+        (l1 * c + l2 * self.bg.0, l1 * s + l2 * self.bg.1)
+    }
+
+    /// The wrapped residual, mm, of a rotated phasor (NaN when it is zero: nothing decodes).
+    #[inline]
+    fn residual_mm(&self, re: f64, im: f64) -> f64 {
+        if re == 0.0 && im == 0.0 {
+            return f64::NAN;
+        }
+        im.atan2(re) / self.k
+    }
+
+    /// One full sample at `df`.
+    #[inline]
+    fn eval(&self, df: f64) -> Option<Sample> {
+        let x = self.albedo(df)?;
+        let (re, im) = self.phasor(df, x);
+        let residual = self.residual_mm(re, im);
+        residual.is_finite().then_some(Sample { df, residual, x })
+    }
+}
+
+/// A scan sample of the fast path: the rotated phasor, its residual when needed.
+#[derive(Clone, Copy)]
+struct ScanSample {
+    df: f64,
+    x: f64,
+    re: f64,
+    im: f64,
+}
+
+impl ScanSample {
+    const GAP: Self = Self {
+        df: f64::NAN,
+        x: f64::NAN,
+        re: f64::NAN,
+        im: f64::NAN,
+    };
+
+    /// `residual <= 0`, read from the phasor's sign (the angle in `(-pi, pi]`).
+    #[inline]
+    fn nonpositive(&self) -> bool {
+        self.im < 0.0 || (self.im == 0.0 && self.re >= 0.0)
+    }
+}
+
+/// [`foreground_distance`] for a [`FastPixel`]: the same scan, brackets, root
+/// rule and refinement, with the scan's phasors stepped by rotation (no
+/// trigonometry per sample) and residual angles taken only where needed.
+fn foreground_distance_fast(
+    fast: &FastPixel,
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    bounds: &InversionBounds,
+    prefer_mm: Option<f64>,
+    lo: f64,
+    hi: f64,
+) -> Option<LayerEstimate> {
+    let sensor = &model.sensor;
+    let range = sensor.unambiguous_range_mm();
+    let eval = |df: f64| fast.eval(df);
+    let n = ((hi - lo) / bounds.scan_step_mm).ceil().max(2.0) as usize;
+    let step = (hi - lo) / n as f64;
+    let (mut rs, mut rc) = (fast.k * lo - fast.phi_d).sin_cos();
+    let (ss, sc) = (fast.k * step).sin_cos();
+    let full = |df: f64| -> Option<ScanSample> {
+        let x = fast.albedo(df)?;
+        let (re, im) = fast.phasor(df, x);
+        (re != 0.0 || im != 0.0).then_some(ScanSample { df, x, re, im })
+    };
+    let mut samples: Vec<ScanSample> = Vec::with_capacity(n + 3);
+    let mut prev: Option<(f64, bool)> = None;
+    for k in 0..=n {
+        let df = lo + step * k as f64;
+        if k > 0 {
+            // e^{i (phi_k - phi_d)} by rotation; resynchronised every 64 steps.
+            if k % 64 == 0 {
+                (rs, rc) = (fast.k * df - fast.phi_d).sin_cos();
+            } else {
+                (rs, rc) = (rs * sc + rc * ss, rc * sc - rs * ss);
+            }
+        }
+        let cur = fast.albedo(df).and_then(|x| {
+            let (l1, l2) = fast.strengths(df, x);
+            let (re, im) = (l1 * rc + l2 * fast.bg.0, l1 * rs + l2 * fast.bg.1);
+            (re != 0.0 || im != 0.0).then_some(ScanSample { df, x, re, im })
+        });
+        if let Some((pdf, pok)) = prev {
+            if pok != cur.is_some() {
+                let (mut ok_df, mut bad_df) = if pok { (pdf, df) } else { (df, pdf) };
+                for _ in 0..24 {
+                    let m = 0.5 * (ok_df + bad_df);
+                    // Admissible where X is (a phasor of exactly zero has measure zero).
+                    if fast.albedo(m).is_some() {
+                        ok_df = m;
+                    } else {
+                        bad_df = m;
+                    }
+                }
+                samples.extend(full(ok_df));
+                if pok {
+                    samples.push(ScanSample::GAP);
+                }
+            }
+        }
+        if let Some(c) = cur {
+            samples.push(c);
+        }
+        prev = Some((df, cur.is_some()));
+    }
+    let res = |s: &ScanSample| fast.residual_mm(s.re, s.im);
+    let as_sample = |s: &ScanSample| Sample {
+        df: s.df,
+        residual: res(s),
+        x: s.x,
+    };
+    let mut chosen: Option<(Sample, f64)> = None;
+    let mut roots = 0u8;
+    for w in samples.windows(2) {
+        let (p, c) = (&w[0], &w[1]);
+        if p.df.is_nan() || c.df.is_nan() || p.df == c.df || p.nonpositive() == c.nonpositive() {
+            continue;
+        }
+        let (p, c) = (as_sample(p), as_sample(c));
+        if (p.residual - c.residual).abs() < range / 4.0 {
+            if let Some(root) = refine(&eval, p, c) {
+                roots = roots.saturating_add(1);
+                let anchor = prefer_mm.unwrap_or(obs.distance_mm);
+                let dist = sensor.wrapped_difference_mm(root.df, anchor).abs();
+                if chosen.is_none_or(|(_, d)| dist < d) {
+                    chosen = Some((root, dist));
+                }
+            }
+        }
+    }
+    let (s, pinned) = match chosen {
+        Some((root, _)) => (root, false),
+        None => {
+            // No root: the admissible sample with the smallest residual (the first of equals).
+            let mut best: Option<Sample> = None;
+            for s in samples.iter().filter(|s| !s.df.is_nan()) {
+                let s = as_sample(s);
+                if best.is_none_or(|b| s.residual.abs() < b.residual.abs()) {
+                    best = Some(s);
+                }
+            }
+            (best?, true)
+        }
+    };
     let h = 0.5;
     let slope = match (eval(s.df - h), eval(s.df + h)) {
         (Some(a), Some(b)) => sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
@@ -537,6 +836,71 @@ mod tests {
             assert!(wrong_near <= wrong_camera);
             assert!((wrong_near as f64) <= max_wrong * n as f64, "{wrong_near} of {n}");
         }
+    }
+
+    /// The fast path (paper's returns on a sinusoid) against the generic one on a grid of layers.
+    #[test]
+    fn fast_path_matches_the_forward_model() {
+        let b = InversionBounds::default();
+        let mut checked = 0;
+        for (power, offset, delay) in [(2.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 20.0, 4.0), (2.0, 20.0, 4.0)] {
+            let mut m = ForwardModel::paper(Sensor::sr4000());
+            m.options.transmission_albedo_power = power;
+            m.options.ambient_offset = offset;
+            m.options.subsurface_delay_mm = delay;
+            for db in [1500.0, 2500.0, 4000.0] {
+                for frac in [0.05, 0.3, 0.6, 0.9] {
+                    let df = 150.0 + frac * (db - 200.0);
+                    for xi in [0.2, 0.65, 0.94] {
+                        for x in [0.3, 0.9] {
+                            let mut obs = observe(&m, df, db, xi, x, 1.0);
+                            for (dd, di) in [(0.0, 1.0), (25.0, 1.03), (-40.0, 0.9)] {
+                                obs.distance_mm += dd;
+                                obs.ir *= di;
+                                for prefer in [None, Some(0.0)] {
+                                    let fast = FastPixel::new(&m, &obs, xi, b.max_albedo_cos).expect("fast path");
+                                    let (lo, hi) = (b.min_distance_mm, db - b.min_separation_mm);
+                                    let f = foreground_distance_fast(&fast, &m, &obs, &b, prefer, lo, hi);
+                                    let g = foreground_distance_generic(&m, &obs, xi, &b, prefer, lo, hi);
+                                    let case = format!("p {power} off {offset} db {db} df {df} xi {xi} x {x} dd {dd} di {di} {prefer:?}");
+                                    match (f, g) {
+                                        (Some(f), Some(g)) => {
+                                            assert_eq!((f.roots, f.pinned), (g.roots, g.pinned), "{case}: {f:?} {g:?}");
+                                            let tol = if f.pinned { 1e-6 } else { 0.02 };
+                                            assert!(
+                                                (f.foreground_distance_mm - g.foreground_distance_mm).abs() < tol,
+                                                "{case}: {f:?} {g:?}"
+                                            );
+                                            assert!(
+                                                (f.residual_mm - g.residual_mm).abs() < 0.02,
+                                                "{case}: {f:?} {g:?}"
+                                            );
+                                            assert!(
+                                                (f.slope - g.slope).abs() < 1e-3 * g.slope.abs().max(1.0),
+                                                "{f:?} {g:?}"
+                                            );
+                                            checked += 1;
+                                        }
+                                        (None, None) => {}
+                                        other => panic!("{case}: {other:?}"),
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(checked > 800, "{checked}");
+        // Options the fast path does not know go the generic way.
+        let mut m = ForwardModel::paper(Sensor::sr4000());
+        m.options.bounces = 3;
+        assert!(FastPixel::new(&m, &observe(&m, 900.0, 2000.0, 0.5, 0.5, 1.0), 0.5, 1.0).is_none());
+        m.options.bounces = 2;
+        m.options.transmission_albedo_power = 1.5;
+        assert!(FastPixel::new(&m, &observe(&m, 900.0, 2000.0, 0.5, 0.5, 1.0), 0.5, 1.0).is_none());
+        let t = ForwardModel::paper(Sensor::new(30e6, Waveform::Triangle));
+        assert!(FastPixel::new(&t, &observe(&t, 900.0, 2000.0, 0.5, 0.5, 1.0), 0.5, 1.0).is_none());
     }
 
     #[test]

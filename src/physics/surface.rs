@@ -2,6 +2,7 @@
 //! smooth-surface prior on a recovered layer (local planes over a window).
 
 use nalgebra::{Matrix3, SMatrix, SVector, SymmetricEigen, Vector3};
+use rayon::prelude::*;
 
 use super::buffer::ImageBuf;
 use super::stats::median_and_sigma;
@@ -156,24 +157,47 @@ fn fit_inverse_depth<const N: usize>(
     min_points: usize,
     robust: &Robust,
 ) -> Option<Plane> {
-    let row = |p: &Vector3<f64>| terms(p.x / p.z - a0, p.y / p.z - b0);
-    let mut keep: Vec<bool> = points
+    // Each point's row, weight and right-hand side once (the passes only drop points).
+    struct Term<const N: usize> {
+        row: SVector<f64, N>,
+        z: f64,
+        w: f64,
+        rhs: f64,
+        keep: bool,
+        resid: f64,
+    }
+    let mut t: Vec<Term<N>> = points
         .iter()
-        .map(|p| p.z > 0.0 && p.iter().all(|v| v.is_finite()))
+        .map(|p| {
+            let z2 = p.z * p.z;
+            let w = z2 * z2; // d(1/z) = dz / z^2
+            Term {
+                row: terms(p.x / p.z - a0, p.y / p.z - b0),
+                z: p.z,
+                w,
+                rhs: w / p.z,
+                keep: p.z > 0.0 && p.iter().all(|v| v.is_finite()),
+                resid: 0.0,
+            }
+        })
         .collect();
     let mut plane = None;
     for pass in 0..=robust.passes {
-        let mut ata = SMatrix::<f64, N, N>::zeros();
+        // The upper triangle only (the matrix is symmetric), in plain arrays.
+        let mut acc = [[0.0f64; N]; N];
         let mut atb = SVector::<f64, N>::zeros();
         let mut n = 0;
-        for (p, _) in points.iter().zip(&keep).filter(|(_, k)| **k) {
-            let z2 = p.z * p.z;
-            let w = z2 * z2; // d(1/z) = dz / z^2
-            let r = row(p);
-            ata += r * r.transpose() * w;
-            atb += r * (w / p.z);
+        for p in t.iter().filter(|p| p.keep) {
+            let r: [f64; N] = p.row.into();
+            for (j, col) in acc.iter_mut().enumerate() {
+                for (i, a) in col.iter_mut().enumerate().take(j + 1) {
+                    *a += r[i] * r[j] * p.w;
+                }
+            }
+            atb += p.row * p.rhs;
             n += 1;
         }
+        let ata = SMatrix::<f64, N, N>::from_fn(|i, j| if i <= j { acc[j][i] } else { acc[i][j] });
         if n < min_points {
             return plane;
         }
@@ -182,13 +206,11 @@ fn fit_inverse_depth<const N: usize>(
         if !c.iter().all(|v| v.is_finite()) || c[0] <= 0.0 {
             return plane;
         }
-        let resid = |p: &Vector3<f64>| (p.z - 1.0 / row(p).dot(&c)).abs();
-        let ss: f64 = points
-            .iter()
-            .zip(&keep)
-            .filter(|(_, k)| **k)
-            .map(|(p, _)| resid(p).powi(2))
-            .sum();
+        let mut ss = 0.0;
+        for p in t.iter_mut().filter(|p| p.keep) {
+            p.resid = (p.z - 1.0 / p.row.dot(&c)).abs();
+            ss += p.resid.powi(2);
+        }
         let rms = (ss / n as f64).sqrt();
         // The tangent plane coef . p = 1, its unit normal toward the camera.
         let coef = Vector3::new(c[1], c[2], c[0] - c[1] * a0 - c[2] * b0);
@@ -214,9 +236,9 @@ fn fit_inverse_depth<const N: usize>(
         }
         let cut = (robust.k * rms).max(robust.floor_mm);
         let mut changed = false;
-        for (p, kp) in points.iter().zip(keep.iter_mut()) {
-            if *kp && resid(p) > cut {
-                *kp = false;
+        for p in t.iter_mut() {
+            if p.keep && p.resid > cut {
+                p.keep = false;
                 changed = true;
             }
         }
@@ -238,21 +260,30 @@ pub fn local_planes_adaptive(
     min_points: usize,
     max_normal_sigma_rad: f64,
 ) -> ImageBuf<Option<Plane>> {
-    let mut out = ImageBuf::filled(points.width, points.height, None);
-    for i in 0..out.len() {
+    let plane_at = |i: usize| {
         if !mask.data[i] || !points.data[i].x.is_finite() {
-            continue;
+            return None;
         }
+        let mut out = None;
         for (k, &r) in radii.iter().enumerate() {
             if let Some(p) = local_plane_at(points, rays, mask, i, r, min_points) {
-                out.data[i] = Some(p);
+                out = Some(p);
                 if k + 1 == radii.len() || p.normal_sigma_rad <= max_normal_sigma_rad {
                     break;
                 }
             }
         }
+        out
+    };
+    ImageBuf {
+        width: points.width,
+        height: points.height,
+        data: (0..points.len())
+            .into_par_iter()
+            .with_min_len(64)
+            .map(plane_at)
+            .collect(),
     }
-    out
 }
 
 /// Local planes over a `(2 radius + 1)^2` window: for every pixel where
@@ -268,13 +299,23 @@ pub fn local_planes(
     radius: usize,
     min_points: usize,
 ) -> ImageBuf<Option<Plane>> {
-    let mut out = ImageBuf::filled(points.width, points.height, None);
-    for i in 0..out.len() {
-        if mask.data[i] {
-            out.data[i] = local_plane_at(points, rays, mask, i, radius, min_points);
-        }
+    // Pixels in parallel over the current rayon pool.
+    let data = (0..points.len())
+        .into_par_iter()
+        .with_min_len(64)
+        .map(|i| {
+            if mask.data[i] {
+                local_plane_at(points, rays, mask, i, radius, min_points)
+            } else {
+                None
+            }
+        })
+        .collect();
+    ImageBuf {
+        width: points.width,
+        height: points.height,
+        data,
     }
-    out
 }
 
 /// Keeps the points whose distance from the camera lies within `k` robust
@@ -283,12 +324,16 @@ fn keep_near_median(points: &mut Vec<Vector3<f64>>, k: f64, floor_mm: f64) {
     if points.len() < 3 {
         return;
     }
-    let mut d: Vec<f64> = points.iter().map(|p| p.norm()).collect();
-    let Some((med, sigma)) = median_and_sigma(&mut d) else {
+    let norms: Vec<f64> = points.iter().map(|p| p.norm()).collect();
+    let Some((med, sigma)) = median_and_sigma(&mut norms.clone()) else {
         return;
     };
     let cut = (k * sigma).max(floor_mm);
-    points.retain(|p| (p.norm() - med).abs() <= cut);
+    let mut i = 0;
+    points.retain(|_| {
+        i += 1;
+        (norms[i - 1] - med).abs() <= cut
+    });
 }
 
 /// The plane through the masked, finite points in the window around pixel `i`.

@@ -12,6 +12,7 @@
 //! so pooling a new frame costs one frame's work.
 
 use nalgebra::Vector3;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::buffer::ImageBuf;
@@ -283,20 +284,19 @@ pub fn frame_profile(
         pixels: ds.len(),
         median_distance_mm: ds.get(ds.len() / 2).copied().unwrap_or(f64::NAN),
     };
-    let mut points = ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
-    let mut xs = vec![f64::NAN; w * h];
     let mask = ImageBuf {
         width: w,
         height: h,
         data: obs.data.iter().map(|o| o.is_some()).collect(),
     };
-    for &xi in &grid {
+    // Each ξ on its own (in parallel over the current rayon pool), gathered in grid order.
+    let per_xi = |xi: f64| -> (Vec<GroupStat>, f64, f64, TruthFit) {
+        let mut points = ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
+        let mut xs = vec![f64::NAN; w * h];
         let mut pinned = 0usize;
         let mut eq12 = 0.0;
         let mut fit = TruthFit::default();
         for i in 0..w * h {
-            points.data[i] = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
-            xs[i] = f64::NAN;
             let Some(o) = obs.data[i] else { continue };
             if let Some(t) = sample.truth_mm.as_ref().map(|t| t.data[i]).filter(|t| t.is_finite()) {
                 add_truth_error(model, &o, t, xi, bounds, &mut fit);
@@ -369,8 +369,12 @@ pub fn frame_profile(
                 }
             })
             .collect();
+        (stats, pinned as f64 / ds.len().max(1) as f64, eq12, fit)
+    };
+    let rows: Vec<_> = grid.par_iter().map(|&xi| per_xi(xi)).collect();
+    for (stats, pinned_fraction, eq12, fit) in rows {
         out.groups.push(stats);
-        out.pinned_fraction.push(pinned as f64 / ds.len().max(1) as f64);
+        out.pinned_fraction.push(pinned_fraction);
         out.eq12.push(eq12);
         out.truth.push(fit);
     }

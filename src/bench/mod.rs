@@ -1,0 +1,355 @@
+//! Benchmarks of the real-time path (issue 5): the frames they run on, the
+//! cases they time, and the plain 1 mm grid search the fast inversion is
+//! measured against ([`reference`]). Used by the `bench` subcommand and by the
+//! criterion benches in `benches/`; the pipeline itself never calls it.
+
+pub mod reference;
+
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::physics::translucency::{self, FrameSample, ProfileUse};
+use crate::physics::{ImageBuf, XiEstimate, XiMethod};
+use crate::pipeline::{BackgroundLatch, DepthFrame, Observed, Pipeline, PipelineConfig, XiChoice};
+use crate::sim::render::{render_all, scene_intrinsics};
+use crate::sim::scene::{BackgroundSpec, CameraSpec, ObjectSpec, Scene, StageSpec};
+
+/// The ξ of the benchmark's layer (the paper's document holder).
+pub const BENCH_XI: f64 = 0.65;
+
+/// Distances of the layer in the benchmark's frames, mm: the paper's Fig. 5 stages.
+pub const STAGES_MM: [f64; 4] = [500.0, 750.0, 1000.0, 1750.0];
+
+/// A document holder (the paper's Fig. 5a: ξ 0.65, albedo 0.6, 240 x 310 mm)
+/// before a white wall at 2000 mm, one frame at each of [`STAGES_MM`], seen
+/// by an SR4000-like camera (44 x 35 degrees, 30 MHz) of the given resolution.
+/// At 500 mm the layer covers about half the image.
+pub fn document_holder_scene(width: usize, height: usize, background_frames: usize, seed: u64) -> Scene {
+    let plane = |z: f64, tilt: [f64; 2]| ObjectSpec {
+        shape: "plane".into(),
+        center_mm: [10.0, -8.0, z],
+        size_mm: [240.0, 310.0],
+        tilt_x_deg: tilt[0],
+        tilt_y_deg: tilt[1],
+        radius_mm: 0.0,
+        height_mm: 0.0,
+        xi: BENCH_XI,
+        albedo: 0.6,
+    };
+    let tilts = [[2.0, -1.0], [-3.0, 2.0], [1.0, -2.0], [-2.0, 3.0]];
+    Scene {
+        name: format!("bench document holder {width}x{height}"),
+        seed,
+        camera: CameraSpec {
+            width,
+            height,
+            ..CameraSpec::default()
+        },
+        emitter: Default::default(),
+        noise: Default::default(),
+        physics: Default::default(),
+        background: BackgroundSpec {
+            distance_mm: 2000.0,
+            albedo: 1.0,
+            tilt_x_deg: 0.0,
+            tilt_y_deg: 0.0,
+            frames: background_frames,
+        },
+        stages: STAGES_MM
+            .iter()
+            .zip(tilts)
+            .map(|(&z, t)| StageSpec {
+                frames: 1,
+                objects: vec![plane(z, t)],
+            })
+            .collect(),
+    }
+}
+
+/// A latched pipeline and the object frames of [`document_holder_scene`].
+pub struct BenchScene {
+    /// Width x height.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// The pipeline, background latched, ξ fixed at [`BENCH_XI`], default settings otherwise.
+    pub pipeline: Pipeline,
+    /// One frame per stage of [`STAGES_MM`].
+    pub frames: Vec<DepthFrame>,
+    /// Ground-truth z, mm (NaN off the layer), per frame.
+    pub truth_z_mm: Vec<ImageBuf<f32>>,
+}
+
+impl BenchScene {
+    /// Renders and latches the scene (a few seconds at 640 x 480).
+    pub fn new(width: usize, height: usize) -> Self {
+        let scene = document_holder_scene(width, height, 5, 11);
+        let frames = render_all(&scene);
+        let k = scene_intrinsics(&scene);
+        let config = PipelineConfig {
+            xi: XiChoice::Fixed(BENCH_XI),
+            ..PipelineConfig::default()
+        };
+        let mut latch = BackgroundLatch::new(k.width, k.height, config.model.sensor.unambiguous_range_mm());
+        let as_frame = |f: &crate::sim::SimFrame| DepthFrame {
+            stamp_ns: f.stamp_ns,
+            z_mm: f.depth_z_mm.clone(),
+            ir: f.ir.clone(),
+        };
+        for f in frames.iter().filter(|f| f.background_only) {
+            latch.push(&as_frame(f), &k).expect("bench frames match the camera");
+        }
+        let mut pipeline = Pipeline::new(config.clone(), k);
+        pipeline.set_background(latch.finish(&k, &config).expect("the bench wall is a plane"));
+        let objects: Vec<_> = frames.iter().filter(|f| !f.background_only).collect();
+        Self {
+            width,
+            height,
+            pipeline,
+            frames: objects.iter().map(|f| as_frame(f)).collect(),
+            truth_z_mm: objects.iter().map(|f| f.truth_z_mm.clone()).collect(),
+        }
+    }
+
+    /// The frame at the nearest stage (500 mm, the largest translucent region).
+    pub fn near_frame(&self) -> &DepthFrame {
+        &self.frames[0]
+    }
+
+    /// Segments a frame.
+    pub fn observe(&self, frame: &DepthFrame) -> Observed {
+        self.pipeline.observe(frame).expect("bench frames match the camera")
+    }
+
+    /// ξ estimation by shape on one frame: the frame's profile over the ξ grid and
+    /// the one-material estimate from it (what the node adds per frame).
+    pub fn xi_by_shape(&self, obs: &Observed) -> Option<XiEstimate> {
+        let p = &self.pipeline;
+        let settings = &p.config.xi_settings;
+        let sample = FrameSample::from_image(&obs.observations, p.rays(), None, settings.max_pixels_per_frame);
+        let profile = translucency::frame_profile(
+            &p.config.model,
+            &p.config.bounds,
+            &sample,
+            settings,
+            ProfileUse::Estimation,
+        );
+        translucency::one_material(&[profile])
+    }
+
+    /// The whole per-frame work of `replay` (estimating ξ online): a fresh
+    /// pipeline on this background processes every object frame in turn.
+    pub fn replay(&self) -> usize {
+        let mut pipe = self.pipeline.clone();
+        pipe.config.xi = XiChoice::Estimate(XiMethod::OneMaterial);
+        let mut recovered = 0;
+        for f in &self.frames {
+            if let Some(out) = pipe.process(f).expect("bench frames match the camera") {
+                recovered += out.recovered_pixels;
+            }
+        }
+        recovered
+    }
+}
+
+/// What one benchmark case measures.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Case {
+    /// `Pipeline::recover` of one frame at a fixed ξ (per-pixel inversion,
+    /// noise gate, smooth-surface prior), segmentation excluded.
+    Recover,
+    /// Segmentation (`Pipeline::observe`) of one frame.
+    Observe,
+    /// ξ estimation by shape on one frame: its profile over the ξ grid and the
+    /// one-material estimate.
+    XiEstimate,
+    /// `Pipeline::process` over the four object frames, ξ estimated online; per frame.
+    Replay,
+    // A `NodeLatency` case (the node's added latency over DDS on loopback) goes here.
+}
+
+impl Case {
+    /// The case's name in tables and JSON.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Case::Recover => "recover",
+            Case::Observe => "observe",
+            Case::XiEstimate => "xi_estimate",
+            Case::Replay => "replay",
+        }
+    }
+}
+
+/// One row of the `bench` table.
+#[derive(Debug, Clone, Serialize)]
+pub struct Row {
+    /// The case's name.
+    pub name: &'static str,
+    /// `WIDTHxHEIGHT`.
+    pub size: String,
+    /// Worker threads.
+    pub threads: usize,
+    /// Timed repetitions.
+    pub samples: usize,
+    /// Median time per frame, ms.
+    pub median_ms: f64,
+    /// 95th percentile per frame, ms.
+    pub p95_ms: f64,
+    /// The plain reference on the same frame in the same run, ms (where there is one).
+    pub reference_ms: Option<f64>,
+    /// `reference_ms / median_ms`.
+    pub speedup: Option<f64>,
+    /// The target, ms, where the issue sets one.
+    pub target_ms: Option<f64>,
+    /// Translucent pixels in the frame, and their share of the image.
+    pub translucent_pixels: usize,
+    /// Share of the image segmented as translucent.
+    pub translucent_fraction: f64,
+    /// Fast against reference depths, where compared.
+    pub agreement: Option<reference::Agreement>,
+}
+
+/// Median and 95th percentile, ms, and the runs timed: up to `samples` runs of `f`
+/// after one warm-up run, stopping early (after at least 3) once `budget_s` seconds are spent.
+pub fn time_ms(samples: usize, budget_s: f64, mut f: impl FnMut()) -> (f64, f64, usize) {
+    f();
+    let started = Instant::now();
+    let mut t: Vec<f64> = vec![];
+    while t.len() < samples.max(1) && (t.len() < 3 || started.elapsed().as_secs_f64() < budget_s) {
+        let start = Instant::now();
+        f();
+        t.push(start.elapsed().as_secs_f64() * 1e3);
+    }
+    t.sort_by(f64::total_cmp);
+    let q = |p: f64| t[((t.len() - 1) as f64 * p).round() as usize];
+    (q(0.5), q(0.95), t.len())
+}
+
+/// The pipeline's per-pixel inversion ([`crate::physics::foreground_distance`])
+/// over a frame: ray distances, mm (NaN where pinned or none), and where a
+/// pixel fits several roots.
+pub fn fast_per_pixel(pipeline: &Pipeline, obs: &Observed, xi: f64) -> (ImageBuf<f64>, Vec<bool>) {
+    let c = &pipeline.config;
+    let mut df = ImageBuf::filled(obs.mask.width, obs.mask.height, f64::NAN);
+    let mut several = vec![false; df.len()];
+    for (i, o) in obs.observations.data.iter().enumerate() {
+        let Some(o) = o else { continue };
+        if let Some(est) = crate::physics::foreground_distance(&c.model, o, xi, &c.bounds, None) {
+            if !est.pinned {
+                df.data[i] = est.foreground_distance_mm;
+                several[i] = est.roots > 1;
+            }
+        }
+    }
+    (df, several)
+}
+
+/// Settings of a benchmark run.
+#[derive(Debug, Clone, Copy)]
+pub struct RunSettings {
+    /// Timed repetitions per case (after one warm-up).
+    pub samples: usize,
+    /// Seconds a case may spend on its repetitions (at least 3 are timed).
+    pub budget_s: f64,
+    /// Worker threads (1: one core).
+    pub threads: usize,
+    /// Time the plain reference too, and compare depths.
+    pub reference: bool,
+}
+
+/// The issue's target for a case at a size, ms, where it sets one.
+pub fn target_ms(case: Case, width: usize, height: usize, threads: usize) -> Option<f64> {
+    match (case, width * height, threads) {
+        (Case::Recover, 25_344, 1) => Some(1.0),
+        (Case::Recover, 307_200, 1) => Some(10.0),
+        (Case::XiEstimate, 25_344, _) => Some(1000.0 / 30.0),
+        _ => None,
+    }
+}
+
+/// Runs one case on the scene's nearest frame (all frames for `replay`) in a
+/// pool of `settings.threads` threads.
+pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(settings.threads.max(1))
+        .build()
+        .expect("a thread pool");
+    let frame = scene.near_frame();
+    let obs = scene.observe(frame);
+    let xi = XiEstimate::fixed(BENCH_XI);
+    let (samples, budget) = (settings.samples, settings.budget_s);
+    let (median_ms, p95_ms, samples) = pool.install(|| match case {
+        Case::Recover => time_ms(samples, budget, || {
+            std::hint::black_box(scene.pipeline.recover(frame, &obs, &xi));
+        }),
+        Case::Observe => time_ms(samples, budget, || {
+            std::hint::black_box(scene.observe(frame));
+        }),
+        Case::XiEstimate => time_ms(samples, budget, || {
+            std::hint::black_box(scene.xi_by_shape(&obs));
+        }),
+        Case::Replay => {
+            let (m, p, k) = time_ms(samples, budget, || {
+                std::hint::black_box(scene.replay());
+            });
+            let n = scene.frames.len() as f64;
+            (m / n, p / n, k)
+        }
+    });
+    let (mut reference_ms, mut agreement) = (None, None);
+    if settings.reference {
+        match case {
+            Case::Recover => {
+                let start = Instant::now();
+                let (grid, res) = reference::recover_per_pixel(&scene.pipeline, &obs, BENCH_XI);
+                reference_ms = Some(start.elapsed().as_secs_f64() * 1e3);
+                let (fast, several) = fast_per_pixel(&scene.pipeline, &obs, BENCH_XI);
+                agreement = Some(reference::agreement(&fast, &several, &grid, &res));
+            }
+            Case::XiEstimate => {
+                let start = Instant::now();
+                std::hint::black_box(reference::xi_grid_inversions(&scene.pipeline, &obs));
+                reference_ms = Some(start.elapsed().as_secs_f64() * 1e3);
+            }
+            _ => {}
+        }
+    }
+    let pixels = scene.width * scene.height;
+    Row {
+        name: case.name(),
+        size: format!("{}x{}", scene.width, scene.height),
+        threads: settings.threads.max(1),
+        samples,
+        median_ms,
+        p95_ms,
+        reference_ms,
+        speedup: reference_ms.map(|r| r / median_ms),
+        target_ms: target_ms(case, scene.width, scene.height, settings.threads.max(1)),
+        translucent_pixels: obs.translucent_pixels,
+        translucent_fraction: obs.translucent_pixels as f64 / pixels as f64,
+        agreement,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The pipeline's inversion and the plain 1 mm grid give the same layer
+    /// wherever the pixel has one root (speed is measured by `bench`, not here).
+    #[test]
+    fn fast_inversion_agrees_with_the_1mm_grid() {
+        let scene = BenchScene::new(64, 52);
+        for (k, frame) in scene.frames.iter().enumerate() {
+            let obs = scene.observe(frame);
+            assert!(obs.translucent_pixels > 100, "stage {k}: {}", obs.translucent_pixels);
+            let (grid, res) = reference::recover_per_pixel(&scene.pipeline, &obs, BENCH_XI);
+            let (fast, several) = fast_per_pixel(&scene.pipeline, &obs, BENCH_XI);
+            let a = reference::agreement(&fast, &several, &grid, &res);
+            assert!(a.compared * 10 >= obs.translucent_pixels * 8, "stage {k}: {a:?}");
+            assert_eq!(a.disagree, 0, "stage {k}: {a:?}");
+        }
+    }
+}

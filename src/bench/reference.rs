@@ -1,0 +1,131 @@
+//! The paper's inversion written plainly (Eq. 8-11): for each translucent
+//! pixel, the foreground distance on a 1 mm grid over `[d_min, db)` whose
+//! predicted reading is nearest the observed one. The benchmarks time it
+//! beside the pipeline's inversion and check that both give the same depths;
+//! nothing else uses it.
+
+use serde::Serialize;
+
+use crate::physics::inversion::{albedo_cos, predicted_reading};
+use crate::physics::{ForwardModel, ImageBuf, InversionBounds, PixelObservation};
+use crate::pipeline::{Observed, Pipeline};
+
+/// The grid's step, mm.
+pub const GRID_STEP_MM: f64 = 1.0;
+
+/// One pixel by the plain grid: `(df, |residual|)` of the grid point whose predicted
+/// reading is nearest the observed one (wrapped), among those with `0 < X <= max`.
+pub fn grid_search(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    xi: f64,
+    bounds: &InversionBounds,
+) -> Option<(f64, f64)> {
+    let lo = bounds.min_distance_mm;
+    let hi = obs.background_distance_mm - bounds.min_separation_mm;
+    if !(hi > lo) || !obs.distance_mm.is_finite() || !obs.ir.is_finite() {
+        return None;
+    }
+    let mut best: Option<(f64, f64)> = None;
+    let n = ((hi - lo) / GRID_STEP_MM).floor() as usize;
+    for k in 0..=n {
+        let df = lo + GRID_STEP_MM * k as f64;
+        let Some(x) = albedo_cos(model, obs, df, xi, bounds.max_albedo_cos) else {
+            continue;
+        };
+        if x <= 0.0 {
+            continue;
+        }
+        let pred = predicted_reading(model, obs, df, xi, x);
+        let r = model.sensor.wrapped_difference_mm(pred, obs.distance_mm).abs();
+        if r.is_finite() && best.is_none_or(|(_, b)| r < b) {
+            best = Some((df, r));
+        }
+    }
+    best
+}
+
+/// The grid search over every translucent pixel of a frame: ray distances, mm
+/// (NaN where no grid point is admissible), and the per-pixel residual, mm.
+pub fn recover_per_pixel(pipeline: &Pipeline, obs: &Observed, xi: f64) -> (ImageBuf<f64>, ImageBuf<f64>) {
+    let c = &pipeline.config;
+    let mut df = ImageBuf::filled(obs.mask.width, obs.mask.height, f64::NAN);
+    let mut res = df.clone();
+    for (i, o) in obs.observations.data.iter().enumerate() {
+        if let Some((d, r)) = o.and_then(|o| grid_search(&c.model, &o, xi, &c.bounds)) {
+            df.data[i] = d;
+            res.data[i] = r;
+        }
+    }
+    (df, res)
+}
+
+/// How the fast path's per-pixel depths compare with the grid's.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Agreement {
+    /// Pixels compared: the fast path recovered one root, and the grid's
+    /// best point fits to within its own resolution (`|residual| <= 1 mm`).
+    pub compared: usize,
+    /// Of those, pixels whose depths differ by more than `tolerance_mm`.
+    pub disagree: usize,
+    /// Largest difference, mm.
+    pub max_diff_mm: f64,
+    /// The tolerance, mm.
+    pub tolerance_mm: f64,
+    /// Pixels the fast path recovered that have several roots (the root rule,
+    /// not the search, chooses there; not compared).
+    pub several_roots: usize,
+}
+
+/// Compares per-pixel ray distances `fast` (NaN where none) with the grid's.
+/// Pixels with several roots (`several[i]`) are left out: there the pipeline's
+/// root rule (nearest the reading) and the grid's best residual may choose differently.
+pub fn agreement(fast: &ImageBuf<f64>, several: &[bool], grid: &ImageBuf<f64>, grid_res: &ImageBuf<f64>) -> Agreement {
+    let tolerance_mm = 1.0;
+    let mut a = Agreement {
+        compared: 0,
+        disagree: 0,
+        max_diff_mm: 0.0,
+        tolerance_mm,
+        several_roots: 0,
+    };
+    for i in 0..fast.len() {
+        if !fast.data[i].is_finite() {
+            continue;
+        }
+        if several[i] {
+            a.several_roots += 1;
+            continue;
+        }
+        if !(grid_res.data[i] <= GRID_STEP_MM) {
+            continue;
+        }
+        let d = (fast.data[i] - grid.data[i]).abs();
+        a.compared += 1;
+        a.max_diff_mm = a.max_diff_mm.max(d);
+        if d > tolerance_mm {
+            a.disagree += 1;
+        }
+    }
+    a
+}
+
+/// The inversions of ξ estimation written plainly: the grid search at every ξ
+/// of [`crate::physics::translucency::xi_grid`] over the pixels ξ estimation
+/// samples (the plane fits that follow are not included). Returns the pixels inverted.
+pub fn xi_grid_inversions(pipeline: &Pipeline, obs: &Observed) -> usize {
+    let c = &pipeline.config;
+    let sample = crate::physics::translucency::FrameSample::from_image(
+        &obs.observations,
+        pipeline.rays(),
+        None,
+        c.xi_settings.max_pixels_per_frame,
+    );
+    let mut n = 0;
+    for xi in crate::physics::translucency::xi_grid() {
+        for o in sample.observations.data.iter().flatten() {
+            n += grid_search(&c.model, o, xi, &c.bounds).is_some() as usize;
+        }
+    }
+    n
+}

@@ -1,0 +1,145 @@
+//! `bench`: times the real-time path on simulated frames (a document holder
+//! before a wall) and prints a table; `--json` for the rows.
+
+use anyhow::{bail, Result};
+use clap::Args;
+use serde_json::json;
+
+use crate::bench::{run_case, BenchScene, Case, RunSettings, BENCH_XI, STAGES_MM};
+
+use super::common::OutputArgs;
+
+/// Arguments of `bench`.
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Timed repetitions per case (after one warm-up run); the table gives their median and 95th percentile.
+    #[arg(long, default_value_t = 50)]
+    pub frames: usize,
+    /// Seconds each case may spend on its repetitions (at least 3 are timed).
+    #[arg(long, default_value_t = 10.0)]
+    pub max_seconds: f64,
+    /// Worker-thread counts to run each case with, comma-separated (1 = one core).
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    pub threads: Vec<usize>,
+    /// Image sizes, comma-separated WIDTHxHEIGHT.
+    #[arg(long, value_delimiter = ',', default_value = "176x144,640x480")]
+    pub sizes: Vec<String>,
+    /// Cases to run, comma-separated: recover, observe, xi_estimate, replay.
+    #[arg(long, value_delimiter = ',', default_value = "recover,observe,xi_estimate,replay")]
+    pub cases: Vec<String>,
+    /// Skip the plain 1 mm grid-search reference (it takes seconds per frame).
+    #[arg(long)]
+    pub no_reference: bool,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+fn parse_size(s: &str) -> Result<(usize, usize)> {
+    let parsed = s
+        .split_once('x')
+        .and_then(|(w, h)| Some((w.trim().parse().ok()?, h.trim().parse().ok()?)));
+    match parsed {
+        Some((w, h)) if w >= 16 && h >= 16 => Ok((w, h)),
+        _ => bail!("--sizes {s:?}: expected WIDTHxHEIGHT, at least 16x16"),
+    }
+}
+
+fn parse_case(s: &str) -> Result<Case> {
+    Ok(match s.trim() {
+        "recover" => Case::Recover,
+        "observe" => Case::Observe,
+        "xi_estimate" | "xi" => Case::XiEstimate,
+        "replay" => Case::Replay,
+        other => bail!("--cases {other:?}: expected recover, observe, xi_estimate or replay"),
+    })
+}
+
+fn ms(v: Option<f64>) -> String {
+    v.map_or_else(|| "-".into(), |v| format!("{v:.3}"))
+}
+
+/// Runs `bench`.
+pub fn run(a: BenchArgs) -> Result<()> {
+    let sizes: Vec<(usize, usize)> = a.sizes.iter().map(|s| parse_size(s)).collect::<Result<_>>()?;
+    let cases: Vec<Case> = a.cases.iter().map(|s| parse_case(s)).collect::<Result<_>>()?;
+    if a.threads.contains(&0) || a.threads.is_empty() {
+        bail!("--threads: counts of at least 1");
+    }
+    if a.frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    let total = (sizes.len() * cases.len() * a.threads.len()) as u64;
+    let pb = a.output.progress(total, "bench");
+    let mut rows = vec![];
+    for &(w, h) in &sizes {
+        pb.set_message(format!("rendering {w}x{h}"));
+        let scene = BenchScene::new(w, h);
+        for &case in &cases {
+            for (k, &threads) in a.threads.iter().enumerate() {
+                pb.set_message(format!("{} {w}x{h} {threads} thread(s)", case.name()));
+                let settings = RunSettings {
+                    samples: a.frames,
+                    budget_s: a.max_seconds,
+                    threads,
+                    // The reference is single-threaded: once per case and size.
+                    reference: !a.no_reference && k == 0,
+                };
+                rows.push(run_case(&scene, case, &settings));
+                pb.inc(1);
+            }
+        }
+    }
+    pb.finish_and_clear();
+    let mut text = format!(
+        "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case)\n",
+        STAGES_MM[0], STAGES_MM, a.frames, a.max_seconds
+    );
+    text.push_str(&format!(
+        "{:<12} {:>8} {:>7} {:>10} {:>10} {:>10} {:>13} {:>9} {:>9} {}\n",
+        "case",
+        "size",
+        "threads",
+        "median ms",
+        "p95 ms",
+        "target ms",
+        "reference ms",
+        "speedup",
+        "transl.",
+        "agreement (fast vs 1 mm grid)"
+    ));
+    for r in &rows {
+        let agree = r.agreement.map_or_else(String::new, |g| {
+            format!(
+                "{} px compared, {} differ by > {} mm, max {:.2} mm ({} px with several roots not compared)",
+                g.compared, g.disagree, g.tolerance_mm, g.max_diff_mm, g.several_roots
+            )
+        });
+        text.push_str(&format!(
+            "{:<12} {:>8} {:>7} {:>5} {:>10.3} {:>10.3} {:>10} {:>13} {:>9} {:>8.0}% {}\n",
+            r.name,
+            r.size,
+            r.threads,
+            r.samples,
+            r.median_ms,
+            r.p95_ms,
+            ms(r.target_ms),
+            ms(r.reference_ms),
+            r.speedup.map_or_else(|| "-".into(), |s| format!("{s:.0}x")),
+            100.0 * r.translucent_fraction,
+            agree
+        ));
+    }
+    a.output.summary(text.trim_end());
+    a.output.write_json(&json!({
+        "scene": {
+            "xi": BENCH_XI,
+            "stages_mm": STAGES_MM,
+            "wall_mm": 2000.0,
+        },
+        "frames": a.frames,
+        "max_seconds": a.max_seconds,
+        "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+        "rows": rows,
+    }))?;
+    Ok(())
+}
