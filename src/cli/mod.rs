@@ -1,5 +1,6 @@
 //! The `translucent_tof` command line: one binary, one subcommand per job.
 
+mod audit;
 mod calibrate;
 mod common;
 mod recording;
@@ -29,6 +30,8 @@ enum Command {
     CalibrateXi(calibrate::CalibrateXiArgs),
     /// Emitted-light map from a recording of a white plane (paper Eq. 13-14).
     CalibrateLin(calibrate::CalibrateLinArgs),
+    /// Compare the model with a ground-truthed recording: locate, name and fit the physics it leaves out.
+    Audit(audit::AuditArgs),
 }
 
 /// Parses the arguments and runs the subcommand.
@@ -39,5 +42,6 @@ pub fn run() -> anyhow::Result<()> {
         Command::Simulate(a) => simulate::run(a),
         Command::CalibrateXi(a) => calibrate::run_xi(a),
         Command::CalibrateLin(a) => calibrate::run_lin(a),
+        Command::Audit(a) => audit::run(a),
     }
 }
