@@ -8,7 +8,7 @@ use clap::Args;
 use serde_json::{json, Value};
 
 use crate::audit::{gather, recovery_rmse, trend_svg};
-use crate::physics::audit::{run_audit, AuditResult, AuditSettings, Effect, Fit};
+use crate::physics::audit::{run_audit_with_progress, where_it_helped, AuditResult, AuditSettings, Effect, Fit};
 use crate::physics::{IrMode, Waveform};
 use crate::pipeline::{PipelineConfig, XiChoice};
 
@@ -70,9 +70,14 @@ pub fn run(a: AuditArgs) -> Result<()> {
             config.threshold_mm
         );
     }
-    let pb = a.output.progress(1, "auditing");
     let settings = AuditSettings::default();
-    let result = run_audit(&data, &config.model, &settings).map_err(|e| anyhow!("bag {}: {e}", a.bag.display()))?;
+    // Baseline, then up to seven candidates per round.
+    let pb = a.output.progress(1 + 7 * settings.max_effects as u64, "auditing");
+    let result = run_audit_with_progress(&data, &config.model, &settings, &mut |what| {
+        pb.set_message(what.to_string());
+        pb.inc(1);
+    })
+    .map_err(|e| anyhow!("bag {}: {e}", a.bag.display()))?;
     pb.finish_and_clear();
     let base = &config.model;
     let fin = result.final_fit();
@@ -208,23 +213,16 @@ fn report(
             .collect()
     };
     let mut prev = &r.baseline;
+    let mut prev_trends = &r.trends_before;
     let mut findings = vec![];
-    for s in &r.steps {
+    for (s, trends) in r.steps.iter().zip(&r.step_trends) {
         let effect = s.effects.last().map(|e| e.name()).unwrap_or("");
         let cand = r
             .candidates
             .iter()
             .find(|c| c.accepted && c.effect.name() == effect)
             .cloned();
-        let mut top: Vec<_> = r.trends_before.iter().collect();
-        top.sort_by(|a, b| b.systematic_z.total_cmp(&a.systematic_z));
-        let where_ = top
-            .iter()
-            .take(2)
-            .filter(|t| t.systematic_z > 3.0)
-            .map(|t| format!("{} (trend z {:.0})", t.worst_bin(), t.systematic_z))
-            .collect::<Vec<_>>()
-            .join("; ");
+        let where_ = where_it_helped(prev_trends, trends);
         findings.push(json!({
             "effect": effect,
             "evidence": format!(
@@ -245,6 +243,7 @@ fn report(
             "params": params_json(s, true),
         }));
         prev = s;
+        prev_trends = trends;
     }
     let trend_json = |t: &crate::physics::audit::Trend| {
         json!({

@@ -111,9 +111,9 @@ pub struct AuditData {
     pub pixels: Vec<AuditPixel>,
     /// Frames the pixels come from.
     pub frames: usize,
-    /// The latched background's ray distance, mm, smoothed over a few pixels
-    /// (what a displaced background is sampled from: smoothing keeps the
-    /// latch's noise from making the fit rough in the displacement).
+    /// The latched background's ray distance, mm, smoothed over a few pixels:
+    /// what every hypothesis sees behind the layer (smoothing keeps the latch's
+    /// noise from making the fit rough in a displacement, and is the same for all).
     pub background_distance_mm: ImageBuf<f64>,
     /// The latched background's IR, counts, smoothed likewise.
     pub background_ir: ImageBuf<f64>,
@@ -315,14 +315,60 @@ impl Trend {
             return String::new();
         };
         format!(
-            "{} {:.4}..{:.4}: depth {:+.1} mm, IR {:+.2} % ({} px)",
+            "{} {}..{}: depth {:+.1} mm, IR {:+.2} % ({} px)",
             self.quantity.name(),
-            self.bins[k][0],
-            self.bins[k][1],
+            short(self.bins[k][0]),
+            short(self.bins[k][1]),
             self.mean_mm[k],
             self.ir_mean_pct[k],
             self.counts[k]
         )
+    }
+}
+
+/// Where a step's model took the residual away: the quantities whose trend
+/// fell most from `before` to `after`, each with the bin whose mean residual
+/// shrank most, in words.
+pub fn where_it_helped(before: &[Trend], after: &[Trend]) -> String {
+    let mut drops: Vec<(f64, String)> = before
+        .iter()
+        .zip(after)
+        .filter(|(b, a)| b.quantity == a.quantity && b.mean_mm.len() == a.mean_mm.len())
+        .map(|(b, a)| {
+            let k = (0..b.mean_mm.len())
+                .max_by(|&i, &j| {
+                    (b.mean_mm[i].abs() - a.mean_mm[i].abs()).total_cmp(&(b.mean_mm[j].abs() - a.mean_mm[j].abs()))
+                })
+                .unwrap_or(0);
+            let text = if b.bins.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "{} {}..{}: depth {:+.1} -> {:+.1} mm, IR {:+.2} -> {:+.2} % (trend z {:.0} -> {:.0})",
+                    b.quantity.name(),
+                    short(b.bins[k][0]),
+                    short(b.bins[k][1]),
+                    b.mean_mm[k],
+                    a.mean_mm[k],
+                    b.ir_mean_pct[k],
+                    a.ir_mean_pct[k],
+                    b.systematic_z,
+                    a.systematic_z
+                )
+            };
+            (b.systematic_z - a.systematic_z, text)
+        })
+        .filter(|(d, t)| *d > 0.0 && !t.is_empty())
+        .collect();
+    drops.sort_by(|a, b| b.0.total_cmp(&a.0));
+    drops.into_iter().take(2).map(|d| d.1).collect::<Vec<_>>().join("; ")
+}
+
+fn short(v: f64) -> String {
+    if v.abs() >= 100.0 || v.fract() == 0.0 {
+        format!("{v:.0}")
+    } else {
+        format!("{v:.3}")
     }
 }
 
@@ -375,6 +421,8 @@ pub struct AuditResult {
     pub trends_before: Vec<Trend>,
     /// The final model's residual trends.
     pub trends_after: Vec<Trend>,
+    /// The residual trends of each accepted step's model (as `steps`).
+    pub step_trends: Vec<Vec<Trend>>,
     /// Pixels used.
     pub pixels: usize,
     /// Frames used.
@@ -497,10 +545,11 @@ fn predict(
     displaced: bool,
 ) -> Option<(f64, f64, f64)> {
     let mut obs = p.obs;
-    if displaced {
+    {
+        // Every hypothesis sees the background through the smoothed latch (undisplaced
+        // unless the hypothesis refracts), so none gains merely from less noisy inputs.
         let mut o = model.options.clone();
-        if !o.refracts() {
-            // Sampled from the smoothed background even undisplaced, so the fit is smooth through 0.
+        if !displaced || !o.refracts() {
             o.refraction_shift_px = [1e-9, 0.0];
         }
         let (db, ib) = o.background_through_layer(
@@ -1030,6 +1079,16 @@ fn trend(
 /// trends before and after. `base` is the paper's model on the recording's
 /// sensor (its options are the baseline: normally the paper's defaults).
 pub fn run_audit(data: &AuditData, base: &ForwardModel, settings: &AuditSettings) -> Result<AuditResult, AuditError> {
+    run_audit_with_progress(data, base, settings, &mut |_| {})
+}
+
+/// [`run_audit`], telling `progress` what it is fitting (one call per hypothesis).
+pub fn run_audit_with_progress(
+    data: &AuditData,
+    base: &ForwardModel,
+    settings: &AuditSettings,
+    progress: &mut dyn FnMut(&str),
+) -> Result<AuditResult, AuditError> {
     if data.frames < MIN_FRAMES {
         return Err(AuditError::TooFewFrames {
             got: data.frames,
@@ -1059,6 +1118,7 @@ pub fn run_audit(data: &AuditData, base: &ForwardModel, settings: &AuditSettings
         .collect();
     let first = score_full_only(&prep, settings);
     prep.set_depth_noise(&prep.model_of(&[], &first, 2), logistic(first[0]), first[1].exp());
+    progress("baseline");
     let baseline = score(&prep, &[], settings);
     let n = data.pixels.len() as f64;
     let mut current = baseline.clone();
@@ -1074,6 +1134,7 @@ pub fn run_audit(data: &AuditData, base: &ForwardModel, settings: &AuditSettings
         for (ci, e) in remaining.iter().enumerate() {
             let mut effects = current.effects.clone();
             effects.push(*e);
+            progress(e.name());
             let fit = score(&prep, &effects, settings);
             let (gain, z, _) = paired_gain(&current, &fit);
             let threshold = (settings.penalty_per_param_ln_n * e.penalty_params() as f64 * n.ln())
@@ -1114,6 +1175,10 @@ pub fn run_audit(data: &AuditData, base: &ForwardModel, settings: &AuditSettings
     let trends_before = trends(data, &baseline, range_mm, sig, settings.trend_bins);
     let last = steps.last().unwrap_or(&baseline);
     let trends_after = trends(data, last, range_mm, sig, settings.trend_bins);
+    let step_trends = steps
+        .iter()
+        .map(|s| trends(data, s, range_mm, sig, settings.trend_bins))
+        .collect();
     let final_noise_ratio = {
         let v: Vec<f64> = last.heldout_loss.iter().copied().filter(|v| v.is_finite()).collect();
         // Mean Huber loss of two unit-noise residuals is about 1 (0.5 each).
@@ -1125,6 +1190,7 @@ pub fn run_audit(data: &AuditData, base: &ForwardModel, settings: &AuditSettings
         candidates,
         trends_before,
         trends_after,
+        step_trends,
         pixels: data.pixels.len(),
         frames: data.frames,
         final_noise_ratio,
