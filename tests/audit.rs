@@ -74,6 +74,8 @@ const BUNDLED: [(&str, &[&str]); 9] = [
 #[test]
 fn bundled_audit_bags_name_their_concealed_effects() {
     let started = std::time::Instant::now();
+    let physics_dir = tempfile::tempdir().expect("temp dir");
+    let physics_dir = &physics_dir;
     let results: Vec<(String, Value)> = std::thread::scope(|s| {
         let chunks: Vec<Vec<(&str, &[&str])>> = vec![
             BUNDLED.iter().step_by(2).copied().collect(),
@@ -87,7 +89,23 @@ fn bundled_audit_bags_name_their_concealed_effects() {
                         .iter()
                         .map(|(name, _)| {
                             let dir = tempfile::tempdir().expect("temp dir");
-                            (name.to_string(), audit(&bag(&format!("{name}.mcap")), dir.path(), &[]))
+                            let v = if *name == "audit_b" {
+                                // This one also writes its physics file and plots, for the replay check below.
+                                let out = physics_dir.path();
+                                audit(
+                                    &bag("audit_b.mcap"),
+                                    dir.path(),
+                                    &[
+                                        "--physics-out",
+                                        out.join("physics.toml").to_str().expect("utf-8"),
+                                        "--plots",
+                                        out.join("plots").to_str().expect("utf-8"),
+                                    ],
+                                )
+                            } else {
+                                audit(&bag(&format!("{name}.mcap")), dir.path(), &[])
+                            };
+                            (name.to_string(), v)
                         })
                         .collect::<Vec<_>>()
                 })
@@ -140,30 +158,21 @@ fn bundled_audit_bags_name_their_concealed_effects() {
     }
     println!("bundled audits took {:.0} s", started.elapsed().as_secs_f64());
     assert!(failures.is_empty(), "{failures:#?}");
+    let b = &results.iter().find(|(n, _)| n == "audit_b").expect("ran").1;
+    replay_with_the_audit_physics(b, physics_dir.path());
 }
 
-/// The physics file the audit writes is one `replay --physics` takes, and with
-/// it (and the ξ the audit fitted) recovery on the same recording improves.
-#[test]
-fn audit_physics_file_makes_replay_recover_better() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let physics = dir.path().join("physics.toml");
-    let plots = dir.path().join("plots");
-    let b = bag("audit_b.mcap");
-    let v = audit(
-        &b,
-        dir.path(),
-        &[
-            "--physics-out",
-            physics.to_str().expect("utf-8"),
-            "--plots",
-            plots.to_str().expect("utf-8"),
-        ],
-    );
-    let svgs = std::fs::read_dir(&plots).expect("plots").count();
+/// The physics file the audit wrote for `audit_b` is one `replay --physics`
+/// takes, and with it (and the ξ the audit fitted) recovery on the same
+/// recording improves; the plots are there, one SVG per quantity.
+fn replay_with_the_audit_physics(v: &Value, dir: &Path) {
+    let physics = dir.join("physics.toml");
+    let svgs = std::fs::read_dir(dir.join("plots")).expect("plots").count();
     assert!(svgs >= 8, "one SVG per quantity, got {svgs}");
+    let b = bag("audit_b.mcap");
+
     let replay = |args: &[&str]| -> f64 {
-        let json = dir.path().join("replay.json");
+        let json = dir.join("replay.json");
         let mut a = vec![
             "replay",
             b.to_str().expect("utf-8"),

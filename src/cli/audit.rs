@@ -174,6 +174,24 @@ fn physics_file(result: &AuditResult, base: &crate::physics::ForwardModel) -> Ph
     let fin = result.final_fit();
     let m = fin.model(base);
     let mut f = PhysicsFile::default();
+    // What the baseline already modelled (a --physics file given to the audit) stays.
+    let d = crate::physics::ModelOptions::default();
+    let o = &base.options;
+    f.bounces = (o.bounces != d.bounces).then_some(o.bounces);
+    f.ir_mode = (o.ir_mode != d.ir_mode).then_some(o.ir_mode);
+    f.transmission_albedo_power =
+        (o.transmission_albedo_power != d.transmission_albedo_power).then_some(o.transmission_albedo_power);
+    f.ambient_offset = (o.ambient_offset != d.ambient_offset).then_some(o.ambient_offset);
+    f.subsurface_delay_mm = (o.subsurface_delay_mm != d.subsurface_delay_mm).then_some(o.subsurface_delay_mm);
+    f.refraction_shift_px = (o.refraction_shift_px != d.refraction_shift_px).then_some(o.refraction_shift_px);
+    match base.sensor.waveform {
+        Waveform::Harmonics { third, fifth } => {
+            f.waveform = Some("harmonics".into());
+            f.harmonics = Some([third, fifth]);
+        }
+        Waveform::Triangle => f.waveform = Some("triangle".into()),
+        Waveform::Sinusoid => {}
+    }
     for e in &fin.effects {
         match e {
             Effect::HigherOrderBounces => f.bounces = Some(m.options.bounces),
@@ -298,6 +316,10 @@ fn report(
             "before": before.map(|b| b.0),
             "after": after.map(|b| b.0),
             "pixels": before.map(|b| b.1),
+            "note": match (before, after) {
+                (Some(b), Some(f)) if f.0 > b.0 => "recovery with the chosen model is worse than with the paper's, though the model fits the readings better: the inversion's choice among several roots (README, Limits) fails on this recording under the chosen physics",
+                _ => "",
+            },
         },
         "plots": {
             "files": plots,

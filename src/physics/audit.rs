@@ -399,7 +399,7 @@ impl Default for AuditSettings {
             folds: 4,
             huber_k: 3.0,
             penalty_per_param_ln_n: 2.0,
-            min_gain_z: 5.0,
+            min_gain_z: 4.0,
             min_relative_gain: 0.02,
             max_effects: 3,
             trend_bins: 8,
