@@ -243,9 +243,17 @@ fn drawn_scene(seed: u64, effect: Option<Effect>) -> translucent_tof::sim::Scene
         Some(Effect::SubsurfaceDelay) => p.subsurface_delay_mm = rng.random_range(12.0..35.0),
         Some(Effect::TransmissionLaw) => p.transmission_albedo_power = rng.random_range(0.0..1.0),
         Some(Effect::RefractionShift) => {
-            scene.background.tilt_y_deg = rng.random_range(20.0..35.0);
+            // A displaced background shows only where the background changes along the
+            // displacement: the wall is tilted about the axis across it.
+            let tilt = rng.random_range(20.0..35.0);
             let s = rng.random_range(2.0..4.0);
-            p.refraction_shift_px = if rng.random_bool(0.5) { [s, 0.0] } else { [0.0, -s] };
+            if rng.random_bool(0.5) {
+                scene.background.tilt_y_deg = tilt;
+                p.refraction_shift_px = [s, 0.0];
+            } else {
+                scene.background.tilt_x_deg = tilt;
+                p.refraction_shift_px = [0.0, -s];
+            }
         }
     }
     scene
