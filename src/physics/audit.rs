@@ -1230,6 +1230,21 @@ mod tests {
     }
 
     #[test]
+    fn the_audits_coarse_decoder_reads_single_surfaces_within_half_a_millimetre() {
+        let w = Waveform::Harmonics {
+            third: 0.15,
+            fifth: -0.04,
+        };
+        let s = Sensor::with_decode_table_len(30e6, w, AUDIT_DECODE_TABLE_LEN);
+        let r = s.unambiguous_range_mm();
+        for k in 0..1009 {
+            let d = r * k as f64 / 1009.0;
+            let got = s.decode(s.buckets(2.0, d)).unwrap_or(f64::NAN);
+            assert!(s.wrapped_difference_mm(got, d).abs() < 0.5, "d {d} read {got}");
+        }
+    }
+
+    #[test]
     fn effects_map_to_model_options() {
         let base = ForwardModel::paper(Sensor::sr4000());
         let m = build_model(

@@ -375,6 +375,31 @@ mod tests {
     }
 
     #[test]
+    fn refraction_samples_the_displaced_background() {
+        use crate::physics::ImageBuf;
+        // A background whose distance grows by 10 mm per column; IR and Lin flat.
+        let (w, h) = (8, 4);
+        let d = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|i| 2000.0 + 10.0 * (i % w) as f64).collect(),
+        };
+        let ir = ImageBuf::filled(w, h, 500.0);
+        let lin = ImageBuf::filled(w, h, 1e10);
+        let mut o = ModelOptions::default();
+        assert_eq!(o.background_through_layer(&d, &ir, &lin, 3, 1), Some((2030.0, 500.0)));
+        o.refraction_shift_px = [1.5, 0.0];
+        let (db, ib) = o.background_through_layer(&d, &ir, &lin, 3, 1).unwrap();
+        assert!((db - 2045.0).abs() < 1e-9 && (ib - 500.0).abs() < 1e-9, "{db} {ib}");
+        // Past the border the border stands in.
+        o.refraction_shift_px = [5.0, 0.0];
+        assert_eq!(
+            o.background_through_layer(&d, &ir, &lin, 6, 1).map(|v| v.0),
+            Some(2070.0)
+        );
+    }
+
+    #[test]
     fn subsurface_delay_and_ambient_shift_the_readings() {
         let mut m = ForwardModel::paper(Sensor::sr4000());
         let s = scene(1000.0, 2000.0, 0.0, 0.6);
