@@ -455,11 +455,27 @@ impl Pipeline {
             data: (0..k.width * k.height)
                 .map(|i| {
                     let ir = frame.ir.data[i] as f64;
+                    // The background behind the layer (displaced when the model refracts).
+                    let (db, ib) = if self.config.model.options.refracts() {
+                        self.config
+                            .model
+                            .options
+                            .background_through_layer(
+                                &bg.distance_mm,
+                                &bg.ir,
+                                &bg.emitted_light,
+                                i % k.width,
+                                i / k.width,
+                            )
+                            .unwrap_or((f64::NAN, f64::NAN))
+                    } else {
+                        (bg.distance_mm.data[i], bg.ir.data[i])
+                    };
                     let o = PixelObservation {
                         distance_mm: d.data[i],
                         ir,
-                        background_distance_mm: bg.distance_mm.data[i],
-                        background_ir: bg.ir.data[i],
+                        background_distance_mm: db,
+                        background_ir: ib,
                         emitted_light: bg.emitted_light.data[i],
                     };
                     let ok = mask.data[i]

@@ -959,3 +959,116 @@ fn bad_scene_unknown_key() {
     );
     assert_clean_failure(&out, &["typo.toml", "colour"], dir.path(), &["typo.toml"]);
 }
+
+// ------------------------------------------------------------------ audit
+
+/// The audit needs ground truth: without it, a clear error and no output.
+#[test]
+fn bad_audit_without_ground_truth() {
+    let dir = temp();
+    let scene = small_scene(3, true);
+    write_bag(&dir.path().join("notruth.mcap"), &scene, &BagSpec::default());
+    let out = run(
+        dir.path(),
+        &[
+            "audit",
+            "notruth.mcap",
+            "--json",
+            "audit.json",
+            "--physics-out",
+            "physics.toml",
+            "--plots",
+            "plots",
+        ],
+    );
+    assert_clean_failure(&out, &["ground_truth/depth", "audit"], dir.path(), &["notruth.mcap"]);
+}
+
+/// Two frames of the layer are too few to leave frames out.
+#[test]
+fn bad_audit_too_few_frames() {
+    let dir = temp();
+    let scene = small_scene(3, true);
+    let spec = BagSpec {
+        truth: true,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.path().join("short.mcap"), &scene, &spec);
+    let out = run(
+        dir.path(),
+        &[
+            "audit",
+            "short.mcap",
+            "--json",
+            "audit.json",
+            "--physics-out",
+            "physics.toml",
+        ],
+    );
+    assert_clean_failure(&out, &["frame", "at least 4"], dir.path(), &["short.mcap"]);
+}
+
+fn truth_off_the_layer(_: usize, f: &SimFrame, h: &Header) -> Image {
+    // Truth only in the top-left corner, where the layer is not.
+    let mut t = f.truth_z_mm.clone();
+    for (i, v) in t.data.iter_mut().enumerate() {
+        let (c, r) = (i % t.width, i / t.width);
+        *v = if c < 4 && r < 4 { 500.0 } else { f32::NAN };
+    }
+    depth_image(h, &t, "32FC1").expect("encoding truth")
+}
+
+/// Ground truth that does not overlap the translucent pixels says so.
+#[test]
+fn bad_audit_truth_not_on_the_layer() {
+    let dir = temp();
+    let scene = small_scene(3, true);
+    let frames = render_all(&scene);
+    let mut w = BagWriter::create(&dir.path().join("offset.mcap")).expect("bag");
+    for f in &frames {
+        let h = Header::new(f.stamp_ns, FRAME_ID);
+        w.write(&topic("depth/image_raw"), f.stamp_ns, &default_depth(0, f, &h))
+            .expect("depth");
+        w.write(&topic("ir/image_raw"), f.stamp_ns, &default_ir(0, f, &h))
+            .expect("ir");
+        w.write(
+            &topic("depth/camera_info"),
+            f.stamp_ns,
+            &camera_info(&scene, f.stamp_ns),
+        )
+        .expect("info");
+        w.write(&topic("ground_truth/depth"), f.stamp_ns, &truth_off_the_layer(0, f, &h))
+            .expect("truth");
+    }
+    w.finish().expect("finish");
+    let out = run(
+        dir.path(),
+        &[
+            "audit",
+            "offset.mcap",
+            "--json",
+            "audit.json",
+            "--physics-out",
+            "physics.toml",
+        ],
+    );
+    assert_clean_failure(&out, &["does not overlap", "translucent"], dir.path(), &["offset.mcap"]);
+}
+
+/// `--rerun` in a build without Rerun is refused, not ignored.
+#[test]
+fn bad_audit_rerun_without_rerun() {
+    let dir = temp();
+    let out = run(
+        dir.path(),
+        &[
+            "audit",
+            bundled("audit_control.mcap").to_str().unwrap(),
+            "--rerun",
+            "out.rrd",
+            "--json",
+            "a.json",
+        ],
+    );
+    assert_clean_failure(&out, &["rerun"], dir.path(), &[]);
+}

@@ -122,6 +122,8 @@ pub struct PhysicsFile {
     pub waveform: Option<String>,
     /// Relative 3rd and 5th harmonics when `waveform = "harmonics"`.
     pub harmonics: Option<[f64; 2]>,
+    /// Displacement of the background seen through the layer, pixels `[columns, rows]`.
+    pub refraction_shift_px: Option<[f64; 2]>,
 }
 
 impl PhysicsFile {
@@ -174,6 +176,7 @@ impl ModelArgs {
             transmission_albedo_power: file.transmission_albedo_power.unwrap_or(d.transmission_albedo_power),
             ambient_offset: file.ambient_offset.unwrap_or(d.ambient_offset),
             subsurface_delay_mm: file.subsurface_delay_mm.unwrap_or(d.subsurface_delay_mm),
+            refraction_shift_px: file.refraction_shift_px.unwrap_or(d.refraction_shift_px),
         };
         if let Some(m) = &self.ir_mode {
             options.ir_mode = match m.as_str() {

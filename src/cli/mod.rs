@@ -1,5 +1,6 @@
 //! The `translucent_tof` command line: one binary, one subcommand per job.
 
+mod audit;
 mod bench;
 mod calibrate;
 mod common;
@@ -39,6 +40,8 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Time the real-time path (recovery, segmentation, ξ estimation, replay) against the plain 1 mm grid search.
     Bench(bench::BenchArgs),
+    /// Compare the model with a ground-truthed recording: locate, name and fit the physics it leaves out.
+    Audit(audit::AuditArgs),
     /// The latency benchmark's transport baseline: answers each depth image at once with same-size outputs.
     #[command(hide = true)]
     DdsEcho(EchoArgs),
@@ -73,5 +76,6 @@ pub fn run() -> anyhow::Result<()> {
             crate::node::echo::run(domain, &a.namespace, &a.node)
         }
         Command::Bench(a) => bench::run(a),
+        Command::Audit(a) => audit::run(a),
     }
 }

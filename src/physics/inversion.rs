@@ -754,6 +754,7 @@ mod tests {
             transmission_albedo_power: 0.0,
             ambient_offset: 30.0,
             subsurface_delay_mm: 5.0,
+            refraction_shift_px: [0.0, 0.0],
         };
         let m = ForwardModel {
             sensor: Sensor::sr4000(),

@@ -24,4 +24,5 @@ pub mod surface;
 pub use camera::Intrinsics;
 pub mod translucency;
 pub use translucency::{XiEstimate, XiMethod};
+pub mod audit;
 pub mod noise;

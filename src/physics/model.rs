@@ -41,6 +41,11 @@ pub struct ModelOptions {
     pub ambient_offset: f64,
     /// Extra path of the light the layer returns (subsurface scattering), mm.
     pub subsurface_delay_mm: f64,
+    /// Refraction by the layer (the paper's named limit, Sec. VI): the
+    /// background reached through the layer (the second and later returns,
+    /// Eq. 2-3) is the one a neighbouring ray would see, displaced by this
+    /// many pixels `[columns, rows]` in the image. `[0, 0]` is no refraction.
+    pub refraction_shift_px: [f64; 2],
 }
 
 impl Default for ModelOptions {
@@ -51,6 +56,7 @@ impl Default for ModelOptions {
             transmission_albedo_power: 2.0,
             ambient_offset: 0.0,
             subsurface_delay_mm: 0.0,
+            refraction_shift_px: [0.0, 0.0],
         }
     }
 }
@@ -63,6 +69,59 @@ impl ModelOptions {
             && self.transmission_albedo_power == 2.0
             && self.ambient_offset == 0.0
     }
+}
+
+impl ModelOptions {
+    /// True when the background behind the layer is displaced (refraction).
+    pub fn refracts(&self) -> bool {
+        self.refraction_shift_px != [0.0, 0.0]
+    }
+
+    /// What a pixel at `(col, row)` sees of the background through the layer:
+    /// the background's distance (mm) and IR (counts) at the displaced image
+    /// point (bilinear between the four pixels around it), with the IR scaled
+    /// to this pixel's emitted light so that `Xb = Ib db^2 / Lin` (physics.md
+    /// §1) holds with the pixel's own `Lin`. A displaced point past the image's
+    /// border is moved onto it; `None` when it falls next to an invalid
+    /// background pixel.
+    pub fn background_through_layer(
+        &self,
+        background_distance_mm: &super::ImageBuf<f64>,
+        background_ir: &super::ImageBuf<f64>,
+        emitted_light: &super::ImageBuf<f64>,
+        col: usize,
+        row: usize,
+    ) -> Option<(f64, f64)> {
+        let i = row * background_distance_mm.width + col;
+        if !self.refracts() {
+            return Some((background_distance_mm.data[i], background_ir.data[i]));
+        }
+        let [dx, dy] = self.refraction_shift_px;
+        // Past the image's border the nearest border pixel stands in (the camera sees no further).
+        let u = (col as f64 + dx).clamp(0.0, (background_distance_mm.width - 1) as f64);
+        let v = (row as f64 + dy).clamp(0.0, (background_distance_mm.height - 1) as f64);
+        let d = bilinear(background_distance_mm, u, v)?;
+        let ir = bilinear(background_ir, u, v)?;
+        let lin = bilinear(emitted_light, u, v)?;
+        let own = emitted_light.data[i];
+        (d.is_finite() && ir.is_finite() && lin > 0.0 && own.is_finite()).then_some((d, ir * own / lin))
+    }
+}
+
+/// Bilinear sample of an image at `(u, v)` (pixel centres at integers); `None`
+/// outside the image or next to a non-finite sample.
+pub fn bilinear(img: &super::ImageBuf<f64>, u: f64, v: f64) -> Option<f64> {
+    if !(u >= 0.0 && v >= 0.0 && u <= (img.width - 1) as f64 && v <= (img.height - 1) as f64) {
+        return None;
+    }
+    let (c0, r0) = (u.floor() as usize, v.floor() as usize);
+    let (c1, r1) = ((c0 + 1).min(img.width - 1), (r0 + 1).min(img.height - 1));
+    let (tu, tv) = (u - c0 as f64, v - r0 as f64);
+    let at = |c: usize, r: usize| img.data[r * img.width + c];
+    let top = at(c0, r0) * (1.0 - tu) + at(c1, r0) * tu;
+    let bottom = at(c0, r1) * (1.0 - tu) + at(c1, r1) * tu;
+    let v = top * (1.0 - tv) + bottom * tv;
+    v.is_finite().then_some(v)
 }
 
 /// One return: its strength and its equivalent distance.
@@ -313,6 +372,31 @@ mod tests {
         let amp = m.measure_layer(&s).ir;
         assert!(amp < sum);
         assert!((m.layer_ir(&s) - amp).abs() < 1e-9);
+    }
+
+    #[test]
+    fn refraction_samples_the_displaced_background() {
+        use crate::physics::ImageBuf;
+        // A background whose distance grows by 10 mm per column; IR and Lin flat.
+        let (w, h) = (8, 4);
+        let d = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|i| 2000.0 + 10.0 * (i % w) as f64).collect(),
+        };
+        let ir = ImageBuf::filled(w, h, 500.0);
+        let lin = ImageBuf::filled(w, h, 1e10);
+        let mut o = ModelOptions::default();
+        assert_eq!(o.background_through_layer(&d, &ir, &lin, 3, 1), Some((2030.0, 500.0)));
+        o.refraction_shift_px = [1.5, 0.0];
+        let (db, ib) = o.background_through_layer(&d, &ir, &lin, 3, 1).unwrap();
+        assert!((db - 2045.0).abs() < 1e-9 && (ib - 500.0).abs() < 1e-9, "{db} {ib}");
+        // Past the border the border stands in.
+        o.refraction_shift_px = [5.0, 0.0];
+        assert_eq!(
+            o.background_through_layer(&d, &ir, &lin, 6, 1).map(|v| v.0),
+            Some(2070.0)
+        );
     }
 
     #[test]

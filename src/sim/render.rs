@@ -142,7 +142,7 @@ fn foreground_hit<'a>(u: &Vector3<f64>, objects: &'a [ObjectSpec], bg: Option<Hi
 /// layer's (Eq. 1-3) in front of the background, or the background alone.
 fn ray_returns(
     model: &ForwardModel,
-    u: &Vector3<f64>,
+    (u, u_behind): (&Vector3<f64>, &Vector3<f64>),
     objects: &[ObjectSpec],
     (bg_center, bg_rot, bg_albedo): (Vector3<f64>, &Rotation3<f64>, f64),
     lin: f64,
@@ -151,6 +151,15 @@ fn ray_returns(
     let bg = hit_plane(u, bg_center, bg_rot, None);
     match (foreground_hit(u, objects, bg), bg) {
         (Some((h, o)), Some(bh)) => {
+            // Through the layer the background is the one the displaced ray meets (refraction).
+            let bh = if u_behind == u {
+                bh
+            } else {
+                match hit_plane(u_behind, bg_center, bg_rot, None) {
+                    Some(b) => b,
+                    None => bh,
+                }
+            };
             let mut r = [Return::default(); MAX_BOUNCES];
             let n = model.layer_returns(
                 &LayerScene {
@@ -217,9 +226,15 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
                     } else {
                         k.ray_at(col + du, row + dv).normalize()
                     };
+                    let behind = if model.options.refracts() {
+                        let [dx, dy] = model.options.refraction_shift_px;
+                        k.ray_at(col + du + dx, row + dv + dy).normalize()
+                    } else {
+                        u
+                    };
                     ray_returns(
                         &model,
-                        &u,
+                        (&u, &behind),
                         objects,
                         (bg_center, &bg_rot, b.albedo),
                         lin.data[i] / (ss * ss) as f64,

@@ -1,0 +1,1270 @@
+//! The physics audit: fit the paper's model (Eq. 1-2, 5, 7) to a recording
+//! whose foreground distances are known (the paper's Sec. V-A), find where it
+//! disagrees with the readings, and test each effect the paper leaves out as
+//! an option of the one forward model ([`ModelOptions`], [`Waveform`]).
+//!
+//! Numbers in, numbers out. Every hypothesis (the baseline or the baseline
+//! plus a set of effects) is fitted with ξ and the material's albedo `rho_f`
+//! refitted together with the effects' parameters (a missing effect is
+//! otherwise absorbed into ξ), scored on frames left out of its fit, and
+//! effects are added greedily while the held-out error improves by more than
+//! the noise and a penalty per parameter allow.
+//!
+//! Per pixel the known foreground distance fixes `df`, its surface's normal
+//! gives `cos(theta_f)`, and one material gives `X = rho_f cos(theta_f)`
+//! (physics.md §3, "one material"): the model then predicts both the reading
+//! `d` (Eq. 11) and the IR value `I` (Eq. 7), and both are compared with the
+//! observation, each in units of its own noise.
+
+use serde::Serialize;
+
+use super::buffer::ImageBuf;
+use super::inversion::PixelObservation;
+use super::model::{ForwardModel, IrMode, ModelOptions, MAX_BOUNCES};
+use super::sensor::{Sensor, Waveform};
+
+/// An effect past the paper's model, as `interfaces.md` names it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Effect {
+    /// Eq. 3's terms past L2 (inter-reflections between the layers).
+    HigherOrderBounces,
+    /// Harmonic content of the correlation waveform (3rd and 5th).
+    WaveformHarmonics,
+    /// The IR image is the demodulated amplitude, not the sum of Eq. 7.
+    IrAmplitude,
+    /// An offset in the IR image.
+    AmbientOffset,
+    /// Extra path of the light the layer returns (subsurface scattering).
+    SubsurfaceDelay,
+    /// The second return's power of the layer's albedo (physics.md's note on Eq. 2).
+    TransmissionLaw,
+    /// The background seen through the layer displaced (refraction).
+    RefractionShift,
+}
+
+impl Effect {
+    /// Every candidate, in a fixed order.
+    pub const ALL: [Effect; 7] = [
+        Effect::HigherOrderBounces,
+        Effect::WaveformHarmonics,
+        Effect::IrAmplitude,
+        Effect::AmbientOffset,
+        Effect::SubsurfaceDelay,
+        Effect::TransmissionLaw,
+        Effect::RefractionShift,
+    ];
+
+    /// The name in reports and physics files.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Effect::HigherOrderBounces => "higher_order_bounces",
+            Effect::WaveformHarmonics => "waveform_harmonics",
+            Effect::IrAmplitude => "ir_amplitude",
+            Effect::AmbientOffset => "ambient_offset",
+            Effect::SubsurfaceDelay => "subsurface_delay",
+            Effect::TransmissionLaw => "transmission_law",
+            Effect::RefractionShift => "refraction_shift",
+        }
+    }
+
+    /// Names of the continuous parameters fitted for this effect.
+    pub fn param_names(&self) -> &'static [&'static str] {
+        match self {
+            Effect::HigherOrderBounces => &[],
+            Effect::WaveformHarmonics => &["third", "fifth"],
+            Effect::IrAmplitude => &[],
+            Effect::AmbientOffset => &["ambient_offset"],
+            Effect::SubsurfaceDelay => &["subsurface_delay_mm"],
+            Effect::TransmissionLaw => &["transmission_albedo_power"],
+            Effect::RefractionShift => &["shift_columns_px", "shift_rows_px"],
+        }
+    }
+
+    /// Parameters counted by the penalty: a discrete switch counts as one.
+    pub fn penalty_params(&self) -> usize {
+        self.param_names().len().max(1)
+    }
+}
+
+/// One pixel of one frame with a known foreground distance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AuditPixel {
+    /// Index of the frame among the audited frames.
+    pub frame: usize,
+    /// Image column.
+    pub col: usize,
+    /// Image row.
+    pub row: usize,
+    /// What the pipeline knows at the pixel (reading, IR, its own background, `Lin`).
+    pub obs: PixelObservation,
+    /// True foreground ray distance, mm.
+    pub truth_mm: f64,
+    /// `cos(theta_f)` of the true surface at the pixel.
+    pub incidence_cos: f64,
+}
+
+/// A recording prepared for the audit.
+#[derive(Debug, Clone)]
+pub struct AuditData {
+    /// The pixels (a lattice over each frame's translucent pixels with truth).
+    pub pixels: Vec<AuditPixel>,
+    /// Frames the pixels come from.
+    pub frames: usize,
+    /// The latched background's ray distance, mm, smoothed over a few pixels:
+    /// what every hypothesis sees behind the layer (smoothing keeps the latch's
+    /// noise from making the fit rough in a displacement, and is the same for all).
+    pub background_distance_mm: ImageBuf<f64>,
+    /// The latched background's IR, counts, smoothed likewise.
+    pub background_ir: ImageBuf<f64>,
+    /// `Lin`, counts mm^2, smoothed likewise.
+    pub emitted_light: ImageBuf<f64>,
+    /// Depth noise of an opaque return times the square root of its IR, mm counts^(1/2)
+    /// (shot noise: `sigma_d = k_d sqrt(total) / amplitude`), measured over the latch.
+    pub depth_noise_coef: f64,
+    /// IR noise over the square root of the IR, counts^(1/2), measured over the latch.
+    pub ir_noise_coef: f64,
+}
+
+/// Why the audit cannot run.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum AuditError {
+    /// Too few frames with known foreground distances to leave any out.
+    #[error("{got} frame(s) show the layer with ground truth over its translucent pixels; the audit needs at least {need} (a calibration sequence: the layer at several known distances) to fit on some and test on the others")]
+    TooFewFrames {
+        /// Frames with usable pixels.
+        got: usize,
+        /// Frames needed.
+        need: usize,
+    },
+    /// Too few pixels.
+    #[error("{got} translucent pixel(s) with ground truth; the audit needs at least {need}")]
+    TooFewPixels {
+        /// Pixels.
+        got: usize,
+        /// Needed.
+        need: usize,
+    },
+    /// The background's noise could not be measured.
+    #[error("the background's noise is unknown (the latch needs at least 3 frames of a still background)")]
+    NoNoise,
+}
+
+/// Least frames the audit works with (it leaves frames out in folds).
+pub const MIN_FRAMES: usize = 4;
+/// Least pixels.
+pub const MIN_PIXELS: usize = 200;
+
+/// A hypothesis: the baseline with these effects, and its fitted values.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Fit {
+    /// Effects in the model.
+    pub effects: Vec<Effect>,
+    /// ξ.
+    pub xi: f64,
+    /// `rho_f`, the material's albedo (times whatever scale `Lin` carries).
+    pub albedo: f64,
+    /// The effects' parameters, by name.
+    pub params: Vec<(String, f64)>,
+    /// Bounces kept (when higher-order bounces are in).
+    pub bounces: usize,
+    /// RMS of the depth residual over every pixel, fitted on all of them, mm.
+    pub rmse_mm: f64,
+    /// RMS of the IR residual relative to the IR, fitted on all pixels.
+    pub ir_rel_rmse: f64,
+    /// RMS of the depth residual on frames left out of the fit, mm.
+    pub heldout_rmse_mm: f64,
+    /// Mean held-out loss per pixel (depth and IR, in units of their noise; Huber).
+    pub heldout_score: f64,
+    /// Held-out loss per pixel (for paired comparisons).
+    #[serde(skip)]
+    pub heldout_loss: Vec<f64>,
+    /// Held-out depth residual per pixel, mm (predicted minus read, wrapped).
+    #[serde(skip)]
+    pub heldout_residual_mm: Vec<f64>,
+    /// Held-out IR residual per pixel, counts.
+    #[serde(skip)]
+    pub heldout_ir_residual: Vec<f64>,
+    /// Parameter vector (internal coordinates) of the all-pixel fit.
+    #[serde(skip)]
+    theta: Vec<f64>,
+}
+
+impl Fit {
+    /// The forward model this fit describes on top of `base`.
+    pub fn model(&self, base: &ForwardModel) -> ForwardModel {
+        build_model(base, &self.effects, &self.theta[2..], self.bounces)
+    }
+}
+
+/// One candidate's score in one round of the greedy selection.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CandidateScore {
+    /// Round (0 = the first effect added to the baseline).
+    pub round: usize,
+    /// The effect tried.
+    pub effect: Effect,
+    /// Held-out depth RMS with it, mm.
+    pub heldout_rmse_mm: f64,
+    /// Mean held-out loss per pixel with it.
+    pub heldout_score: f64,
+    /// Improvement of the summed held-out loss over the model of that round.
+    pub gain: f64,
+    /// What the gain had to exceed: the parameter penalty or the noise of the gain, whichever is larger.
+    pub threshold: f64,
+    /// The gain in units of its own standard error (pixel-paired).
+    pub z: f64,
+    /// Its fitted parameters.
+    pub params: Vec<(String, f64)>,
+    /// ξ refitted with it.
+    pub xi: f64,
+    /// Accepted.
+    pub accepted: bool,
+}
+
+/// A quantity residuals are tested against.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Quantity {
+    /// Layer separation `db - df`, mm.
+    Separation,
+    /// Foreground distance `df`, mm.
+    ForegroundDistance,
+    /// The reading's phase as a fraction of the unambiguous range.
+    Phase,
+    /// IR level, counts.
+    IrLevel,
+    /// Incidence angle on the layer, degrees.
+    IncidenceAngle,
+    /// Image column.
+    ImageColumn,
+    /// Image row.
+    ImageRow,
+    /// Frame index.
+    Frame,
+}
+
+impl Quantity {
+    /// Every quantity.
+    pub const ALL: [Quantity; 8] = [
+        Quantity::Separation,
+        Quantity::ForegroundDistance,
+        Quantity::Phase,
+        Quantity::IrLevel,
+        Quantity::IncidenceAngle,
+        Quantity::ImageColumn,
+        Quantity::ImageRow,
+        Quantity::Frame,
+    ];
+
+    /// Name in reports and file names.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Quantity::Separation => "separation_mm",
+            Quantity::ForegroundDistance => "foreground_distance_mm",
+            Quantity::Phase => "phase_fraction",
+            Quantity::IrLevel => "ir_counts",
+            Quantity::IncidenceAngle => "incidence_deg",
+            Quantity::ImageColumn => "image_column",
+            Quantity::ImageRow => "image_row",
+            Quantity::Frame => "frame",
+        }
+    }
+
+    fn value(&self, p: &AuditPixel, range_mm: f64) -> f64 {
+        match self {
+            Quantity::Separation => p.obs.background_distance_mm - p.truth_mm,
+            Quantity::ForegroundDistance => p.truth_mm,
+            Quantity::Phase => (p.obs.distance_mm / range_mm).rem_euclid(1.0),
+            Quantity::IrLevel => p.obs.ir,
+            Quantity::IncidenceAngle => p.incidence_cos.clamp(-1.0, 1.0).acos().to_degrees(),
+            Quantity::ImageColumn => p.col as f64,
+            Quantity::ImageRow => p.row as f64,
+            Quantity::Frame => p.frame as f64,
+        }
+    }
+}
+
+/// Residuals binned against one quantity (a plot's series).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Trend {
+    /// The quantity.
+    pub quantity: Quantity,
+    /// Bin edges `[lo, hi]` in the quantity's unit.
+    pub bins: Vec<[f64; 2]>,
+    /// Pixels per bin.
+    pub counts: Vec<usize>,
+    /// Mean depth residual per bin, mm.
+    pub mean_mm: Vec<f64>,
+    /// Standard error of that mean, mm.
+    pub se_mm: Vec<f64>,
+    /// Mean IR residual per bin relative to the IR (percent).
+    pub ir_mean_pct: Vec<f64>,
+    /// Departure of the bin means from their overall mean, in units of the
+    /// spread expected from noise: `(chi2 - dof) / sqrt(2 dof)` of depth and IR pooled.
+    pub systematic_z: f64,
+}
+
+impl Trend {
+    /// The bin whose mean depth residual is largest in magnitude, in words.
+    pub fn worst_bin(&self) -> String {
+        let Some(k) = (0..self.bins.len())
+            .filter(|&k| self.counts[k] > 0)
+            .max_by(|&a, &b| self.mean_mm[a].abs().total_cmp(&self.mean_mm[b].abs()))
+        else {
+            return String::new();
+        };
+        format!(
+            "{} {}..{}: depth {:+.1} mm, IR {:+.2} % ({} px)",
+            self.quantity.name(),
+            short(self.bins[k][0]),
+            short(self.bins[k][1]),
+            self.mean_mm[k],
+            self.ir_mean_pct[k],
+            self.counts[k]
+        )
+    }
+}
+
+/// Where a step's model took the residual away: the quantities whose trend
+/// fell most from `before` to `after`, each with the bin whose mean residual
+/// shrank most, in words.
+pub fn where_it_helped(before: &[Trend], after: &[Trend]) -> String {
+    let mut drops: Vec<(f64, String)> = before
+        .iter()
+        .zip(after)
+        .filter(|(b, a)| b.quantity == a.quantity && b.mean_mm.len() == a.mean_mm.len())
+        .map(|(b, a)| {
+            let k = (0..b.mean_mm.len())
+                .max_by(|&i, &j| {
+                    (b.mean_mm[i].abs() - a.mean_mm[i].abs()).total_cmp(&(b.mean_mm[j].abs() - a.mean_mm[j].abs()))
+                })
+                .unwrap_or(0);
+            let text = if b.bins.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "{} {}..{}: depth {:+.1} -> {:+.1} mm, IR {:+.2} -> {:+.2} % (trend z {:.0} -> {:.0})",
+                    b.quantity.name(),
+                    short(b.bins[k][0]),
+                    short(b.bins[k][1]),
+                    b.mean_mm[k],
+                    a.mean_mm[k],
+                    b.ir_mean_pct[k],
+                    a.ir_mean_pct[k],
+                    b.systematic_z,
+                    a.systematic_z
+                )
+            };
+            (b.systematic_z - a.systematic_z, text)
+        })
+        .filter(|(d, t)| *d > 0.0 && !t.is_empty())
+        .collect();
+    drops.sort_by(|a, b| b.0.total_cmp(&a.0));
+    drops.into_iter().take(2).map(|d| d.1).collect::<Vec<_>>().join("; ")
+}
+
+fn short(v: f64) -> String {
+    if v.abs() >= 100.0 || v.fract() == 0.0 {
+        format!("{v:.0}")
+    } else {
+        format!("{v:.3}")
+    }
+}
+
+/// Settings of the audit.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AuditSettings {
+    /// Folds of frames left out (interleaved by frame index).
+    pub folds: usize,
+    /// Huber threshold of the loss, in noise sigmas.
+    pub huber_k: f64,
+    /// Penalty per parameter in units of the loss (BIC-like: times `ln N`).
+    pub penalty_per_param_ln_n: f64,
+    /// Least pixel-paired z of an accepted gain.
+    pub min_gain_z: f64,
+    /// Least relative improvement of the held-out loss for an accepted effect.
+    pub min_relative_gain: f64,
+    /// Most effects added.
+    pub max_effects: usize,
+    /// Bins per trend.
+    pub trend_bins: usize,
+    /// Iterations of each Nelder-Mead fit.
+    pub max_iterations: usize,
+}
+
+impl Default for AuditSettings {
+    fn default() -> Self {
+        Self {
+            folds: 4,
+            huber_k: 3.0,
+            penalty_per_param_ln_n: 2.0,
+            min_gain_z: 4.0,
+            min_relative_gain: 0.02,
+            max_effects: 3,
+            trend_bins: 8,
+            max_iterations: 260,
+        }
+    }
+}
+
+/// What the audit found.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct AuditResult {
+    /// The paper's model fitted.
+    pub baseline: Fit,
+    /// Effects accepted, in order, each with the model up to it.
+    pub steps: Vec<Fit>,
+    /// Every candidate's score in every round.
+    pub candidates: Vec<CandidateScore>,
+    /// The baseline's residual trends.
+    pub trends_before: Vec<Trend>,
+    /// The final model's residual trends.
+    pub trends_after: Vec<Trend>,
+    /// The residual trends of each accepted step's model (as `steps`).
+    pub step_trends: Vec<Vec<Trend>>,
+    /// Pixels used.
+    pub pixels: usize,
+    /// Frames used.
+    pub frames: usize,
+    /// RMS of the final model's held-out residuals in units of the noise (about 1 when
+    /// the noise model and the physics are right).
+    pub final_noise_ratio: f64,
+}
+
+impl AuditResult {
+    /// The final model's fit.
+    pub fn final_fit(&self) -> &Fit {
+        self.steps.last().unwrap_or(&self.baseline)
+    }
+}
+
+// ---------------------------------------------------------------------------
+// The model of a hypothesis.
+
+const XI_MIN: f64 = 0.001;
+const XI_MAX: f64 = 0.999;
+
+fn logistic(u: f64) -> f64 {
+    (1.0 / (1.0 + (-u).exp())).clamp(XI_MIN, XI_MAX)
+}
+
+fn logit(x: f64) -> f64 {
+    let x = x.clamp(XI_MIN, XI_MAX);
+    (x / (1.0 - x)).ln()
+}
+
+/// The forward model of `effects` with their parameters `p` (in order) on top of `base`.
+fn build_model(base: &ForwardModel, effects: &[Effect], p: &[f64], bounces: usize) -> ForwardModel {
+    let mut options = base.options.clone();
+    let mut waveform = base.sensor.waveform;
+    let mut k = 0;
+    for e in effects {
+        match e {
+            Effect::HigherOrderBounces => options.bounces = bounces,
+            Effect::WaveformHarmonics => {
+                waveform = Waveform::Harmonics {
+                    third: p[k],
+                    fifth: p[k + 1],
+                }
+            }
+            Effect::IrAmplitude => options.ir_mode = IrMode::Amplitude,
+            Effect::AmbientOffset => options.ambient_offset = p[k],
+            Effect::SubsurfaceDelay => options.subsurface_delay_mm = p[k],
+            Effect::TransmissionLaw => options.transmission_albedo_power = p[k],
+            Effect::RefractionShift => options.refraction_shift_px = [p[k], p[k + 1]],
+        }
+        k += e.param_names().len();
+    }
+    let sensor = if waveform == base.sensor.waveform {
+        base.sensor.clone()
+    } else {
+        Sensor::with_decode_table_len(base.sensor.modulation_frequency_hz, waveform, AUDIT_DECODE_TABLE_LEN)
+    };
+    ForwardModel { sensor, options }
+}
+
+/// Decoder table of the harmonic waveforms the fits try (sensor.rs): coarse, as it is rebuilt per trial.
+const AUDIT_DECODE_TABLE_LEN: usize = 512;
+
+/// Bounds of each effect parameter; outside them the objective is penalised.
+fn param_bounds(e: Effect) -> &'static [(f64, f64)] {
+    match e {
+        Effect::HigherOrderBounces | Effect::IrAmplitude => &[],
+        Effect::WaveformHarmonics => &[(-0.3, 0.3), (-0.2, 0.2)],
+        Effect::AmbientOffset => &[(-1.0e6, 1.0e6)],
+        Effect::SubsurfaceDelay => &[(-200.0, 200.0)],
+        Effect::TransmissionLaw => &[(-1.0, 4.0)],
+        Effect::RefractionShift => &[(-12.0, 12.0), (-12.0, 12.0)],
+    }
+}
+
+/// Where each effect starts, and the simplex step, given a typical IR level.
+fn param_starts(e: Effect, ir_level: f64) -> (Vec<Vec<f64>>, Vec<f64>) {
+    match e {
+        Effect::HigherOrderBounces | Effect::IrAmplitude => (vec![vec![]], vec![]),
+        Effect::WaveformHarmonics => (
+            vec![vec![0.0, 0.0], vec![-0.08, 0.0], vec![0.08, 0.0]],
+            vec![0.03, 0.02],
+        ),
+        Effect::AmbientOffset => (vec![vec![0.0]], vec![0.03 * ir_level]),
+        Effect::SubsurfaceDelay => (vec![vec![0.0], vec![25.0]], vec![8.0]),
+        Effect::TransmissionLaw => (vec![vec![2.0], vec![1.0], vec![0.0]], vec![0.4]),
+        Effect::RefractionShift => (
+            vec![
+                vec![0.0, 0.0],
+                vec![3.0, 0.0],
+                vec![-3.0, 0.0],
+                vec![0.0, 3.0],
+                vec![0.0, -3.0],
+            ],
+            vec![1.0, 1.0],
+        ),
+    }
+}
+
+/// Pixel weights and per-pixel noise, fixed for every hypothesis.
+#[derive(Debug, Clone)]
+struct Prepared<'a> {
+    data: &'a AuditData,
+    base: ForwardModel,
+    /// Depth noise per pixel, mm.
+    sigma_d: Vec<f64>,
+    /// IR noise per pixel, counts.
+    sigma_i: Vec<f64>,
+    huber_k: f64,
+}
+
+/// Prediction of one pixel's `(reading, IR)` under a model, ξ and albedo.
+fn predict(
+    model: &ForwardModel,
+    data: &AuditData,
+    p: &AuditPixel,
+    xi: f64,
+    albedo: f64,
+    displaced: bool,
+) -> Option<(f64, f64, f64)> {
+    let mut obs = p.obs;
+    {
+        // Every hypothesis sees the background through the smoothed latch (undisplaced
+        // unless the hypothesis refracts), so none gains merely from less noisy inputs.
+        let mut o = model.options.clone();
+        if !displaced || !o.refracts() {
+            o.refraction_shift_px = [1e-9, 0.0];
+        }
+        let (db, ib) = o.background_through_layer(
+            &data.background_distance_mm,
+            &data.background_ir,
+            &data.emitted_light,
+            p.col,
+            p.row,
+        )?;
+        obs.background_distance_mm = db;
+        obs.background_ir = ib;
+    }
+    if !(p.truth_mm < obs.background_distance_mm) {
+        return None;
+    }
+    let x = albedo * p.incidence_cos;
+    let scene = obs.layer_scene(p.truth_mm, xi, x, model.options.ambient_offset);
+    let m = model.measure_layer(&scene);
+    let amp = m.buckets.a.hypot(m.buckets.b);
+    Some((m.distance_mm, m.ir, amp / m.total_light.max(1e-12)))
+}
+
+fn huber(r: f64, k: f64) -> f64 {
+    let a = r.abs();
+    if a <= k {
+        0.5 * a * a
+    } else {
+        k * (a - 0.5 * k)
+    }
+}
+
+/// Per-pixel evaluation of one model.
+struct Eval {
+    loss: f64,
+    res_mm: f64,
+    res_ir: f64,
+}
+
+impl<'a> Prepared<'a> {
+    fn new(data: &'a AuditData, base: &ForwardModel, huber_k: f64) -> Self {
+        let sigma_i = data
+            .pixels
+            .iter()
+            .map(|p| (data.ir_noise_coef * p.obs.ir.max(1.0).sqrt()).max(0.5))
+            .collect();
+        Self {
+            data,
+            base: base.clone(),
+            sigma_d: vec![f64::NAN; data.pixels.len()],
+            sigma_i,
+            huber_k,
+        }
+    }
+
+    /// Depth noise from the shot noise of the light and the mix's amplitude
+    /// (a mix of returns out of phase reads noisier), from a reference fit.
+    fn set_depth_noise(&mut self, model: &ForwardModel, xi: f64, albedo: f64) {
+        let d = self.data;
+        self.sigma_d = d
+            .pixels
+            .iter()
+            .map(|p| {
+                let ratio = predict(model, d, p, xi, albedo, false)
+                    .map(|(_, _, r)| r)
+                    .filter(|r| r.is_finite() && *r > 0.0)
+                    .unwrap_or(1.0)
+                    .max(0.05);
+                (d.depth_noise_coef / p.obs.ir.max(1.0).sqrt() / ratio).max(0.5)
+            })
+            .collect();
+    }
+
+    fn eval(&self, model: &ForwardModel, i: usize, xi: f64, albedo: f64, displaced: bool) -> Eval {
+        let p = &self.data.pixels[i];
+        let cap = 2.0 * huber(self.huber_k * 3.0, self.huber_k);
+        match predict(model, self.data, p, xi, albedo, displaced) {
+            Some((d, ir, _)) if d.is_finite() && ir.is_finite() => {
+                let res_mm = model.sensor.wrapped_difference_mm(d, p.obs.distance_mm);
+                let res_ir = ir - p.obs.ir;
+                let loss =
+                    huber(res_mm / self.sigma_d[i], self.huber_k) + huber(res_ir / self.sigma_i[i], self.huber_k);
+                Eval {
+                    loss: loss.min(cap),
+                    res_mm,
+                    res_ir,
+                }
+            }
+            _ => Eval {
+                loss: cap,
+                res_mm: f64::NAN,
+                res_ir: f64::NAN,
+            },
+        }
+    }
+
+    fn model_of(&self, effects: &[Effect], theta: &[f64], bounces: usize) -> ForwardModel {
+        build_model(&self.base, effects, &theta[2..], bounces)
+    }
+
+    /// Summed loss over `pixels` of the hypothesis at `theta`, with a penalty outside the bounds.
+    fn objective(&self, effects: &[Effect], theta: &[f64], bounces: usize, pixels: &[usize]) -> f64 {
+        let mut penalty = 0.0;
+        let mut k = 2;
+        for e in effects {
+            for &(lo, hi) in param_bounds(*e) {
+                let v = theta[k];
+                if v < lo {
+                    penalty += 1e3 * (1.0 + (lo - v));
+                } else if v > hi {
+                    penalty += 1e3 * (1.0 + (v - hi));
+                }
+                k += 1;
+            }
+        }
+        if penalty > 0.0 || !theta.iter().all(|v| v.is_finite()) {
+            return 1e12 + penalty;
+        }
+        let model = self.model_of(effects, theta, bounces);
+        let (xi, albedo) = (logistic(theta[0]), theta[1].exp());
+        let displaced = effects.contains(&Effect::RefractionShift);
+        pixels
+            .iter()
+            .map(|&i| self.eval(&model, i, xi, albedo, displaced).loss)
+            .sum()
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Optimisation.
+
+/// Nelder-Mead minimisation from `x0` with initial steps `step`.
+fn nelder_mead(f: &dyn Fn(&[f64]) -> f64, x0: &[f64], step: &[f64], max_iter: usize) -> (Vec<f64>, f64) {
+    let n = x0.len();
+    let mut simplex: Vec<(Vec<f64>, f64)> = Vec::with_capacity(n + 1);
+    simplex.push((x0.to_vec(), f(x0)));
+    for j in 0..n {
+        let mut x = x0.to_vec();
+        x[j] += step[j];
+        let v = f(&x);
+        simplex.push((x, v));
+    }
+    for _ in 0..max_iter {
+        simplex.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let (best, worst) = (simplex[0].1, simplex[n].1);
+        if (worst - best).abs() <= 1e-7 * (best.abs() + 1e-9) + 1e-9 {
+            break;
+        }
+        let mut c = vec![0.0; n];
+        for s in &simplex[..n] {
+            for j in 0..n {
+                c[j] += s.0[j] / n as f64;
+            }
+        }
+        let along = |t: f64| -> Vec<f64> { (0..n).map(|j| c[j] + t * (simplex[n].0[j] - c[j])).collect() };
+        let xr = along(-1.0);
+        let fr = f(&xr);
+        if fr < simplex[0].1 {
+            let xe = along(-2.0);
+            let fe = f(&xe);
+            simplex[n] = if fe < fr { (xe, fe) } else { (xr, fr) };
+        } else if fr < simplex[n - 1].1 {
+            simplex[n] = (xr, fr);
+        } else {
+            let (xc, fc) = if fr < simplex[n].1 {
+                let x = along(-0.5);
+                let v = f(&x);
+                (x, v)
+            } else {
+                let x = along(0.5);
+                let v = f(&x);
+                (x, v)
+            };
+            if fc < simplex[n].1.min(fr) {
+                simplex[n] = (xc, fc);
+            } else {
+                let b = simplex[0].0.clone();
+                for s in simplex.iter_mut().skip(1) {
+                    for j in 0..n {
+                        s.0[j] = b[j] + 0.5 * (s.0[j] - b[j]);
+                    }
+                    s.1 = f(&s.0);
+                }
+            }
+        }
+    }
+    simplex.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let (x, v) = simplex.swap_remove(0);
+    (x, v)
+}
+
+/// Golden-section search of a unimodal function on `[a, b]`.
+fn golden(f: &dyn Fn(f64) -> f64, mut a: f64, mut b: f64, iters: usize) -> (f64, f64) {
+    let g = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut c, mut d) = (b - g * (b - a), a + g * (b - a));
+    let (mut fc, mut fd) = (f(c), f(d));
+    for _ in 0..iters {
+        if fc < fd {
+            b = d;
+            d = c;
+            fd = fc;
+            c = b - g * (b - a);
+            fc = f(c);
+        } else {
+            a = c;
+            c = d;
+            fc = fd;
+            d = a + g * (b - a);
+            fd = f(d);
+        }
+    }
+    if fc < fd {
+        (c, fc)
+    } else {
+        (d, fd)
+    }
+}
+
+/// Fits a hypothesis on `pixels`: a coarse scan of ξ (albedo by golden
+/// section) for each start of the effects' parameters, then Nelder-Mead from
+/// the best starts. Returns `theta = [logit xi, ln albedo, effect params...]`.
+fn fit_hypothesis(
+    prep: &Prepared,
+    effects: &[Effect],
+    bounces: usize,
+    pixels: &[usize],
+    warm: Option<&[f64]>,
+    settings: &AuditSettings,
+) -> (Vec<f64>, f64) {
+    let ir_level = median(prep.data.pixels.iter().map(|p| p.obs.ir).collect());
+    let obj = |t: &[f64]| prep.objective(effects, t, bounces, pixels);
+    let mut steps = vec![0.4, 0.15];
+    // Cartesian product of each effect's starts (few: effects rarely exceed 2 with several starts).
+    let mut starts: Vec<Vec<f64>> = vec![vec![]];
+    for e in effects {
+        let (s, st) = param_starts(*e, ir_level);
+        steps.extend(st);
+        starts = starts
+            .iter()
+            .flat_map(|a| {
+                s.iter().map(move |b| {
+                    let mut v = a.clone();
+                    v.extend(b);
+                    v
+                })
+            })
+            .collect();
+    }
+    if let Some(w) = warm {
+        let (x, v) = nelder_mead(&obj, w, &steps, settings.max_iterations / 2);
+        return (x, v);
+    }
+    let mut seeds: Vec<(Vec<f64>, f64)> = vec![];
+    for s in &starts {
+        for k in 0..10 {
+            let xi = 0.05 + k as f64 * 0.1;
+            let f1 = |la: f64| {
+                let mut t = vec![logit(xi), la];
+                t.extend(s);
+                obj(&t)
+            };
+            let (la, v) = golden(&f1, (0.02f64).ln(), (3.0f64).ln(), 14);
+            let mut t = vec![logit(xi), la];
+            t.extend(s);
+            seeds.push((t, v));
+        }
+    }
+    seeds.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let mut best: Option<(Vec<f64>, f64)> = None;
+    // The best few seeds, distinct in xi, each refined.
+    let mut tried: Vec<f64> = vec![];
+    for (t, _) in seeds {
+        if tried.iter().any(|x| (x - t[0]).abs() < 0.5) {
+            continue;
+        }
+        tried.push(t[0]);
+        let r = nelder_mead(&obj, &t, &steps, settings.max_iterations);
+        if best.as_ref().is_none_or(|b| r.1 < b.1) {
+            best = Some(r);
+        }
+        if tried.len() >= 3 {
+            break;
+        }
+    }
+    let (x, _) = best.unwrap_or((vec![0.0, 0.0], f64::INFINITY));
+    // Polish.
+    nelder_mead(&obj, &x, &steps, settings.max_iterations)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.retain(|x| x.is_finite());
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    super::stats::median_sorted(&v)
+}
+
+fn rms(v: impl Iterator<Item = f64>) -> f64 {
+    let (mut s, mut n) = (0.0, 0usize);
+    for x in v.filter(|x| x.is_finite()) {
+        s += x * x;
+        n += 1;
+    }
+    if n == 0 {
+        f64::NAN
+    } else {
+        (s / n as f64).sqrt()
+    }
+}
+
+/// Fits a hypothesis on all pixels and scores it on left-out frames.
+fn score(prep: &Prepared, effects: &[Effect], settings: &AuditSettings) -> Fit {
+    let data = prep.data;
+    let all: Vec<usize> = (0..data.pixels.len()).collect();
+    let bounce_options: Vec<usize> = if effects.contains(&Effect::HigherOrderBounces) {
+        vec![3, MAX_BOUNCES]
+    } else {
+        vec![prep.base.options.bounces]
+    };
+    let mut best: Option<(Vec<f64>, f64, usize)> = None;
+    for &b in &bounce_options {
+        let (t, v) = fit_hypothesis(prep, effects, b, &all, None, settings);
+        if best.as_ref().is_none_or(|x| v < x.1) {
+            best = Some((t, v, b));
+        }
+    }
+    let (theta, _, bounces) = best.unwrap_or((vec![0.0, 0.0], f64::INFINITY, 2));
+    let model = prep.model_of(effects, &theta, bounces);
+    let (xi, albedo) = (logistic(theta[0]), theta[1].exp());
+    let displaced = effects.contains(&Effect::RefractionShift);
+    let evals: Vec<Eval> = all
+        .iter()
+        .map(|&i| prep.eval(&model, i, xi, albedo, displaced))
+        .collect();
+    let rmse_mm = rms(evals.iter().map(|e| e.res_mm));
+    let ir_rel_rmse = rms(evals
+        .iter()
+        .zip(&data.pixels)
+        .map(|(e, p)| e.res_ir / p.obs.ir.max(1.0)));
+    // Held out: folds of frames, interleaved.
+    let folds = settings.folds.clamp(2, data.frames.max(2));
+    let mut heldout_loss = vec![f64::NAN; all.len()];
+    let mut heldout_res = vec![f64::NAN; all.len()];
+    let mut heldout_ir = vec![f64::NAN; all.len()];
+    for f in 0..folds {
+        let train: Vec<usize> = all
+            .iter()
+            .copied()
+            .filter(|&i| data.pixels[i].frame % folds != f)
+            .collect();
+        let test: Vec<usize> = all
+            .iter()
+            .copied()
+            .filter(|&i| data.pixels[i].frame % folds == f)
+            .collect();
+        if test.is_empty() || train.is_empty() {
+            continue;
+        }
+        let (t, _) = fit_hypothesis(prep, effects, bounces, &train, Some(&theta), settings);
+        let m = prep.model_of(effects, &t, bounces);
+        let (x, a) = (logistic(t[0]), t[1].exp());
+        for &i in &test {
+            let e = prep.eval(&m, i, x, a, displaced);
+            heldout_loss[i] = e.loss;
+            heldout_res[i] = e.res_mm;
+            heldout_ir[i] = e.res_ir;
+        }
+    }
+    let n = heldout_loss.iter().filter(|v| v.is_finite()).count().max(1);
+    let mut params = vec![];
+    let mut k = 2;
+    for e in effects {
+        for name in e.param_names() {
+            params.push((name.to_string(), theta[k]));
+            k += 1;
+        }
+        if *e == Effect::HigherOrderBounces {
+            params.push(("bounces".to_string(), bounces as f64));
+        }
+    }
+    Fit {
+        effects: effects.to_vec(),
+        xi,
+        albedo,
+        params,
+        bounces,
+        rmse_mm,
+        ir_rel_rmse,
+        heldout_rmse_mm: rms(heldout_res.iter().copied()),
+        heldout_score: heldout_loss.iter().filter(|v| v.is_finite()).sum::<f64>() / n as f64,
+        heldout_loss,
+        heldout_residual_mm: heldout_res,
+        heldout_ir_residual: heldout_ir,
+        theta,
+    }
+}
+
+/// Gain of `new` over `old` in summed held-out loss, and its pixel-paired z.
+fn paired_gain(old: &Fit, new: &Fit) -> (f64, f64, usize) {
+    let d: Vec<f64> = old
+        .heldout_loss
+        .iter()
+        .zip(&new.heldout_loss)
+        .map(|(a, b)| a - b)
+        .filter(|v| v.is_finite())
+        .collect();
+    let n = d.len();
+    if n < 2 {
+        return (0.0, 0.0, n);
+    }
+    let sum: f64 = d.iter().sum();
+    let mean = sum / n as f64;
+    let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    let se_sum = (var * n as f64).sqrt().max(1e-12);
+    (sum, sum / se_sum, n)
+}
+
+/// Residual trends of a fit's held-out residuals against every quantity.
+pub fn trends(
+    data: &AuditData,
+    fit: &Fit,
+    range_mm: f64,
+    sigma_ir_of: impl Fn(usize) -> f64,
+    bins: usize,
+) -> Vec<Trend> {
+    Quantity::ALL
+        .iter()
+        .map(|q| trend(data, fit, *q, range_mm, &sigma_ir_of, bins))
+        .collect()
+}
+
+fn trend(
+    data: &AuditData,
+    fit: &Fit,
+    q: Quantity,
+    range_mm: f64,
+    sigma_ir_of: &dyn Fn(usize) -> f64,
+    bins: usize,
+) -> Trend {
+    let mut idx: Vec<(f64, usize)> = data
+        .pixels
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| fit.heldout_residual_mm[*i].is_finite())
+        .map(|(i, p)| (q.value(p, range_mm), i))
+        .filter(|(v, _)| v.is_finite())
+        .collect();
+    idx.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut t = Trend {
+        quantity: q,
+        bins: vec![],
+        counts: vec![],
+        mean_mm: vec![],
+        se_mm: vec![],
+        ir_mean_pct: vec![],
+        systematic_z: 0.0,
+    };
+    if idx.len() < 2 * bins {
+        return t;
+    }
+    // Quantile bins, but equal values stay in one bin (frames, columns).
+    let mut groups: Vec<Vec<(f64, usize)>> = vec![];
+    let per = idx.len().div_ceil(bins);
+    let mut cur: Vec<(f64, usize)> = vec![];
+    for (k, item) in idx.iter().enumerate() {
+        if cur.len() >= per && item.0 > cur.last().map(|c| c.0).unwrap_or(f64::NAN) && idx.len() - k >= per / 2 {
+            groups.push(std::mem::take(&mut cur));
+        }
+        cur.push(*item);
+    }
+    if !cur.is_empty() {
+        groups.push(cur);
+    }
+    let z_all: Vec<(f64, f64)> = idx
+        .iter()
+        .map(|&(_, i)| (fit.heldout_residual_mm[i], fit.heldout_ir_residual[i] / sigma_ir_of(i)))
+        .collect();
+    let mean_of = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let robust_sd = |mut v: Vec<f64>| {
+        v.retain(|x| x.is_finite());
+        v.sort_by(f64::total_cmp);
+        if v.is_empty() {
+            return f64::NAN;
+        }
+        let m = super::stats::median_sorted(&v);
+        let mut dev: Vec<f64> = v.iter().map(|x| (x - m).abs()).collect();
+        dev.sort_by(f64::total_cmp);
+        1.4826 * super::stats::median_sorted(&dev)
+    };
+    let sd_d = robust_sd(z_all.iter().map(|z| z.0).collect()).max(1e-9);
+    let sd_i = robust_sd(z_all.iter().map(|z| z.1).filter(|v| v.is_finite()).collect()).max(1e-9);
+    let gd = mean_of(&z_all.iter().map(|z| z.0).collect::<Vec<_>>());
+    let gi = mean_of(&z_all.iter().map(|z| z.1).filter(|v| v.is_finite()).collect::<Vec<_>>());
+    let (mut chi2, mut dof) = (0.0, 0.0);
+    for g in &groups {
+        let d: Vec<f64> = g.iter().map(|&(_, i)| fit.heldout_residual_mm[i]).collect();
+        let ir: Vec<f64> = g
+            .iter()
+            .map(|&(_, i)| fit.heldout_ir_residual[i] / sigma_ir_of(i))
+            .filter(|v| v.is_finite())
+            .collect();
+        let ir_pct: Vec<f64> = g
+            .iter()
+            .map(|&(_, i)| 100.0 * fit.heldout_ir_residual[i] / data.pixels[i].obs.ir.max(1.0))
+            .filter(|v| v.is_finite())
+            .collect();
+        let n = d.len() as f64;
+        let md = mean_of(&d);
+        let mi = mean_of(&ir);
+        // Clipped means against outliers: trimmed to 4 sigma of the pooled spread.
+        chi2 += n * ((md - gd) / sd_d).powi(2).min(1e6) + ir.len() as f64 * ((mi - gi) / sd_i).powi(2).min(1e6);
+        dof += 2.0;
+        t.bins.push([g[0].0, g[g.len() - 1].0]);
+        t.counts.push(g.len());
+        t.mean_mm.push(md);
+        t.se_mm.push(robust_sd(d.clone()) / n.sqrt());
+        t.ir_mean_pct.push(mean_of(&ir_pct));
+    }
+    dof -= 2.0;
+    if dof > 0.0 {
+        t.systematic_z = (chi2 - dof) / (2.0 * dof).sqrt();
+    }
+    t
+}
+
+/// Runs the audit: baseline, greedy forward selection over [`Effect::ALL`],
+/// trends before and after. `base` is the paper's model on the recording's
+/// sensor (its options are the baseline: normally the paper's defaults).
+pub fn run_audit(data: &AuditData, base: &ForwardModel, settings: &AuditSettings) -> Result<AuditResult, AuditError> {
+    run_audit_with_progress(data, base, settings, &mut |_| {})
+}
+
+/// [`run_audit`], telling `progress` what it is fitting (one call per hypothesis).
+pub fn run_audit_with_progress(
+    data: &AuditData,
+    base: &ForwardModel,
+    settings: &AuditSettings,
+    progress: &mut dyn FnMut(&str),
+) -> Result<AuditResult, AuditError> {
+    if data.frames < MIN_FRAMES {
+        return Err(AuditError::TooFewFrames {
+            got: data.frames,
+            need: MIN_FRAMES,
+        });
+    }
+    if data.pixels.len() < MIN_PIXELS {
+        return Err(AuditError::TooFewPixels {
+            got: data.pixels.len(),
+            need: MIN_PIXELS,
+        });
+    }
+    if !(data.depth_noise_coef.is_finite()
+        && data.depth_noise_coef > 0.0
+        && data.ir_noise_coef.is_finite()
+        && data.ir_noise_coef > 0.0)
+    {
+        return Err(AuditError::NoNoise);
+    }
+    let range_mm = base.sensor.unambiguous_range_mm();
+    let mut prep = Prepared::new(data, base, settings.huber_k);
+    // Noise weights from a first baseline fit with photon-limited depth noise, then refit.
+    prep.sigma_d = data
+        .pixels
+        .iter()
+        .map(|p| (data.depth_noise_coef / p.obs.ir.max(1.0).sqrt()).max(0.5))
+        .collect();
+    let first = score_full_only(&prep, settings);
+    prep.set_depth_noise(&prep.model_of(&[], &first, 2), logistic(first[0]), first[1].exp());
+    progress("baseline");
+    let baseline = score(&prep, &[], settings);
+    let n = data.pixels.len() as f64;
+    let mut current = baseline.clone();
+    let mut steps: Vec<Fit> = vec![];
+    let mut candidates = vec![];
+    let mut remaining: Vec<Effect> = Effect::ALL.to_vec();
+    if base.sensor.waveform != Waveform::Sinusoid {
+        remaining.retain(|e| *e != Effect::WaveformHarmonics);
+    }
+    for round in 0..settings.max_effects {
+        let mut best: Option<(Fit, usize)> = None;
+        let mut round_scores = vec![];
+        for (ci, e) in remaining.iter().enumerate() {
+            let mut effects = current.effects.clone();
+            effects.push(*e);
+            progress(e.name());
+            let fit = score(&prep, &effects, settings);
+            let (gain, z, _) = paired_gain(&current, &fit);
+            let threshold = (settings.penalty_per_param_ln_n * e.penalty_params() as f64 * n.ln())
+                .max(settings.min_relative_gain * current.heldout_score * n);
+            let ok = gain > threshold && z > settings.min_gain_z;
+            round_scores.push(CandidateScore {
+                round,
+                effect: *e,
+                heldout_rmse_mm: fit.heldout_rmse_mm,
+                heldout_score: fit.heldout_score,
+                gain,
+                threshold,
+                z,
+                params: fit.params.clone(),
+                xi: fit.xi,
+                accepted: false,
+            });
+            if ok && best.as_ref().is_none_or(|(b, _)| fit.heldout_score < b.heldout_score) {
+                best = Some((fit, ci));
+            }
+        }
+        let Some((fit, ci)) = best else {
+            candidates.extend(round_scores);
+            break;
+        };
+        let chosen = remaining.remove(ci);
+        for s in &mut round_scores {
+            s.accepted = s.effect == chosen;
+        }
+        candidates.extend(round_scores);
+        current = fit.clone();
+        steps.push(fit);
+        if remaining.is_empty() {
+            break;
+        }
+    }
+    let sig = |i: usize| prep.sigma_i[i];
+    let trends_before = trends(data, &baseline, range_mm, sig, settings.trend_bins);
+    let last = steps.last().unwrap_or(&baseline);
+    let trends_after = trends(data, last, range_mm, sig, settings.trend_bins);
+    let step_trends = steps
+        .iter()
+        .map(|s| trends(data, s, range_mm, sig, settings.trend_bins))
+        .collect();
+    let final_noise_ratio = {
+        let v: Vec<f64> = last.heldout_loss.iter().copied().filter(|v| v.is_finite()).collect();
+        // Mean Huber loss of two unit-noise residuals is about 1 (0.5 each).
+        v.iter().sum::<f64>() / v.len().max(1) as f64
+    };
+    Ok(AuditResult {
+        baseline,
+        steps,
+        candidates,
+        trends_before,
+        trends_after,
+        step_trends,
+        pixels: data.pixels.len(),
+        frames: data.frames,
+        final_noise_ratio,
+    })
+}
+
+/// The baseline fitted on all pixels (internal coordinates), for the noise weights.
+fn score_full_only(prep: &Prepared, settings: &AuditSettings) -> Vec<f64> {
+    let all: Vec<usize> = (0..prep.data.pixels.len()).collect();
+    fit_hypothesis(prep, &[], prep.base.options.bounces, &all, None, settings).0
+}
+
+/// The model options a set of fitted effects gives, on top of `base` (for a physics file).
+pub fn fitted_options(base: &ForwardModel, fit: &Fit) -> (ModelOptions, Waveform) {
+    let m = fit.model(base);
+    (m.options, m.sensor.waveform)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nelder_mead_finds_a_quadratic_minimum() {
+        let f = |x: &[f64]| (x[0] - 1.0).powi(2) + 3.0 * (x[1] + 2.0).powi(2);
+        let (x, v) = nelder_mead(&f, &[0.0, 0.0], &[0.5, 0.5], 400);
+        assert!(
+            (x[0] - 1.0).abs() < 1e-3 && (x[1] + 2.0).abs() < 1e-3 && v < 1e-6,
+            "{x:?}"
+        );
+    }
+
+    #[test]
+    fn golden_section_finds_a_minimum() {
+        let (x, _) = golden(&|x| (x - 0.3).powi(2), -1.0, 2.0, 40);
+        assert!((x - 0.3).abs() < 1e-4);
+    }
+
+    #[test]
+    fn the_audits_coarse_decoder_reads_single_surfaces_within_half_a_millimetre() {
+        let w = Waveform::Harmonics {
+            third: 0.15,
+            fifth: -0.04,
+        };
+        let s = Sensor::with_decode_table_len(30e6, w, AUDIT_DECODE_TABLE_LEN);
+        let r = s.unambiguous_range_mm();
+        for k in 0..1009 {
+            let d = r * k as f64 / 1009.0;
+            let got = s.decode(s.buckets(2.0, d)).unwrap_or(f64::NAN);
+            assert!(s.wrapped_difference_mm(got, d).abs() < 0.5, "d {d} read {got}");
+        }
+    }
+
+    #[test]
+    fn effects_map_to_model_options() {
+        let base = ForwardModel::paper(Sensor::sr4000());
+        let m = build_model(
+            &base,
+            &[
+                Effect::TransmissionLaw,
+                Effect::RefractionShift,
+                Effect::WaveformHarmonics,
+            ],
+            &[0.0, 2.0, -1.0, -0.1, 0.02],
+            2,
+        );
+        assert_eq!(m.options.transmission_albedo_power, 0.0);
+        assert_eq!(m.options.refraction_shift_px, [2.0, -1.0]);
+        assert_eq!(
+            m.sensor.waveform,
+            Waveform::Harmonics {
+                third: -0.1,
+                fifth: 0.02
+            }
+        );
+    }
+}
