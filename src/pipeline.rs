@@ -519,6 +519,9 @@ impl Pipeline {
             &self.config.xi_settings,
             translucency::ProfileUse::Estimation,
         );
+        if self.profiles.len() >= self.config.xi_settings.max_frames_pooled.max(1) {
+            self.profiles.remove(0);
+        }
         self.profiles.push(profile);
         let est = match method {
             XiMethod::Eq12Residual => translucency::eq12_residual(&self.profiles),

@@ -141,6 +141,25 @@ impl Drop for VizSink {
     }
 }
 
+/// A curve in a 2D plot (e.g. mean residual against a physical quantity).
+#[derive(Debug, Clone)]
+pub struct Curve {
+    /// Rerun entity path, e.g. `audit/residual_vs_phase/before`.
+    pub entity: String,
+    /// `(x, y)` points in drawing order.
+    pub points: Vec<[f32; 2]>,
+    /// RGB colour.
+    pub color: [u8; 3],
+}
+
+/// Writes curves as line strips with their points to a Rerun target (the
+/// audit's plots, viewable beside its SVG files).
+pub fn write_curves(target: &RerunTarget, app_id: &'static str, curves: &[Curve]) -> Result<(), String> {
+    let rec = backend::open(target, app_id)?;
+    backend::log_curves(&rec, curves)?;
+    backend::close(rec)
+}
+
 /// The translucent pixels' points (raw, recovered) and the rest of the scene.
 pub fn split_clouds(f: &FrameViz) -> [Vec<[f32; 3]>; 3] {
     let raw = points_m(&f.intrinsics, &f.raw_z_mm);
@@ -235,6 +254,25 @@ mod backend {
         Ok(())
     }
 
+    pub fn log_curves(rec: &RecordingStream, curves: &[super::Curve]) -> Result<(), String> {
+        for c in curves {
+            let color = Color::from_rgb(c.color[0], c.color[1], c.color[2]);
+            rec.log(
+                c.entity.as_str(),
+                &rerun::LineStrips2D::new([c.points.clone()]).with_colors([color]),
+            )
+            .map_err(|e| format!("rerun: {e}"))?;
+            rec.log(
+                format!("{}/points", c.entity),
+                &rerun::Points2D::new(c.points.clone())
+                    .with_colors([color])
+                    .with_radii([2.0]),
+            )
+            .map_err(|e| format!("rerun: {e}"))?;
+        }
+        Ok(())
+    }
+
     pub fn close(rec: RecordingStream) -> Result<(), String> {
         rec.flush_blocking().map_err(|e| format!("rerun: flushing: {e}"))
     }
@@ -251,6 +289,10 @@ mod backend {
     }
 
     pub fn log_frame(_: &Never, _: &FrameViz) -> Result<(), String> {
+        Ok(())
+    }
+
+    pub fn log_curves(_: &Never, _: &[super::Curve]) -> Result<(), String> {
         Ok(())
     }
 

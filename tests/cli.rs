@@ -1055,9 +1055,10 @@ fn bad_audit_truth_not_on_the_layer() {
     assert_clean_failure(&out, &["does not overlap", "translucent"], dir.path(), &["offset.mcap"]);
 }
 
-/// `--rerun` in a build without Rerun is refused, not ignored.
+/// `--rerun` writes the residual plots as a Rerun recording; a build without
+/// Rerun refuses it rather than ignoring it.
 #[test]
-fn bad_audit_rerun_without_rerun() {
+fn audit_rerun_writes_a_recording_or_is_refused() {
     let dir = temp();
     let out = run(
         dir.path(),
@@ -1070,5 +1071,16 @@ fn bad_audit_rerun_without_rerun() {
             "a.json",
         ],
     );
-    assert_clean_failure(&out, &["rerun"], dir.path(), &[]);
+    if cfg!(feature = "rerun") {
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let size = std::fs::metadata(dir.path().join("out.rrd"))
+            .map(|m| m.len())
+            .unwrap_or(0);
+        assert!(size > 1000, "out.rrd is {size} bytes");
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.path().join("a.json")).unwrap()).unwrap();
+        assert!(r["plots"]["files"].to_string().contains("out.rrd"), "{}", r["plots"]);
+    } else {
+        assert_clean_failure(&out, &["rerun"], dir.path(), &[]);
+    }
 }

@@ -51,6 +51,8 @@ fn demo_runs_the_graph_and_recovers_the_document_holder() {
     // The outputs kept as a bag: corrected depth as the input, an organized cloud.
     let reader = BagReader::open(&dir.path().join("demo.mcap")).unwrap();
     let (mut images, mut clouds) = (0, 0);
+    let mut masks = std::collections::BTreeMap::new();
+    let mut flags = std::collections::BTreeMap::new();
     for m in reader.messages() {
         let m = m.unwrap();
         if m.topic == "/tof/translucent_tof/depth/corrected" {
@@ -65,9 +67,22 @@ fn demo_runs_the_graph_and_recovers_the_document_holder() {
             let names: Vec<&str> = c.fields.iter().map(|f| f.name.as_str()).collect();
             assert_eq!(names, ["x", "y", "z", "intensity", "translucent"]);
             assert_eq!(c.data.len(), 176 * 144 * CLOUD_POINT_STEP as usize);
+            let step = CLOUD_POINT_STEP as usize;
+            let flagged = (0..176 * 144).filter(|k| c.data[k * step + 16] == 1).count();
+            flags.insert(m.log_time_ns, flagged);
+            // Valid points lie in front of the camera, metres.
+            let z = |k: usize| f32::from_le_bytes(c.data[k * step + 8..k * step + 12].try_into().unwrap());
+            let valid: Vec<f32> = (0..176 * 144).map(z).filter(|z| z.is_finite()).collect();
+            assert!(valid.len() > 20_000 && valid.iter().all(|z| *z > 0.2 && *z < 5.0));
             clouds += 1;
+        } else if m.topic == "/tof/translucent_tof/translucent_mask" {
+            let img: Image = BagReader::decode(&m).unwrap();
+            masks.insert(m.log_time_ns, img.data.iter().filter(|v| **v == 255).count());
         }
     }
+    // The cloud's translucent flags are the mask's pixels, frame by frame.
+    assert_eq!(flags, masks);
+    assert!(flags.values().all(|n| *n > 500), "{flags:?}");
     assert_eq!(images as u64, got);
     assert_eq!(clouds as u64, got);
     let rrd = std::fs::metadata(dir.path().join("demo.rrd"))

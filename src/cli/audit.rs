@@ -41,10 +41,12 @@ pub struct AuditArgs {
 /// Runs `audit`.
 pub fn run(a: AuditArgs) -> Result<()> {
     if let Some(r) = &a.rerun {
-        bail!(
-            "--rerun {}: this build has no Rerun logging; the audit's plot series are in the JSON report (\"plots\") and the SVG files of --plots",
-            r.display()
-        );
+        if !cfg!(feature = "rerun") {
+            bail!(
+                "--rerun {}: this build has no Rerun logging (rebuild with the default `rerun` feature); the audit's plot series are in the JSON report (\"plots\") and the SVG files of --plots",
+                r.display()
+            );
+        }
     }
     let config = a.pipeline.config()?;
     let rec = load(&a.bag, &a.pipeline.topics)?;
@@ -112,6 +114,28 @@ pub fn run(a: AuditArgs) -> Result<()> {
             write_atomic(&path, trend_svg(b, f, &title).as_bytes())?;
             plots.push(path.display().to_string());
         }
+    }
+    if let Some(r) = &a.rerun {
+        let mut curves = vec![];
+        for (b, f) in result.trends_before.iter().zip(&result.trends_after) {
+            for (t, when, color) in [(b, "before", [230, 80, 60]), (f, "after", [40, 170, 230])] {
+                let points = t
+                    .bins
+                    .iter()
+                    .zip(&t.mean_mm)
+                    .filter(|(_, m)| m.is_finite())
+                    .map(|(bin, m)| [(0.5 * (bin[0] + bin[1])) as f32, *m as f32])
+                    .collect();
+                curves.push(crate::viz::Curve {
+                    entity: format!("audit/residual_vs_{}/{when}", t.quantity.name()),
+                    points,
+                    color,
+                });
+            }
+        }
+        let target = crate::viz::RerunTarget::File(r.clone());
+        crate::viz::write_curves(&target, "translucent_tof_audit", &curves).map_err(|e| anyhow::anyhow!(e))?;
+        plots.push(r.display().to_string());
     }
     if let Some(out) = &a.physics_out {
         let text = format!(

@@ -24,9 +24,22 @@ pub struct BenchArgs {
     /// Image sizes, comma-separated WIDTHxHEIGHT.
     #[arg(long, value_delimiter = ',', default_value = "176x144,640x480")]
     pub sizes: Vec<String>,
-    /// Cases to run, comma-separated: recover, observe, xi_estimate, replay.
+    /// Cases to run, comma-separated: recover, observe, xi_estimate, replay, node_latency
+    /// (the node over DDS on loopback against a bare publish/subscribe of the same messages).
     #[arg(long, value_delimiter = ',', default_value = "recover,observe,xi_estimate,replay")]
     pub cases: Vec<String>,
+    /// node_latency: object frames published (cycling the bag's).
+    #[arg(long, default_value_t = 200)]
+    pub node_frames: usize,
+    /// node_latency: publication rate, Hz.
+    #[arg(long, default_value_t = 10.0)]
+    pub node_rate_hz: f64,
+    /// node_latency: the node's `xi` (fixed; `estimate` to let it estimate).
+    #[arg(long, default_value = "0.65")]
+    pub node_xi: String,
+    /// node_latency: the bag played (default: the bundled document holder).
+    #[arg(long)]
+    pub node_bag: Option<std::path::PathBuf>,
     /// Skip the plain 1 mm grid-search reference (it takes seconds per frame).
     #[arg(long)]
     pub no_reference: bool,
@@ -50,7 +63,7 @@ fn parse_case(s: &str) -> Result<Case> {
         "observe" => Case::Observe,
         "xi_estimate" | "xi" => Case::XiEstimate,
         "replay" => Case::Replay,
-        other => bail!("--cases {other:?}: expected recover, observe, xi_estimate or replay"),
+        other => bail!("--cases {other:?}: expected recover, observe, xi_estimate, replay or node_latency"),
     })
 }
 
@@ -61,7 +74,13 @@ fn ms(v: Option<f64>) -> String {
 /// Runs `bench`.
 pub fn run(a: BenchArgs) -> Result<()> {
     let sizes: Vec<(usize, usize)> = a.sizes.iter().map(|s| parse_size(s)).collect::<Result<_>>()?;
-    let cases: Vec<Case> = a.cases.iter().map(|s| parse_case(s)).collect::<Result<_>>()?;
+    let node_latency = a.cases.iter().any(|c| c.trim() == "node_latency");
+    let cases: Vec<Case> = a
+        .cases
+        .iter()
+        .filter(|c| c.trim() != "node_latency")
+        .map(|s| parse_case(s))
+        .collect::<Result<_>>()?;
     if a.threads.contains(&0) || a.threads.is_empty() {
         bail!("--threads: counts of at least 1");
     }
@@ -90,6 +109,11 @@ pub fn run(a: BenchArgs) -> Result<()> {
         }
     }
     pb.finish_and_clear();
+    let node = if node_latency {
+        Some(node_latency_run(&a)?)
+    } else {
+        None
+    };
     let mut text = format!(
         "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case)\n",
         STAGES_MM[0], STAGES_MM, a.frames, a.max_seconds
@@ -129,6 +153,25 @@ pub fn run(a: BenchArgs) -> Result<()> {
             agree
         ));
     }
+    if let Some(n) = &node {
+        text.push_str(&format!(
+            "node_latency ({} frames at {} Hz, xi {}): publication -> ~/depth/corrected arrival, median (p95): bare publish/subscribe of the same messages {:.2} ({:.2}) ms over {} of {} frames; through the node {:.2} ({:.2}) ms over {} of {}; added {:.2} ms median, {:.2} ms p95; node memory {} kB\n",
+            a.node_frames,
+            a.node_rate_hz,
+            a.node_xi,
+            n.bare.latency_ms[0],
+            n.bare.latency_ms[1],
+            n.bare.received,
+            n.bare.sent,
+            n.node.latency_ms[0],
+            n.node.latency_ms[1],
+            n.node.received,
+            n.node.sent,
+            n.added_median_ms,
+            n.added_p95_ms,
+            n.node_stats["rss_kb"]
+        ));
+    }
     a.output.summary(text.trim_end());
     a.output.write_json(&json!({
         "scene": {
@@ -140,6 +183,40 @@ pub fn run(a: BenchArgs) -> Result<()> {
         "max_seconds": a.max_seconds,
         "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
         "rows": rows,
+        "node_latency": node,
     }))?;
     Ok(())
+}
+
+fn node_latency_run(a: &BenchArgs) -> Result<crate::node::latency::LatencyReport> {
+    let mut params = vec!["queue_depth:=2".to_string()];
+    match a.node_xi.as_str() {
+        "estimate" => {}
+        x => {
+            let v: f64 = x
+                .parse()
+                .map_err(|_| anyhow::anyhow!("--node-xi {x:?}: a number in [0, 1) or `estimate`"))?;
+            params.push(format!("xi:={v}"));
+        }
+    }
+    if !a.output.json_on_stdout() {
+        eprintln!(
+            "node_latency: {} frames at {} Hz through a bare echo, then through the node (localhost only)",
+            a.node_frames, a.node_rate_hz
+        );
+    }
+    crate::node::latency::measure(&crate::node::latency::LatencyConfig {
+        bag: a
+            .node_bag
+            .clone()
+            .unwrap_or_else(|| super::demo::bundled_bags().join("document_holder.mcap")),
+        background: 10,
+        frames: a.node_frames.max(1),
+        rate_hz: a.node_rate_hz,
+        node_params: params,
+        domain_id: std::env::var("ROS_DOMAIN_ID")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0),
+    })
 }

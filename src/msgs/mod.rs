@@ -140,30 +140,16 @@ pub fn from_cdr<M: RosMessage>(bytes: &[u8]) -> Result<M, MsgError> {
         .map_err(|source| MsgError::Decode { type_name, source })
 }
 
-/// `uint8[]` fields in CDR: a `u32` length, then the raw bytes.
-///
-/// `cdr-encoding` writes `serialize_bytes` without a length, so a plain
-/// `serde_bytes` field would lose it; this writes the length itself (as a
-/// tuple: no extra framing in CDR). Reading goes through the sequence path,
-/// which reads the length. Meant for CDR only.
+/// `uint8[]` fields in CDR as one block of bytes instead of element by
+/// element: cdr-encoding 0.11 (the CDR RustDDS 0.15 uses on the wire too)
+/// writes and reads `serialize_bytes` as a CDR sequence, a `u32` length then
+/// the bytes. (0.10 wrote no length; mixing the two put the length inside
+/// the data of every image sent over DDS, caught by the demo test.)
 pub(crate) mod cdr_bytes {
-    use serde::ser::{Error as _, SerializeTuple};
-    use serde::{Deserialize, Deserializer, Serialize, Serializer};
-
-    struct Raw<'a>(&'a [u8]);
-
-    impl Serialize for Raw<'_> {
-        fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-            s.serialize_bytes(self.0)
-        }
-    }
+    use serde::{Deserialize, Deserializer, Serializer};
 
     pub fn serialize<S: Serializer>(data: &[u8], s: S) -> Result<S::Ok, S::Error> {
-        let len = u32::try_from(data.len()).map_err(|_| S::Error::custom("byte sequence longer than u32::MAX"))?;
-        let mut t = s.serialize_tuple(2)?;
-        t.serialize_element(&len)?;
-        t.serialize_element(&Raw(data))?;
-        t.end()
+        s.serialize_bytes(data)
     }
 
     pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {

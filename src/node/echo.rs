@@ -21,12 +21,13 @@ fn name(s: &str) -> Result<Name> {
 
 /// Runs the echo for `namespace` / `node_fqn` until SIGINT / SIGTERM.
 pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
+    let localhost_only = std::env::var("ROS_LOCALHOST_ONLY").is_ok_and(|v| v.trim() == "1");
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
         .build()?;
     rt.block_on(async {
-        let ctx = super::context(domain_id, false)?;
+        let ctx = super::context(domain_id, localhost_only)?;
         let (base, ns) = node_fqn
             .rsplit_once('/')
             .map(|(ns, b)| {

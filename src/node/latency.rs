@@ -4,7 +4,10 @@
 //! driver here publishes a bag's object frames at a fixed rate and times each
 //! frame from its publication to the arrival of its `~/depth/corrected`.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+
+use futures::StreamExt;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -110,8 +113,8 @@ fn frames(bag: &Path) -> Result<(CameraInfo, Vec<(Image, Image)>)> {
 
 /// Plays the frames to whatever serves `/tof/translucent_tof` and times them.
 async fn drive(cfg: &LatencyConfig, info: &CameraInfo, pairs: &[(Image, Image)], tag: &str) -> Result<LatencyRun> {
-    let ctx = super::context(cfg.domain_id, false)?;
-    let mut peer = Peer::new(
+    let ctx = super::context(cfg.domain_id, true)?;
+    let peer = Peer::new(
         &ctx,
         &format!("latency_driver_{tag}"),
         "/tof",
@@ -134,44 +137,47 @@ async fn drive(cfg: &LatencyConfig, info: &CameraInfo, pairs: &[(Image, Image)],
     let period = Duration::from_secs_f64(1.0 / cfg.rate_hz);
     let mut tick = tokio::time::interval(period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    // Warm-up: the first frames (ξ pooling, page faults) are not timed.
+    // Warm-up: the first frames (page faults, first allocations) are not timed.
     let warmup = 5.min(cfg.frames);
-    let mut sent = Vec::with_capacity(cfg.frames);
-    for j in 0..cfg.frames + warmup {
-        tick.tick().await;
-        let (d, i) = &objects[j % objects.len()];
-        stamp += 1_000_000;
-        let (d, i) = (restamp(d, stamp), restamp(i, stamp));
-        peer.publish(info, &d, &i)?;
-        if j >= warmup {
-            sent.push((stamp, Instant::now()));
-        }
-        peer.drain();
-        if peer.received.corrected.len() > 64 {
-            // Keep only arrival times: memory stays flat over long runs.
-            peer.received.corrected.clear();
-            peer.received.mask.clear();
-            peer.received.points.clear();
-            peer.received.estimates.clear();
+    let mut sent: BTreeMap<u64, Instant> = BTreeMap::new();
+    let mut lat: Vec<f64> = Vec::with_capacity(cfg.frames);
+    let mut last = 0;
+    {
+        let arrivals = peer.corrected_arrivals();
+        tokio::pin!(arrivals);
+        let mut j = 0;
+        let mut deadline: Option<tokio::time::Instant> = None;
+        loop {
+            tokio::select! {
+                _ = tick.tick(), if j < cfg.frames + warmup => {
+                    let (d, i) = &objects[j % objects.len()];
+                    stamp += 1_000_000;
+                    let t0 = Instant::now();
+                    peer.publish(info, &restamp(d, stamp), &restamp(i, stamp))?;
+                    if j >= warmup {
+                        sent.insert(stamp, t0);
+                    }
+                    last = stamp;
+                    j += 1;
+                    if j == cfg.frames + warmup {
+                        deadline = Some(tokio::time::Instant::now() + Duration::from_secs(10));
+                    }
+                }
+                Some((s, t1)) = arrivals.next() => {
+                    if let Some(t0) = sent.remove(&s) {
+                        lat.push(t1.duration_since(t0).as_secs_f64() * 1e3);
+                    }
+                    if s == last && j == cfg.frames + warmup {
+                        break;
+                    }
+                }
+                _ = tokio::time::sleep_until(deadline.unwrap_or_else(|| tokio::time::Instant::now() + Duration::from_secs(3600))), if deadline.is_some() => break,
+            }
         }
     }
-    if let Some(&(last, _)) = sent.last() {
-        peer.wait_for(last, Duration::from_secs(10)).await;
-    }
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    peer.drain();
-    let mut lat: Vec<f64> = sent
-        .iter()
-        .filter_map(|(s, t0)| {
-            peer.received
-                .arrival
-                .get(s)
-                .map(|t1| t1.duration_since(*t0).as_secs_f64() * 1e3)
-        })
-        .collect();
     let received = lat.len();
     Ok(LatencyRun {
-        sent: sent.len(),
+        sent: cfg.frames,
         received,
         latency_ms: super::percentiles(&mut lat),
     })
@@ -190,6 +196,7 @@ pub fn measure(cfg: &LatencyConfig) -> Result<LatencyReport> {
         .build()?;
     let quiet = |c: &mut Command| {
         c.env("ROS_DOMAIN_ID", cfg.domain_id.to_string())
+            .env("ROS_LOCALHOST_ONLY", "1")
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::null());

@@ -118,7 +118,7 @@ pub struct NodeStats {
     /// queue to its four outputs handed to DDS): median, 95th percentile, max
     /// over the last 8192 frames.
     pub added_latency_ms: [f64; 3],
-    /// Resident memory, kB, after every 1000 processed frames (and at exit).
+    /// Resident memory, kB, every 5 s of the run (and at exit).
     pub rss_kb: Vec<u64>,
     /// ξ last published, with its interval.
     pub xi: Option<[f64; 3]>,
@@ -442,6 +442,8 @@ fn worker(
     let mut stats = NodeStats::default();
     let mut latencies: Vec<f64> = Vec::with_capacity(LATENCY_WINDOW);
     let mut last_report = Instant::now();
+    let mut last_rss = Instant::now();
+    stats.rss_kb.push(rss_kb());
     let mut reported_drops = 0u64;
     let reply = |t: Token, r: TriggerResponse| {
         let _ = replies.send((t, r));
@@ -527,14 +529,15 @@ fn worker(
                             });
                         }
                     }
-                    if stats.published % 1000 == 0 {
-                        stats.rss_kb.push(rss_kb());
-                    }
                     if s.max_frames.is_some_and(|m| stats.published >= m) {
                         break;
                     }
                 }
             }
+        }
+        if last_rss.elapsed() >= Duration::from_secs(5) {
+            stats.rss_kb.push(rss_kb());
+            last_rss = Instant::now();
         }
         let drops = core.drops.total();
         if drops != reported_drops && last_report.elapsed() > Duration::from_secs(5) {

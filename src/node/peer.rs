@@ -240,6 +240,16 @@ impl Peer {
         }
     }
 
+    /// Stamps of `~/depth/corrected` as they arrive, with their arrival time
+    /// (woken by DDS, not polled: for latency measurements).
+    pub fn corrected_arrivals(&self) -> impl futures::Stream<Item = (u64, std::time::Instant)> + '_ {
+        use futures::StreamExt;
+        self.corrected.async_stream().filter_map(|m| async move {
+            m.ok()
+                .map(|(img, _)| (img.header.stamp.as_log_time_ns(), std::time::Instant::now()))
+        })
+    }
+
     /// Takes whatever outputs have arrived.
     pub fn drain(&mut self) {
         while let Ok(Some((m, _))) = self.corrected.take() {

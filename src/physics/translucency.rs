@@ -107,6 +107,10 @@ pub struct XiSettings {
     pub groups_per_frame: usize,
     /// Fewest pixels in a group.
     pub min_group_pixels: usize,
+    /// Most frames pooled: beyond it the oldest frame's evidence is dropped,
+    /// so that a node running for hours keeps its memory and per-frame time
+    /// bounded and follows a material that changes.
+    pub max_frames_pooled: usize,
 }
 
 impl Default for XiSettings {
@@ -116,6 +120,7 @@ impl Default for XiSettings {
             normal_radius_px: 3,
             groups_per_frame: 3,
             min_group_pixels: 40,
+            max_frames_pooled: 64,
         }
     }
 }
