@@ -11,7 +11,7 @@ use common::netns::isolated;
 use translucent_tof::bag::BagReader;
 use translucent_tof::image::{depth_mm, CLOUD_POINT_STEP};
 use translucent_tof::msgs::{CameraInfo, Image, PointCloud2};
-use translucent_tof::node::peer::{restamp, Peer};
+use translucent_tof::node::peer::{bag_frames, restamp, Peer};
 
 fn exe() -> &'static str {
     env!("CARGO_BIN_EXE_translucent_tof")
@@ -142,20 +142,9 @@ impl Drop for NodeChild {
 
 /// The bundled document holder's frames: camera_info and depth + IR pairs.
 fn frames() -> (CameraInfo, Vec<(Image, Image)>, usize) {
-    let reader = BagReader::open(&bag("document_holder.mcap")).unwrap();
-    let (mut d, mut i, mut info) = (vec![], vec![], None);
-    for m in reader.messages() {
-        let m = m.unwrap();
-        if m.topic.ends_with("depth/image_raw") {
-            d.push(BagReader::decode::<Image>(&m).unwrap());
-        } else if m.topic.ends_with("ir/image_raw") {
-            i.push(BagReader::decode::<Image>(&m).unwrap());
-        } else if m.topic.ends_with("camera_info") && info.is_none() {
-            info = Some(BagReader::decode::<CameraInfo>(&m).unwrap());
-        }
-    }
+    let (info, pairs) = bag_frames(&bag("document_holder.mcap")).unwrap();
     // The bundled scene's background lasts 10 frames.
-    (info.unwrap(), d.into_iter().zip(i).collect(), 10)
+    (info, pairs, 10)
 }
 
 fn stamped(img: &Image, ns: u64) -> Image {

@@ -5,7 +5,7 @@
 //! with the bag's ground truth, and kept as a bag and a Rerun recording.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -13,10 +13,10 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use serde_json::json;
 
-use crate::bag::{select_topics, BagReader, BagWriter, TopicOverrides};
+use crate::bag::BagWriter;
 use crate::image::depth_mm;
-use crate::msgs::{CameraInfo, Header, Image};
-use crate::node::peer::{restamp, Peer};
+use crate::msgs::Header;
+use crate::node::peer::{bag_frames, restamp, Peer};
 use crate::pipeline::{rmse_against_truth, PipelineConfig};
 
 use super::common::{OutputArgs, TopicArgs};
@@ -54,36 +54,6 @@ pub struct DemoArgs {
 /// The bundled bags' folder (next to the crate's sources).
 pub fn bundled_bags() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("bags")
-}
-
-struct RawFrames {
-    info: CameraInfo,
-    pairs: Vec<(Image, Image)>,
-}
-
-fn raw_frames(path: &Path) -> Result<RawFrames> {
-    let reader = BagReader::open(path).with_context(|| format!("opening {}", path.display()))?;
-    let sel = select_topics(&reader.topics(), &TopicOverrides::default())?;
-    let (mut depth, mut ir) = (BTreeMap::new(), BTreeMap::new());
-    let mut info = None;
-    for raw in reader.messages() {
-        let raw = raw?;
-        if raw.topic == sel.depth {
-            let m: Image = BagReader::decode(&raw)?;
-            depth.insert(m.header.stamp.as_log_time_ns(), m);
-        } else if raw.topic == sel.ir {
-            let m: Image = BagReader::decode(&raw)?;
-            ir.insert(m.header.stamp.as_log_time_ns(), m);
-        } else if Some(raw.topic) == sel.info.as_deref() && info.is_none() {
-            info = Some(BagReader::decode::<CameraInfo>(&raw)?);
-        }
-    }
-    let info = info.ok_or_else(|| anyhow!("{}: no camera_info", path.display()))?;
-    let pairs = depth
-        .into_iter()
-        .filter_map(|(s, d)| ir.remove(&s).map(|i| (d, i)))
-        .collect();
-    Ok(RawFrames { info, pairs })
 }
 
 fn now_ns() -> u64 {
@@ -143,8 +113,8 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let rec = load(&bag, &TopicArgs::default())?;
     let config = PipelineConfig::default();
     let bg = rec.background_frames(None, &config)?;
-    let raw = raw_frames(&bag)?;
-    if raw.pairs.len() != rec.frames.len() {
+    let (raw_info, raw_pairs) = bag_frames(&bag)?;
+    if raw_pairs.len() != rec.frames.len() {
         bail!("{}: paired frames differ between readers", bag.display());
     }
     let period_ns = {
@@ -222,7 +192,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         ));
         let mut next = now_ns();
         let reply = peer
-            .latch_while_streaming(&raw.info, &raw.pairs[..bg.count], period, &mut next, period_ns)
+            .latch_while_streaming(&raw_info, &raw_pairs[..bg.count], period, &mut next, period_ns)
             .await?;
         let mut tick = tokio::time::interval(period);
         if !reply.success {
@@ -231,15 +201,15 @@ pub fn run(a: DemoArgs) -> Result<()> {
         stage(&format!("latched: {}", reply.message));
         stage(&format!(
             "playing {} object frames at {:.1} Hz",
-            raw.pairs.len() - bg.count,
+            raw_pairs.len() - bg.count,
             1e9 / period.as_nanos() as f64
         ));
         let mut stamps = BTreeMap::new();
-        for (j, (d, ir)) in raw.pairs.iter().enumerate().skip(bg.count) {
+        for (j, (d, ir)) in raw_pairs.iter().enumerate().skip(bg.count) {
             tick.tick().await;
             next += period_ns;
-            let mut info = raw.info.clone();
-            info.header = Header::new(next, raw.info.header.frame_id.clone());
+            let mut info = raw_info.clone();
+            info.header = Header::new(next, raw_info.header.frame_id.clone());
             peer.publish(&info, &restamp(d, next), &restamp(ir, next))?;
             stamps.insert(next, j);
             peer.drain();

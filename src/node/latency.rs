@@ -5,13 +5,13 @@
 //! frame from its publication to the arrival of its `~/depth/corrected`.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use futures::StreamExt;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{bail, Context, Result};
 use serde::Serialize;
 
 use super::peer::{restamp, Peer};
@@ -84,31 +84,6 @@ impl Drop for Proc {
             let _ = self.0.wait();
         }
     }
-}
-
-fn frames(bag: &Path) -> Result<(CameraInfo, Vec<(Image, Image)>)> {
-    use crate::bag::{select_topics, BagReader, TopicOverrides};
-    let reader = BagReader::open(bag).with_context(|| format!("opening {}", bag.display()))?;
-    let sel = select_topics(&reader.topics(), &TopicOverrides::default())?;
-    let (mut d, mut i) = (std::collections::BTreeMap::new(), std::collections::BTreeMap::new());
-    let mut info = None;
-    for m in reader.messages() {
-        let m = m?;
-        if m.topic == sel.depth {
-            let x: Image = BagReader::decode(&m)?;
-            d.insert(x.header.stamp.as_log_time_ns(), x);
-        } else if m.topic == sel.ir {
-            let x: Image = BagReader::decode(&m)?;
-            i.insert(x.header.stamp.as_log_time_ns(), x);
-        } else if Some(m.topic) == sel.info.as_deref() && info.is_none() {
-            info = Some(BagReader::decode::<CameraInfo>(&m)?);
-        }
-    }
-    let pairs = d
-        .into_iter()
-        .filter_map(|(s, x)| i.remove(&s).map(|y| (x, y)))
-        .collect();
-    Ok((info.ok_or_else(|| anyhow!("{}: no camera_info", bag.display()))?, pairs))
 }
 
 /// Plays the frames to whatever serves `/tof/translucent_tof` and times them.
@@ -188,7 +163,7 @@ pub fn measure(cfg: &LatencyConfig) -> Result<LatencyReport> {
     if !(cfg.rate_hz.is_finite() && cfg.rate_hz > 0.0) {
         bail!("rate must be positive");
     }
-    let (info, pairs) = frames(&cfg.bag)?;
+    let (info, pairs) = super::peer::bag_frames(&cfg.bag)?;
     let exe = std::env::current_exe().context("locating this executable")?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)

@@ -23,6 +23,34 @@ pub fn restamp(img: &Image, stamp_ns: u64) -> Image {
     }
 }
 
+/// A bag's camera_info (the first) and its depth + IR pairs by exact stamp,
+/// as raw messages, for playing it to the node as a driver would.
+pub fn bag_frames(path: &std::path::Path) -> Result<(CameraInfo, Vec<(Image, Image)>)> {
+    use crate::bag::{select_topics, BagReader, TopicOverrides};
+    let reader = BagReader::open(path).map_err(|e| anyhow!("opening {}: {e}", path.display()))?;
+    let sel = select_topics(&reader.topics(), &TopicOverrides::default())?;
+    let (mut depth, mut ir) = (BTreeMap::new(), BTreeMap::new());
+    let mut info = None;
+    for raw in reader.messages() {
+        let raw = raw?;
+        if raw.topic == sel.depth {
+            let m: Image = BagReader::decode(&raw)?;
+            depth.insert(m.header.stamp.as_log_time_ns(), m);
+        } else if raw.topic == sel.ir {
+            let m: Image = BagReader::decode(&raw)?;
+            ir.insert(m.header.stamp.as_log_time_ns(), m);
+        } else if Some(raw.topic) == sel.info.as_deref() && info.is_none() {
+            info = Some(BagReader::decode::<CameraInfo>(&raw)?);
+        }
+    }
+    let info = info.ok_or_else(|| anyhow!("{}: no camera_info", path.display()))?;
+    let pairs = depth
+        .into_iter()
+        .filter_map(|(s, d)| ir.remove(&s).map(|i| (d, i)))
+        .collect();
+    Ok((info, pairs))
+}
+
 /// What the peer received from the node.
 #[derive(Debug, Default)]
 pub struct Received {
