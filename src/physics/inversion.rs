@@ -224,6 +224,33 @@ struct Sample {
     x: f64,
 }
 
+/// The estimate at the chosen sample `s`, with the residual's slope there:
+/// a central difference where both sides are admissible, else one-sided
+/// (shared by the generic scan and the fast sinusoid path).
+fn estimate_at(
+    sensor: &crate::physics::Sensor,
+    s: Sample,
+    roots: u8,
+    pinned: bool,
+    eval: impl Fn(f64) -> Option<Sample>,
+) -> LayerEstimate {
+    let h = 0.5;
+    let slope = match (eval(s.df - h), eval(s.df + h)) {
+        (Some(a), Some(b)) => sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
+        (Some(a), None) => sensor.wrapped_difference_mm(s.residual, a.residual) / h,
+        (None, Some(b)) => sensor.wrapped_difference_mm(b.residual, s.residual) / h,
+        (None, None) => f64::NAN,
+    };
+    LayerEstimate {
+        foreground_distance_mm: s.df,
+        albedo_cos: s.x,
+        residual_mm: s.residual,
+        roots,
+        pinned,
+        slope,
+    }
+}
+
 /// The foreground distance of one translucent pixel for a given ξ (Eq. 8-12).
 ///
 /// Scans `df` over `[d_min, db)` in `scan_step_mm` steps, brackets every sign
@@ -348,22 +375,7 @@ fn foreground_distance_generic(
         Some((root, _)) => (root, false),
         None => (best?, true),
     };
-    // Central difference where both sides are admissible, else one-sided.
-    let h = 0.5;
-    let slope = match (eval(s.df - h), eval(s.df + h)) {
-        (Some(a), Some(b)) => sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
-        (Some(a), None) => sensor.wrapped_difference_mm(s.residual, a.residual) / h,
-        (None, Some(b)) => sensor.wrapped_difference_mm(b.residual, s.residual) / h,
-        (None, None) => f64::NAN,
-    };
-    Some(LayerEstimate {
-        foreground_distance_mm: s.df,
-        albedo_cos: s.x,
-        residual_mm: s.residual,
-        roots,
-        pinned,
-        slope,
-    })
+    Some(estimate_at(sensor, s, roots, pinned, eval))
 }
 
 /// The inversion's evaluations for the paper's two returns on a sinusoidal
@@ -617,21 +629,7 @@ fn foreground_distance_fast(
             (best?, true)
         }
     };
-    let h = 0.5;
-    let slope = match (eval(s.df - h), eval(s.df + h)) {
-        (Some(a), Some(b)) => sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
-        (Some(a), None) => sensor.wrapped_difference_mm(s.residual, a.residual) / h,
-        (None, Some(b)) => sensor.wrapped_difference_mm(b.residual, s.residual) / h,
-        (None, None) => f64::NAN,
-    };
-    Some(LayerEstimate {
-        foreground_distance_mm: s.df,
-        albedo_cos: s.x,
-        residual_mm: s.residual,
-        roots,
-        pinned,
-        slope,
-    })
+    Some(estimate_at(sensor, s, roots, pinned, eval))
 }
 
 /// Illinois (modified regula falsi) refinement of a bracketed root to 0.01 mm.
