@@ -368,9 +368,8 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
                 None => break,
             },
             Some(((which, id), resp)) = reply_rx.recv() => {
-                let srv = match which { Service::Latch => &latch_srv, Service::Clear => &clear_srv };
-                if resp.success { info!("{}: {}", match which { Service::Latch => &latch_n, Service::Clear => &clear_n }, resp.message); }
-                else { warn!("{}: {}", match which { Service::Latch => &latch_n, Service::Clear => &clear_n }, resp.message); }
+                let (srv, name) = match which { Service::Latch => (&latch_srv, &latch_n), Service::Clear => (&clear_srv, &clear_n) };
+                if resp.success { info!("{name}: {}", resp.message); } else { warn!("{name}: {}", resp.message); }
                 if let Err(e) = srv.async_send_response(id, resp).await { warn!("sending a service reply: {e:?}"); }
             },
             st = done_rx.recv() => { final_stats = st; break; },
