@@ -16,7 +16,7 @@ use crate::physics::segmentation::{
     changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
 use crate::physics::stats::median_and_sigma;
-use crate::physics::surface::local_planes;
+use crate::physics::surface::{local_planes, update_local_planes};
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
     foreground_distance, ForwardModel, ImageBuf, Intrinsics, InversionBounds, LayerEstimate, PixelObservation, Sensor,
@@ -618,17 +618,24 @@ impl Pipeline {
                         .then_some(est.foreground_distance_mm)
                 })
                 .collect();
-            let mut repicked = false;
+            let mut repicked = vec![];
             for (&i, d) in several_roots.iter().zip(repicks) {
                 if let Some(d) = d {
                     df[i] = d;
                     points.data[i] = self.rays.data[i] * d;
-                    repicked = true;
+                    repicked.push(i);
                 }
             }
-            if repicked {
-                planes = local_planes(&points, &self.rays, &obs.mask, self.config.prior_radius_px, 12);
-            }
+            // The windows those pixels are in, refitted (the same planes as refitting all).
+            update_local_planes(
+                &mut planes,
+                &points,
+                &self.rays,
+                &obs.mask,
+                self.config.prior_radius_px,
+                12,
+                &repicked,
+            );
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
             for i in 0..n {
                 if !obs.mask.data[i] {

@@ -62,7 +62,7 @@ impl Default for InversionBounds {
         Self {
             min_distance_mm: 100.0,
             max_albedo_cos: 1.0,
-            scan_step_mm: 20.0,
+            scan_step_mm: 60.0,
             min_separation_mm: 1.0,
         }
     }

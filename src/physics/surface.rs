@@ -181,22 +181,29 @@ fn fit_inverse_depth<const N: usize>(
             }
         })
         .collect();
+    // The normal equations, upper triangle only (the matrix is symmetric), in plain arrays:
+    // built once over every point, then each pass takes out the points it drops (a
+    // downdate) instead of summing the kept ones again.
+    let mut acc = [[0.0f64; N]; N];
+    let mut atb = SVector::<f64, N>::zeros();
+    let mut n = 0;
+    let add = |acc: &mut [[f64; N]; N], atb: &mut SVector<f64, N>, p: &Term<N>, sign: f64| {
+        let r: [f64; N] = p.row.into();
+        let w = sign * p.w;
+        for (j, col) in acc.iter_mut().enumerate() {
+            let rw = r[j] * w;
+            for (i, a) in col.iter_mut().enumerate().take(j + 1) {
+                *a += r[i] * rw;
+            }
+        }
+        *atb += p.row * (sign * p.rhs);
+    };
+    for p in t.iter().filter(|p| p.keep) {
+        add(&mut acc, &mut atb, p, 1.0);
+        n += 1;
+    }
     let mut plane = None;
     for pass in 0..=robust.passes {
-        // The upper triangle only (the matrix is symmetric), in plain arrays.
-        let mut acc = [[0.0f64; N]; N];
-        let mut atb = SVector::<f64, N>::zeros();
-        let mut n = 0;
-        for p in t.iter().filter(|p| p.keep) {
-            let r: [f64; N] = p.row.into();
-            for (j, col) in acc.iter_mut().enumerate() {
-                for (i, a) in col.iter_mut().enumerate().take(j + 1) {
-                    *a += r[i] * r[j] * p.w;
-                }
-            }
-            atb += p.row * p.rhs;
-            n += 1;
-        }
         let ata = SMatrix::<f64, N, N>::from_fn(|i, j| if i <= j { acc[j][i] } else { acc[i][j] });
         if n < min_points {
             return plane;
@@ -239,6 +246,8 @@ fn fit_inverse_depth<const N: usize>(
         for p in t.iter_mut() {
             if p.keep && p.resid > cut {
                 p.keep = false;
+                add(&mut acc, &mut atb, p, -1.0);
+                n -= 1;
                 changed = true;
             }
         }
@@ -315,6 +324,40 @@ pub fn local_planes(
         width: points.width,
         height: points.height,
         data,
+    }
+}
+
+/// Refits, after the points at `changed` moved, exactly the planes of
+/// [`local_planes`] whose window holds one of them (the others' windows are
+/// unchanged): the same planes as a full recomputation, at the cost of the
+/// windows touched.
+pub fn update_local_planes(
+    planes: &mut ImageBuf<Option<Plane>>,
+    points: &ImageBuf<Vector3<f64>>,
+    rays: &ImageBuf<Vector3<f64>>,
+    mask: &ImageBuf<bool>,
+    radius: usize,
+    min_points: usize,
+    changed: &[usize],
+) {
+    let (w, h) = (points.width, points.height);
+    let mut touched = vec![false; points.len()];
+    for &i in changed {
+        let (col, row) = (i % w, i / w);
+        for r in row.saturating_sub(radius)..(row + radius + 1).min(h) {
+            for c in col.saturating_sub(radius)..(col + radius + 1).min(w) {
+                touched[r * w + c] = mask.data[r * w + c];
+            }
+        }
+    }
+    let redo: Vec<usize> = (0..points.len()).filter(|&i| touched[i]).collect();
+    let fits: Vec<Option<Plane>> = redo
+        .par_iter()
+        .with_min_len(64)
+        .map(|&i| local_plane_at(points, rays, mask, i, radius, min_points))
+        .collect();
+    for (i, p) in redo.into_iter().zip(fits) {
+        planes.data[i] = p;
     }
 }
 
@@ -413,6 +456,66 @@ mod tests {
         let centre = Vector3::new(0.0, 0.0, 1.0);
         assert!((p.ray_distance(&centre).unwrap() - offset / n_true.dot(&centre)).abs() < 4.0);
         assert!(p.normal.z < -0.9, "{:?}", p.normal);
+    }
+
+    #[test]
+    fn updating_moved_windows_equals_refitting_all() {
+        // A noisy tilted plane under a masked region; move a few points, then compare the
+        // windowed update with a full recomputation, plane for plane.
+        let (w, h) = (40usize, 30usize);
+        let rays = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| Vector3::new((i % w) as f64 * 0.004 - 0.08, (i / w) as f64 * 0.004 - 0.06, 1.0).normalize())
+                .collect(),
+        };
+        let mask = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| (3..37).contains(&(i % w)) && (2..27).contains(&(i / w)))
+                .collect(),
+        };
+        let mut k = 7u32;
+        let mut points = ImageBuf {
+            width: w,
+            height: h,
+            data: rays
+                .data
+                .iter()
+                .map(|u| {
+                    k = k.wrapping_mul(1103515245).wrapping_add(12345);
+                    u * (800.0 + 300.0 * u.x + ((k >> 16) % 21) as f64 - 10.0)
+                })
+                .collect(),
+        };
+        let mut planes = local_planes(&points, &rays, &mask, 3, 12);
+        let moved = [5 * w + 6, 15 * w + 20, 16 * w + 20, 26 * w + 36];
+        for &i in &moved {
+            points.data[i] *= 1.2;
+        }
+        update_local_planes(&mut planes, &points, &rays, &mask, 3, 12, &moved);
+        let full = local_planes(&points, &rays, &mask, 3, 12);
+        assert_eq!(planes.data, full.data);
+        // The update did refit: the planes before the move differ somewhere.
+        let before = local_planes(
+            &ImageBuf {
+                width: w,
+                height: h,
+                data: points
+                    .data
+                    .iter()
+                    .enumerate()
+                    .map(|(i, p)| if moved.contains(&i) { p / 1.2 } else { *p })
+                    .collect(),
+            },
+            &rays,
+            &mask,
+            3,
+            12,
+        );
+        assert_ne!(before.data, full.data);
     }
 
     #[test]
