@@ -512,13 +512,6 @@ struct ScanSample {
 }
 
 impl ScanSample {
-    const GAP: Self = Self {
-        df: f64::NAN,
-        x: f64::NAN,
-        re: f64::NAN,
-        im: f64::NAN,
-    };
-
     /// `residual <= 0`, read from the phasor's sign (the angle in `(-pi, pi]`).
     #[inline]
     fn nonpositive(&self) -> bool {
@@ -526,22 +519,13 @@ impl ScanSample {
     }
 }
 
-/// [`foreground_distance`] for a [`FastPixel`]: the same scan, brackets, root
-/// rule and refinement, with the scan's phasors stepped by rotation (no
-/// trigonometry per sample) and residual angles taken only where needed.
-fn foreground_distance_fast(
-    fast: &FastPixel,
-    model: &ForwardModel,
-    obs: &PixelObservation,
-    bounds: &InversionBounds,
-    prefer_mm: Option<f64>,
-    lo: f64,
-    hi: f64,
-) -> Option<LayerEstimate> {
-    let sensor = &model.sensor;
-    let range = sensor.unambiguous_range_mm();
-    let eval = |df: f64| fast.eval(df);
-    let n = ((hi - lo) / bounds.scan_step_mm).ceil().max(2.0) as usize;
+/// The scan of [`foreground_distance`] for a [`FastPixel`], streamed: every
+/// admissible sample in `df` order to `visit`, with `None` between
+/// admissible stretches (where `X` leaves its bounds; the edge itself, found
+/// by bisection, is a sample). The phasors are stepped by rotation (no
+/// trigonometry per sample).
+fn scan_fast(fast: &FastPixel, lo: f64, hi: f64, step_mm: f64, mut visit: impl FnMut(Option<ScanSample>)) {
+    let n = ((hi - lo) / step_mm).ceil().max(2.0) as usize;
     let step = (hi - lo) / n as f64;
     let (mut rs, mut rc) = (fast.k * lo - fast.phi_d).sin_cos();
     let (ss, sc) = (fast.k * step).sin_cos();
@@ -550,7 +534,6 @@ fn foreground_distance_fast(
         let (re, im) = fast.phasor(df, x);
         (re != 0.0 || im != 0.0).then_some(ScanSample { df, x, re, im })
     };
-    let mut samples: Vec<ScanSample> = Vec::with_capacity(n + 3);
     let mut prev: Option<(f64, bool)> = None;
     for k in 0..=n {
         let df = lo + step * k as f64;
@@ -579,53 +562,77 @@ fn foreground_distance_fast(
                         bad_df = m;
                     }
                 }
-                samples.extend(full(ok_df));
+                // Leaving an admissible stretch the edge follows its samples; entering one it
+                // precedes `cur`: either way it goes next, in df order.
+                if let Some(e) = full(ok_df) {
+                    visit(Some(e));
+                }
                 if pok {
-                    samples.push(ScanSample::GAP);
+                    visit(None);
                 }
             }
         }
         if let Some(c) = cur {
-            samples.push(c);
+            visit(Some(c));
         }
         prev = Some((df, cur.is_some()));
     }
-    let res = |s: &ScanSample| fast.residual_mm(s.re, s.im);
+}
+
+/// [`foreground_distance`] for a [`FastPixel`]: the same scan, brackets, root
+/// rule and refinement, streamed ([`scan_fast`]; no buffer per pixel), with
+/// residual angles taken only where a bracket needs them. A pixel without a
+/// root is scanned again for its best sample.
+fn foreground_distance_fast(
+    fast: &FastPixel,
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    bounds: &InversionBounds,
+    prefer_mm: Option<f64>,
+    lo: f64,
+    hi: f64,
+) -> Option<LayerEstimate> {
+    let sensor = &model.sensor;
+    let range = sensor.unambiguous_range_mm();
+    let eval = |df: f64| fast.eval(df);
     let as_sample = |s: &ScanSample| Sample {
         df: s.df,
-        residual: res(s),
+        residual: fast.residual_mm(s.re, s.im),
         x: s.x,
     };
     let mut chosen: Option<(Sample, f64)> = None;
     let mut roots = 0u8;
-    for w in samples.windows(2) {
-        let (p, c) = (&w[0], &w[1]);
-        if p.df.is_nan() || c.df.is_nan() || p.df == c.df || p.nonpositive() == c.nonpositive() {
-            continue;
-        }
-        let (p, c) = (as_sample(p), as_sample(c));
-        if (p.residual - c.residual).abs() < range / 4.0 {
-            if let Some(root) = refine(&eval, p, c) {
-                roots = roots.saturating_add(1);
-                let anchor = prefer_mm.unwrap_or(obs.distance_mm);
-                let dist = sensor.wrapped_difference_mm(root.df, anchor).abs();
-                if chosen.is_none_or(|(_, d)| dist < d) {
-                    chosen = Some((root, dist));
+    let mut last: Option<ScanSample> = None;
+    scan_fast(fast, lo, hi, bounds.scan_step_mm, |cur| {
+        if let (Some(p), Some(c)) = (&last, &cur) {
+            if p.df != c.df && p.nonpositive() != c.nonpositive() {
+                let (p, c) = (as_sample(p), as_sample(c));
+                if (p.residual - c.residual).abs() < range / 4.0 {
+                    if let Some(root) = refine(&eval, p, c) {
+                        roots = roots.saturating_add(1);
+                        let anchor = prefer_mm.unwrap_or(obs.distance_mm);
+                        let dist = sensor.wrapped_difference_mm(root.df, anchor).abs();
+                        if chosen.is_none_or(|(_, d)| dist < d) {
+                            chosen = Some((root, dist));
+                        }
+                    }
                 }
             }
         }
-    }
+        last = cur;
+    });
     let (s, pinned) = match chosen {
         Some((root, _)) => (root, false),
         None => {
             // No root: the admissible sample with the smallest residual (the first of equals).
             let mut best: Option<Sample> = None;
-            for s in samples.iter().filter(|s| !s.df.is_nan()) {
-                let s = as_sample(s);
-                if best.is_none_or(|b| s.residual.abs() < b.residual.abs()) {
-                    best = Some(s);
+            scan_fast(fast, lo, hi, bounds.scan_step_mm, |cur| {
+                if let Some(s) = cur.as_ref().map(as_sample) {
+                    if best.is_none_or(|b| s.residual.abs() < b.residual.abs()) {
+                        best = Some(s);
+                    }
                 }
-            }
+            });
             (best?, true)
         }
     };
