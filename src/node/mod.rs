@@ -20,7 +20,7 @@ use futures::StreamExt;
 use log::{error, info, warn};
 use ros2_client::{
     qos::{Durability, History},
-    Context, ContextOptions, MessageTypeName, Name, Node, NodeName, NodeOptions, ParameterValue, Publisher, QosProfile,
+    Context, ContextOptions, MessageTypeName, Name, NodeName, NodeOptions, ParameterValue, Publisher, QosProfile,
     ServiceMapping, ServiceTypeName,
 };
 use serde::Serialize;
@@ -120,6 +120,10 @@ pub struct NodeStats {
     pub added_latency_ms: [f64; 3],
     /// Resident memory, kB, every 5 s of the run (and at exit).
     pub rss_kb: Vec<u64>,
+    /// Heap bytes in live allocations, kB, at the same times (glibc's
+    /// `mallinfo2`, empty elsewhere): what the node holds, as against what the
+    /// allocator keeps resident.
+    pub heap_in_use_kb: Vec<u64>,
     /// ξ last published, with its interval.
     pub xi: Option<[f64; 3]>,
 }
@@ -160,6 +164,18 @@ fn qos_service() -> QosProfile {
     QosProfile::publisher_default().history(History::KeepLast { depth: 10 })
 }
 
+/// Bytes in live heap allocations, kB (glibc: small and large ones), `None` elsewhere.
+pub fn heap_in_use_kb() -> Option<u64> {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        // SAFETY: mallinfo2 only reads the allocator's counters.
+        let m = unsafe { libc::mallinfo2() };
+        Some(((m.uordblks + m.hblkhd) / 1024) as u64)
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    None
+}
+
 /// Resident set size, kB (Linux), 0 elsewhere.
 pub fn rss_kb() -> u64 {
     std::fs::read_to_string("/proc/self/statm")
@@ -195,11 +211,6 @@ pub fn context(domain_id: u16, localhost_only: bool) -> anyhow::Result<Context> 
             .map_err(|e| anyhow::anyhow!("creating the DDS participant on domain {domain_id}: {e:?}"))
     }
 }
-
-/// Most samples RustDDS keeps per input topic: its reader cache holds 64
-/// whole messages per topic unless the topic's resource limits say otherwise
-/// (KeepLast alone does not trim it), 77 MB of 640x480 depth and IR.
-const INPUT_CACHE_SAMPLES: i32 = 8;
 
 /// Fixes glibc's mmap threshold (unless the environment sets one): by
 /// default it rises to the largest buffer freed so far, after which every
@@ -246,48 +257,51 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     tokio::spawn(spinner.spin());
 
     let r = |n: &str| s.names.resolve(n);
-    let topic = |node: &mut Node, name: &str, pkg: &str, ty: &str, qos: &QosProfile| -> anyhow::Result<_> {
-        node.create_topic(&ros_name(name)?, MessageTypeName::new(pkg, ty), qos)
-            .map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))
-    };
-    let (depth_t, ir_t, info_t) = (r(names::DEPTH)?, r(names::IR)?, r(names::INFO)?);
-    let sensor = qos_sensor();
-    // The inputs' topics straight on the participant (as ros2-client's create_topic does),
-    // with resource limits that bound RustDDS's reader cache.
-    let input_topic = |name: &str, ty: &str| -> anyhow::Result<rustdds::Topic> {
-        let limits = rustdds::policy::ResourceLimits {
-            max_samples: INPUT_CACHE_SAMPLES,
-            max_instances: 1,
-            max_samples_per_instance: INPUT_CACHE_SAMPLES,
+    // Every topic straight on the participant (as ros2-client's create_topic does), with
+    // resource limits equal to its KeepLast depth: RustDDS otherwise keeps 64 whole messages
+    // in each reader's cache, and up to 8192 not yet acknowledged in each writer's (a
+    // KeepLast writer of the DDS spec keeps its depth; RustDDS keeps what a reliable reader
+    // has not acknowledged). Readers and writers inherit the limits from the topic.
+    let topic = |name: &str, pkg: &str, ty: &str, qos: &QosProfile| -> anyhow::Result<rustdds::Topic> {
+        let depth = match qos.history {
+            History::KeepLast { depth } => i32::try_from(depth).unwrap_or(i32::MAX).max(1),
+            History::KeepAll => 64, // RustDDS's own default (no topic of this node keeps all)
         };
-        let qos = rustdds::QosPolicies::from(&sensor)
+        let limits = rustdds::policy::ResourceLimits {
+            max_samples: depth,
+            max_instances: 1,
+            max_samples_per_instance: depth,
+        };
+        let qos = rustdds::QosPolicies::from(qos)
             .modify_by(&rustdds::QosPolicyBuilder::new().resource_limits(limits).build());
         ctx.domain_participant()
             .create_topic(
                 ros_name(name)?.to_dds_name("rt", &node_name, ""),
-                MessageTypeName::new("sensor_msgs", ty).dds_msg_type(),
+                MessageTypeName::new(pkg, ty).dds_msg_type(),
                 &qos,
                 rustdds::TopicKind::NoKey,
             )
             .map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))
     };
-    let t = input_topic(&depth_t, "Image")?;
+    let (depth_t, ir_t, info_t) = (r(names::DEPTH)?, r(names::IR)?, r(names::INFO)?);
+    let sensor = qos_sensor();
+    let t = topic(&depth_t, "sensor_msgs", "Image", &sensor)?;
     let depth_sub = node
         .create_subscription::<Image>(&t, Some(sensor.clone()))
         .map_err(|e| anyhow::anyhow!("subscribing {depth_t}: {e:?}"))?;
-    let t = input_topic(&ir_t, "Image")?;
+    let t = topic(&ir_t, "sensor_msgs", "Image", &sensor)?;
     let ir_sub = node
         .create_subscription::<Image>(&t, Some(sensor.clone()))
         .map_err(|e| anyhow::anyhow!("subscribing {ir_t}: {e:?}"))?;
-    let t = input_topic(&info_t, "CameraInfo")?;
+    let t = topic(&info_t, "sensor_msgs", "CameraInfo", &sensor)?;
     let info_sub = node
         .create_subscription::<CameraInfo>(&t, Some(sensor.clone()))
         .map_err(|e| anyhow::anyhow!("subscribing {info_t}: {e:?}"))?;
 
     let out_q = qos_outputs();
-    let mut publisher = |name: &str, ty: &str| -> anyhow::Result<_> {
+    let publisher = |name: &str, ty: &str| -> anyhow::Result<_> {
         let full = r(name)?;
-        let t = topic(&mut node, &full, "sensor_msgs", ty, &out_q)?;
+        let t = topic(&full, "sensor_msgs", ty, &out_q)?;
         Ok((full, t))
     };
     let (corrected_n, corrected_t) = publisher(names::CORRECTED, "Image")?;
@@ -295,7 +309,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     let (points_n, points_t) = publisher(names::POINTS, "PointCloud2")?;
     let est_n = r(names::TRANSLUCENCY)?;
     let est_q = qos_estimate();
-    let est_t = topic(&mut node, &est_n, "translucent_tof", "TranslucencyEstimate", &est_q)?;
+    let est_t = topic(&est_n, "translucent_tof", "TranslucencyEstimate", &est_q)?;
     let pe = |n: &str| {
         let n = n.to_string();
         move |e| anyhow::anyhow!("publisher {n}: {e:?}")
@@ -486,6 +500,7 @@ fn worker(
     let mut last_report = Instant::now();
     let mut last_rss = Instant::now();
     stats.rss_kb.push(rss_kb());
+    stats.heap_in_use_kb.extend(heap_in_use_kb());
     let mut reported_drops = 0u64;
     let reply = |t: Token, r: TriggerResponse| {
         let _ = replies.send((t, r));
@@ -579,6 +594,7 @@ fn worker(
         }
         if last_rss.elapsed() >= Duration::from_secs(5) {
             stats.rss_kb.push(rss_kb());
+            stats.heap_in_use_kb.extend(heap_in_use_kb());
             last_rss = Instant::now();
         }
         let drops = core.drops.total();
@@ -594,6 +610,7 @@ fn worker(
         }
     }
     stats.rss_kb.push(rss_kb());
+    stats.heap_in_use_kb.extend(heap_in_use_kb());
     stats.dropped = core.drops.by_cause.clone();
     stats.added_latency_ms = percentiles(&mut latencies);
     if let Some(v) = viz {
