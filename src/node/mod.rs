@@ -212,21 +212,33 @@ pub fn context(domain_id: u16, localhost_only: bool) -> anyhow::Result<Context> 
     }
 }
 
-/// Fixes glibc's mmap threshold (unless the environment sets one): by
-/// default it rises to the largest buffer freed so far, after which every
-/// image-sized buffer (50 KB-1 MB, allocated and freed per frame on several
-/// threads) comes from the heap arenas, which fragment and keep their high
-/// water mark. Measured with the node under a 100 Hz stream: resident memory
-/// climbed to 430 MB with the default and held at 110-160 MB with this
-/// threshold (`bench --cases node_latency`, `rss_kb`).
+/// Sets glibc's mmap threshold to 32 KiB (unless the environment sets
+/// one). By default it rises to the largest buffer freed so far, after which
+/// every image-sized buffer (the inputs, their DDS fragments, the outputs:
+/// 25 KB-1 MB, allocated and freed per frame on several threads) comes from
+/// the heap arenas, which fragment and keep their high-water mark. Measured
+/// with the node under a 100 Hz stream for 30 s (`bench --cases node_latency`,
+/// `rss_kb`): 430 MB resident with the default, 110-160 MB with a fixed
+/// threshold.
 fn fix_mmap_threshold() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     if std::env::var_os("MALLOC_MMAP_THRESHOLD_").is_none() {
         // SAFETY: mallopt only sets an allocator parameter; called before the node's threads.
-        let ok = unsafe { libc::mallopt(libc::M_MMAP_THRESHOLD, 128 * 1024) };
+        let ok = unsafe { libc::mallopt(libc::M_MMAP_THRESHOLD, 32 * 1024) };
         if ok != 1 {
             warn!("could not set the allocator's mmap threshold; memory may creep under load");
         }
+    }
+}
+
+/// Hands the heap arenas' free pages back to the system (glibc's
+/// `malloc_trim`): what the smaller per-frame buffers, freed on other
+/// threads, leave behind in the middle of an arena.
+fn release_free_heap() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only returns free pages; safe at any time.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 
@@ -593,6 +605,7 @@ fn worker(
             }
         }
         if last_rss.elapsed() >= Duration::from_secs(5) {
+            release_free_heap();
             stats.rss_kb.push(rss_kb());
             stats.heap_in_use_kb.extend(heap_in_use_kb());
             last_rss = Instant::now();
