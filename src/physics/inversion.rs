@@ -224,6 +224,34 @@ struct Sample {
     x: f64,
 }
 
+/// The roots a scan has found, and the one the root rule picks: the nearest
+/// (wrapped) to the preference, a neighbourhood's surface, when given, else to
+/// the reading itself (shared by the generic scan and the fast sinusoid path).
+struct RootPick {
+    anchor: f64,
+    roots: u8,
+    /// The root picked so far, with its distance to the anchor.
+    chosen: Option<(Sample, f64)>,
+}
+
+impl RootPick {
+    fn new(obs: &PixelObservation, prefer_mm: Option<f64>) -> Self {
+        Self {
+            anchor: prefer_mm.unwrap_or(obs.distance_mm),
+            roots: 0,
+            chosen: None,
+        }
+    }
+
+    fn offer(&mut self, sensor: &crate::physics::Sensor, root: Sample) {
+        self.roots = self.roots.saturating_add(1);
+        let dist = sensor.wrapped_difference_mm(root.df, self.anchor).abs();
+        if self.chosen.is_none_or(|(_, d)| dist < d) {
+            self.chosen = Some((root, dist));
+        }
+    }
+}
+
 /// The estimate at the chosen sample `s`, with the residual's slope there:
 /// a central difference where both sides are admissible, else one-sided
 /// (shared by the generic scan and the fast sinusoid path).
@@ -344,8 +372,7 @@ fn foreground_distance_generic(
         prev = Some((df, cur.is_some()));
     }
     let mut best: Option<Sample> = None;
-    let mut chosen: Option<(Sample, f64)> = None; // (root, its distance to the preference)
-    let mut roots = 0u8;
+    let mut pick = RootPick::new(obs, prefer_mm);
     for w in samples.windows(2) {
         let (p, c) = (w[0], w[1]);
         if !p.df.is_nan() && best.is_none_or(|b| p.residual.abs() < b.residual.abs()) {
@@ -357,12 +384,7 @@ fn foreground_distance_generic(
         let crosses = (p.residual <= 0.0) != (c.residual <= 0.0);
         if crosses && (p.residual - c.residual).abs() < range / 4.0 {
             if let Some(root) = refine(&eval, p, c) {
-                roots = roots.saturating_add(1);
-                let anchor = prefer_mm.unwrap_or(obs.distance_mm);
-                let dist = sensor.wrapped_difference_mm(root.df, anchor).abs();
-                if chosen.is_none_or(|(_, d)| dist < d) {
-                    chosen = Some((root, dist));
-                }
+                pick.offer(sensor, root);
             }
         }
     }
@@ -371,11 +393,11 @@ fn foreground_distance_generic(
             best = Some(*last);
         }
     }
-    let (s, pinned) = match chosen {
+    let (s, pinned) = match pick.chosen {
         Some((root, _)) => (root, false),
         None => (best?, true),
     };
-    Some(estimate_at(sensor, s, roots, pinned, eval))
+    Some(estimate_at(sensor, s, pick.roots, pinned, eval))
 }
 
 /// The inversion's evaluations for the paper's two returns on a sinusoidal
@@ -600,8 +622,7 @@ fn foreground_distance_fast(
         residual: fast.residual_mm(s.re, s.im),
         x: s.x,
     };
-    let mut chosen: Option<(Sample, f64)> = None;
-    let mut roots = 0u8;
+    let mut pick = RootPick::new(obs, prefer_mm);
     let mut last: Option<ScanSample> = None;
     scan_fast(fast, lo, hi, bounds.scan_step_mm, |cur| {
         if let (Some(p), Some(c)) = (&last, &cur) {
@@ -609,19 +630,14 @@ fn foreground_distance_fast(
                 let (p, c) = (as_sample(p), as_sample(c));
                 if (p.residual - c.residual).abs() < range / 4.0 {
                     if let Some(root) = refine(&eval, p, c) {
-                        roots = roots.saturating_add(1);
-                        let anchor = prefer_mm.unwrap_or(obs.distance_mm);
-                        let dist = sensor.wrapped_difference_mm(root.df, anchor).abs();
-                        if chosen.is_none_or(|(_, d)| dist < d) {
-                            chosen = Some((root, dist));
-                        }
+                        pick.offer(sensor, root);
                     }
                 }
             }
         }
         last = cur;
     });
-    let (s, pinned) = match chosen {
+    let (s, pinned) = match pick.chosen {
         Some((root, _)) => (root, false),
         None => {
             // No root: the admissible sample with the smallest residual (the first of equals).
@@ -636,7 +652,7 @@ fn foreground_distance_fast(
             (best?, true)
         }
     };
-    Some(estimate_at(sensor, s, roots, pinned, eval))
+    Some(estimate_at(sensor, s, pick.roots, pinned, eval))
 }
 
 /// Illinois (modified regula falsi) refinement of a bracketed root to 0.01 mm.
