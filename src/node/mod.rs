@@ -216,10 +216,9 @@ pub fn context(domain_id: u16, localhost_only: bool) -> anyhow::Result<Context> 
 /// one). By default it rises to the largest buffer freed so far, after which
 /// every image-sized buffer (the inputs, their DDS fragments, the outputs:
 /// 25 KB-1 MB, allocated and freed per frame on several threads) comes from
-/// the heap arenas, which fragment and keep their high-water mark. Measured
-/// with the node under a 100 Hz stream for 30 s (`bench --cases node_latency`,
-/// `rss_kb`): 430 MB resident with the default, 110-160 MB with a fixed
-/// threshold.
+/// the heap arenas, which fragment and keep their high-water mark: under a
+/// 100 Hz stream the node's resident memory climbed to 430 MB within 30 s
+/// with the default (README, The node: `bench --cases node_latency`, `rss_kb`).
 fn fix_mmap_threshold() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     if std::env::var_os("MALLOC_MMAP_THRESHOLD_").is_none() {
