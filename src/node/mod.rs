@@ -176,6 +176,12 @@ pub fn heap_in_use_kb() -> Option<u64> {
     None
 }
 
+/// Appends the resident memory and the live heap to the run's samples.
+fn sample_memory(stats: &mut NodeStats) {
+    stats.rss_kb.push(rss_kb());
+    stats.heap_in_use_kb.extend(heap_in_use_kb());
+}
+
 /// Resident set size, kB (Linux), 0 elsewhere.
 pub fn rss_kb() -> u64 {
     std::fs::read_to_string("/proc/self/statm")
@@ -510,8 +516,7 @@ fn worker(
     let mut latencies: Vec<f64> = Vec::with_capacity(LATENCY_WINDOW);
     let mut last_report = Instant::now();
     let mut last_rss = Instant::now();
-    stats.rss_kb.push(rss_kb());
-    stats.heap_in_use_kb.extend(heap_in_use_kb());
+    sample_memory(&mut stats);
     let mut reported_drops = 0u64;
     let reply = |t: Token, r: TriggerResponse| {
         let _ = replies.send((t, r));
@@ -605,8 +610,7 @@ fn worker(
         }
         if last_rss.elapsed() >= Duration::from_secs(5) {
             release_free_heap();
-            stats.rss_kb.push(rss_kb());
-            stats.heap_in_use_kb.extend(heap_in_use_kb());
+            sample_memory(&mut stats);
             last_rss = Instant::now();
         }
         let drops = core.drops.total();
@@ -621,8 +625,7 @@ fn worker(
             last_report = Instant::now();
         }
     }
-    stats.rss_kb.push(rss_kb());
-    stats.heap_in_use_kb.extend(heap_in_use_kb());
+    sample_memory(&mut stats);
     stats.dropped = core.drops.by_cause.clone();
     stats.added_latency_ms = percentiles(&mut latencies);
     if let Some(v) = viz {

@@ -36,8 +36,14 @@ pub fn median_and_sigma(v: &mut [f64]) -> Option<(f64, f64)> {
         return None;
     }
     let med = median_select(v);
+    Some((med, sigma_about(v, med)))
+}
+
+/// `1.4826 MAD` about a known median `med`: the robust standard deviation
+/// of [`median_and_sigma`] when the median is already at hand. NaN for no values.
+pub fn sigma_about(v: &[f64], med: f64) -> f64 {
     let mut dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
-    Some((med, 1.4826 * median_select(&mut dev)))
+    1.4826 * median_select(&mut dev)
 }
 
 #[cfg(test)]

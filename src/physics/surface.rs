@@ -5,7 +5,7 @@ use nalgebra::{Matrix3, SMatrix, SVector, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
 use super::buffer::ImageBuf;
-use super::stats::{median_and_sigma, median_select};
+use super::stats::{median_select, sigma_about};
 
 /// A plane `normal . p = offset`, with the fit's spread.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -368,8 +368,7 @@ fn keep_near_median(points: &mut Vec<Vector3<f64>>, k: f64, floor_mm: f64) {
         return;
     }
     let norms: Vec<f64> = points.iter().map(|p| p.norm()).collect();
-    let mut sorted = norms.clone();
-    let med = median_select(&mut sorted);
+    let med = median_select(&mut norms.clone());
     // Every point within the floor of the median is kept whatever the spread: no need
     // to measure it (the common case on a smooth layer).
     let (lo, hi) = norms
@@ -378,10 +377,7 @@ fn keep_near_median(points: &mut Vec<Vector3<f64>>, k: f64, floor_mm: f64) {
     if med - lo <= floor_mm && hi - med <= floor_mm {
         return;
     }
-    let Some((med, sigma)) = median_and_sigma(&mut sorted) else {
-        return;
-    };
-    let cut = (k * sigma).max(floor_mm);
+    let cut = (k * sigma_about(&norms, med)).max(floor_mm);
     let mut i = 0;
     points.retain(|_| {
         i += 1;
