@@ -96,6 +96,9 @@ pub struct PipelineConfig {
     pub lin_calibration: Option<ImageBuf<f64>>,
     /// Radius (pixels) of the smooth-surface prior on the recovered layer; 0 = off.
     pub prior_radius_px: usize,
+    /// The prior fits one window per `prior_stride_px` square block of pixels, each
+    /// pixel taking the fitted surface's tangent at its own ray (1 = a window per pixel).
+    pub prior_stride_px: usize,
     /// ξ estimation settings.
     pub xi_settings: XiSettings,
     /// A pixel whose layer the reading noise leaves more uncertain than this
@@ -114,6 +117,7 @@ impl Default for PipelineConfig {
             background_albedo: 1.0,
             lin_calibration: None,
             prior_radius_px: 4,
+            prior_stride_px: 3,
             xi_settings: XiSettings::default(),
             max_layer_sigma_mm: 300.0,
         }
@@ -605,7 +609,14 @@ impl Pipeline {
             }
         }
         if self.config.prior_radius_px > 0 {
-            let mut planes = local_planes(&points, &self.rays, &obs.mask, self.config.prior_radius_px, 12);
+            let mut planes = local_planes(
+                &points,
+                &self.rays,
+                &obs.mask,
+                self.config.prior_radius_px,
+                12,
+                self.config.prior_stride_px,
+            );
             // Where a pixel fits several layers, the one its neighbourhood's surface is nearest
             // (the first pass took the one nearest the reading); then the surface again.
             let repicks: Vec<Option<f64>> = several_roots
@@ -634,6 +645,7 @@ impl Pipeline {
                 &obs.mask,
                 self.config.prior_radius_px,
                 12,
+                self.config.prior_stride_px,
                 &repicked,
             );
             // Pixels without their own root but inside the object take the neighbourhood's surface too.

@@ -539,6 +539,16 @@ impl ScanSample {
     fn nonpositive(&self) -> bool {
         self.im < 0.0 || (self.im == 0.0 && self.re >= 0.0)
     }
+
+    /// The sample with its residual.
+    #[inline]
+    fn sample(&self, fast: &FastPixel) -> Sample {
+        Sample {
+            df: self.df,
+            residual: fast.residual_mm(self.re, self.im),
+            x: self.x,
+        }
+    }
 }
 
 /// The scan of [`foreground_distance`] for a [`FastPixel`], streamed: every
@@ -601,10 +611,194 @@ fn scan_fast(fast: &FastPixel, lo: f64, hi: f64, step_mm: f64, mut visit: impl F
     }
 }
 
-/// [`foreground_distance`] for a [`FastPixel`]: the same scan, brackets, root
-/// rule and refinement, streamed ([`scan_fast`]; no buffer per pixel), with
-/// residual angles taken only where a bracket needs them. A pixel without a
-/// root is scanned again for its best sample.
+/// The roots of the fast path in closed structure, without a scan.
+///
+/// In the frame rotated by the reading's phase, a root is where the mixed
+/// phasor's imaginary part `L1 sin(alpha) + L2 sin(beta)` vanishes with a
+/// positive real part (`alpha = k df - phi_d`, `beta` the background's angle).
+/// With `L1 + L2 = I` (Eq. 7) that is `lambda sin(alpha) + (1 - lambda) sin(beta)
+/// = 0`, `lambda = L1 / I`, possible only where `sin(alpha)` has the sign
+/// opposite to `sin(beta)`: half-periods of `alpha`. There the imaginary part
+/// is `-sgn(sin beta) lambda e(df)` with
+///
+/// `e(df) = |sin(alpha)| - tau(df)`, `tau = |sin(beta)| L2 / L1`,
+///
+/// and `tau` has a closed form for each transmission power (`p` = 2:
+/// `|sin beta| (sqrt(1 + c df^4) - 1) / 2`, `c = 4 a I / l1^2`; `p` = 1:
+/// `|sin beta| a df^2 / l1`; `p` = 0: `|sin beta| a / (I - a)`), increasing and
+/// convex in `df`. So `e` is concave on each half-period: it has at most two
+/// roots there, found from the signs at the half-period's ends and at its
+/// maximum, each then by Newton's method from the end where `e < 0` (on a
+/// concave function Newton's steps stay on that side and converge
+/// monotonically). The admissible albedo `X <= x_max` is `df <= df*` in
+/// closed form (`X` grows with `df`).
+struct HumpRoots {
+    /// `-sgn(sin beta)`: the sign `sin(alpha)` must have.
+    sigma: f64,
+    /// `|sin beta|`.
+    s: f64,
+    /// `k`, radians per mm, and the reading's phase less the delay's.
+    k: f64,
+    phi_d: f64,
+    /// The transmission power and `tau`'s constant for it.
+    p: f64,
+    c: f64,
+}
+
+impl HumpRoots {
+    /// `None` where the structure does not hold (no background angle, no layer
+    /// light, no second return): the scan handles those pixels.
+    fn new(fast: &FastPixel) -> Option<Self> {
+        let sb = fast.bg.1;
+        if sb == 0.0 || !(fast.ir > 0.0) || !(fast.l1 > 0.0) || !(fast.a > 0.0) || !sb.is_finite() {
+            return None;
+        }
+        let c = if fast.p == 2.0 {
+            4.0 * fast.a * fast.ir / (fast.l1 * fast.l1)
+        } else if fast.p == 1.0 {
+            sb.abs() * fast.a / fast.l1
+        } else if fast.ir > fast.a {
+            sb.abs() * fast.a / (fast.ir - fast.a)
+        } else {
+            return None;
+        };
+        c.is_finite().then_some(Self {
+            sigma: -sb.signum(),
+            s: sb.abs(),
+            k: fast.k,
+            phi_d: fast.phi_d,
+            p: fast.p,
+            c,
+        })
+    }
+
+    /// `tau` and `d tau / d df`.
+    #[inline]
+    fn tau(&self, df: f64) -> (f64, f64) {
+        if self.p == 2.0 {
+            let d2 = df * df;
+            let cd4 = self.c * d2 * d2;
+            let q = (1.0 + cd4).sqrt();
+            // q - 1 as c df^4 / (q + 1): no cancellation for a faint second return.
+            (0.5 * self.s * cd4 / (q + 1.0), self.s * self.c * d2 * df / q)
+        } else if self.p == 1.0 {
+            (self.c * df * df, 2.0 * self.c * df)
+        } else {
+            (self.c, 0.0)
+        }
+    }
+
+    /// `e` and `de / d df`.
+    #[inline]
+    fn e(&self, df: f64) -> (f64, f64) {
+        let (sn, cs) = (self.k * df - self.phi_d).sin_cos();
+        let (t, dt) = self.tau(df);
+        (self.sigma * sn - t, self.sigma * self.k * cs - dt)
+    }
+
+    /// Newton's method on the concave `e` from `x` (where `e <= 0`) toward the
+    /// root between `x` and `toward`, kept within them.
+    fn newton(&self, mut x: f64, toward: f64) -> f64 {
+        let (lo, hi) = (x.min(toward), x.max(toward));
+        for _ in 0..50 {
+            let (e, de) = self.e(x);
+            let step = -e / de;
+            if !step.is_finite() {
+                break;
+            }
+            let next = (x + step).clamp(lo, hi);
+            let moved = (next - x).abs();
+            x = next;
+            if moved < 1e-3 || e == 0.0 {
+                break;
+            }
+        }
+        x
+    }
+
+    /// Every root of `e` on `[lo, hi]`, in increasing `df`, to `found`.
+    fn roots(&self, lo: f64, hi: f64, mut found: impl FnMut(f64)) {
+        use std::f64::consts::{FRAC_PI_2, PI, TAU};
+        // Half-periods where sgn(sin alpha) = sigma: alpha in (a0 + 2 pi m, a0 + 2 pi m + pi).
+        let a0 = if self.sigma > 0.0 { 0.0 } else { PI };
+        let to_df = |alpha: f64| (alpha + self.phi_d) / self.k;
+        let mut m = ((self.k * lo - self.phi_d - a0) / TAU).floor();
+        loop {
+            let start = to_df(a0 + TAU * m);
+            if !(start < hi) {
+                break;
+            }
+            let (l, u) = (start.max(lo), to_df(a0 + TAU * m + PI).min(hi));
+            let peak = to_df(a0 + TAU * m + FRAC_PI_2);
+            m += 1.0;
+            if !(l < u) {
+                continue;
+            }
+            let (el, dl) = self.e(l);
+            let (eu, _) = self.e(u);
+            match (el > 0.0, eu > 0.0) {
+                (true, true) => {}
+                (false, true) => found(self.newton(l, u)),
+                (true, false) => found(self.newton(u, l)),
+                (false, false) => {
+                    // Two roots or none: around the maximum, which lies before the peak of
+                    // |sin alpha| (e' = -tau' <= 0 there).
+                    let top = if peak > l && peak < u && self.e(peak).0 > 0.0 {
+                        Some(peak)
+                    } else if dl > 0.0 {
+                        self.maximum(l, peak.min(u)).filter(|&x| self.e(x).0 > 0.0)
+                    } else {
+                        None
+                    };
+                    if let Some(top) = top {
+                        found(self.newton(l, top));
+                        found(self.newton(u, top));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Where the concave `e` peaks on `[l, u]` (`e'(l) > 0`), by bisection on
+    /// `e'`; `None` when it peaks at `u`.
+    fn maximum(&self, mut l: f64, mut u: f64) -> Option<f64> {
+        if self.e(u).1 >= 0.0 {
+            return None;
+        }
+        while u - l > 0.05 {
+            let m = 0.5 * (l + u);
+            if self.e(m).1 > 0.0 {
+                l = m;
+            } else {
+                u = m;
+            }
+        }
+        Some(0.5 * (l + u))
+    }
+}
+
+/// The largest `df` whose albedo is admissible (`X <= x_max`; `X` grows with
+/// `df`): `b = (I - a x_max^p) / x_max` in the IR equation. Infinite when no
+/// `df` reaches the bound.
+fn admissible_limit(fast: &FastPixel) -> f64 {
+    let xp = if fast.p == 2.0 {
+        fast.x_max * fast.x_max
+    } else if fast.p == 0.0 {
+        1.0
+    } else {
+        fast.x_max
+    };
+    let rest = fast.ir - fast.a * xp;
+    if rest > 0.0 {
+        (fast.l1 * fast.x_max / rest).sqrt()
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// [`foreground_distance`] for a [`FastPixel`]: every root from its closed
+/// structure ([`HumpRoots`]; the scan where that does not apply), the same
+/// root rule, and a pixel without a root scanned for its best sample.
 fn foreground_distance_fast(
     fast: &FastPixel,
     model: &ForwardModel,
@@ -617,33 +811,25 @@ fn foreground_distance_fast(
     let sensor = &model.sensor;
     let range = sensor.unambiguous_range_mm();
     let eval = |df: f64| fast.eval(df);
-    let as_sample = |s: &ScanSample| Sample {
-        df: s.df,
-        residual: fast.residual_mm(s.re, s.im),
-        x: s.x,
-    };
     let mut pick = RootPick::new(obs, prefer_mm);
-    let mut last: Option<ScanSample> = None;
-    scan_fast(fast, lo, hi, bounds.scan_step_mm, |cur| {
-        if let (Some(p), Some(c)) = (&last, &cur) {
-            if p.df != c.df && p.nonpositive() != c.nonpositive() {
-                let (p, c) = (as_sample(p), as_sample(c));
-                if (p.residual - c.residual).abs() < range / 4.0 {
-                    if let Some(root) = refine(&eval, p, c) {
-                        pick.offer(sensor, root);
-                    }
-                }
+    if let Some(hump) = HumpRoots::new(fast) {
+        // The roots in closed structure; a root whose phasor points away from the reading
+        // (the reading's phase plus pi) is a wrap, not a root.
+        hump.roots(lo, hi.min(admissible_limit(fast)), |df| {
+            if let Some(root) = eval(df).filter(|s| s.residual.abs() < range / 4.0) {
+                pick.offer(sensor, root);
             }
-        }
-        last = cur;
-    });
+        });
+    } else {
+        scan_roots(fast, lo, hi, bounds, &mut pick, sensor, range);
+    }
     let (s, pinned) = match pick.chosen {
         Some((root, _)) => (root, false),
         None => {
             // No root: the admissible sample with the smallest residual (the first of equals).
             let mut best: Option<Sample> = None;
             scan_fast(fast, lo, hi, bounds.scan_step_mm, |cur| {
-                if let Some(s) = cur.as_ref().map(as_sample) {
+                if let Some(s) = cur.map(|c| c.sample(fast)) {
                     if best.is_none_or(|b| s.residual.abs() < b.residual.abs()) {
                         best = Some(s);
                     }
@@ -653,6 +839,34 @@ fn foreground_distance_fast(
         }
     };
     Some(estimate_at(sensor, s, pick.roots, pinned, eval))
+}
+
+/// The roots of [`foreground_distance_fast`] by the scan: every sign change of
+/// the wrapped residual between admissible samples (not a phase wrap), refined.
+fn scan_roots(
+    fast: &FastPixel,
+    lo: f64,
+    hi: f64,
+    bounds: &InversionBounds,
+    pick: &mut RootPick,
+    sensor: &crate::physics::Sensor,
+    range: f64,
+) {
+    let eval = |df: f64| fast.eval(df);
+    let mut last: Option<ScanSample> = None;
+    scan_fast(fast, lo, hi, bounds.scan_step_mm, |cur| {
+        if let (Some(p), Some(c)) = (&last, &cur) {
+            if p.df != c.df && p.nonpositive() != c.nonpositive() {
+                let (p, c) = (p.sample(fast), c.sample(fast));
+                if (p.residual - c.residual).abs() < range / 4.0 {
+                    if let Some(root) = refine(&eval, p, c) {
+                        pick.offer(sensor, root);
+                    }
+                }
+            }
+        }
+        last = cur;
+    });
 }
 
 /// Illinois (modified regula falsi) refinement of a bracketed root to 0.01 mm.
@@ -860,10 +1074,13 @@ mod tests {
         }
     }
 
-    /// The fast path (paper's returns on a sinusoid) against the generic one on a grid of layers.
+    /// The fast path (paper's returns on a sinusoid, roots from their closed structure)
+    /// against the generic one (a scan of the forward model at 2 mm, fine enough not to
+    /// step over a pair of roots or a steep one) on a grid of layers.
     #[test]
     fn fast_path_matches_the_forward_model() {
         let b = InversionBounds::default();
+        let fine = InversionBounds { scan_step_mm: 2.0, ..b };
         let mut checked = 0;
         for (power, offset, delay) in [(2.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 20.0, 4.0), (2.0, 20.0, 4.0)] {
             let mut m = ForwardModel::paper(Sensor::sr4000());
@@ -883,7 +1100,14 @@ mod tests {
                                     let fast = FastPixel::new(&m, &obs, xi, b.max_albedo_cos).expect("fast path");
                                     let (lo, hi) = (b.min_distance_mm, db - b.min_separation_mm);
                                     let f = foreground_distance_fast(&fast, &m, &obs, &b, prefer, lo, hi);
-                                    let g = foreground_distance_generic(&m, &obs, xi, &b, prefer, lo, hi);
+                                    // Roots against the fine scan; a pixel without one against the
+                                    // same coarse scan for its best sample.
+                                    let fine_or_same = if f.is_some_and(|f| f.pinned) { &b } else { &fine };
+                                    let g = foreground_distance_generic(&m, &obs, xi, fine_or_same, prefer, lo, hi);
+                                    if f.is_some_and(|f| f.pinned) {
+                                        let g = foreground_distance_generic(&m, &obs, xi, &fine, prefer, lo, hi);
+                                        assert!(g.is_none_or(|g| g.roots == 0), "a root missed: {g:?}");
+                                    }
                                     let case = format!("p {power} off {offset} db {db} df {df} xi {xi} x {x} dd {dd} di {di} {prefer:?}");
                                     match (f, g) {
                                         (Some(f), Some(g)) => {

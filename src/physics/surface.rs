@@ -108,13 +108,7 @@ pub fn fit_plane_robust(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: 
 /// are dropped and the fit repeated, `passes` times.
 pub fn fit_plane_along_rays(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: usize) -> Option<Plane> {
     let robust = Robust { k, floor_mm, passes };
-    fit_inverse_depth(
-        points,
-        (0.0, 0.0),
-        |a, b| SVector::<f64, 3>::from([1.0, a, b]),
-        3,
-        &robust,
-    )
+    fit_inverse_depth(points, (0.0, 0.0), plane_terms, 3, &robust)?.tangent_plane(&Vector3::new(0.0, 0.0, 1.0))
 }
 
 /// The plane tangent, at the ray `center` (a unit or z = 1 ray), to a smooth
@@ -131,12 +125,54 @@ pub fn fit_tangent_plane_along_rays(
     floor_mm: f64,
     passes: usize,
 ) -> Option<Plane> {
+    fit_quadric_along_rays(points, center, k, floor_mm, passes)?.tangent_plane(center)
+}
+
+/// The quadric of [`fit_tangent_plane_along_rays`] itself, whose tangent
+/// plane can be taken at any ray near its centre.
+fn fit_quadric_along_rays(
+    points: &[Vector3<f64>],
+    center: &Vector3<f64>,
+    k: f64,
+    floor_mm: f64,
+    passes: usize,
+) -> Option<InverseDepthFit<6>> {
     if center.z <= 0.0 {
         return None;
     }
     let robust = Robust { k, floor_mm, passes };
-    let quadric = |a: f64, b: f64| SVector::<f64, 6>::from([1.0, a, b, a * a, a * b, b * b]);
-    fit_inverse_depth(points, (center.x / center.z, center.y / center.z), quadric, 10, &robust)
+    fit_inverse_depth(
+        points,
+        (center.x / center.z, center.y / center.z),
+        quadric_terms,
+        10,
+        &robust,
+    )
+}
+
+/// The quadric's terms at `(a, b)` and their derivatives in `a` and `b`.
+fn quadric_terms(a: f64, b: f64) -> Terms<6> {
+    Terms {
+        value: SVector::<f64, 6>::from([1.0, a, b, a * a, a * b, b * b]),
+        d_a: SVector::<f64, 6>::from([0.0, 1.0, 0.0, 2.0 * a, b, 0.0]),
+        d_b: SVector::<f64, 6>::from([0.0, 0.0, 1.0, 0.0, a, 2.0 * b]),
+    }
+}
+
+/// The plane's terms `1, a, b` and their derivatives.
+fn plane_terms(a: f64, b: f64) -> Terms<3> {
+    Terms {
+        value: SVector::<f64, 3>::from([1.0, a, b]),
+        d_a: SVector::<f64, 3>::from([0.0, 1.0, 0.0]),
+        d_b: SVector::<f64, 3>::from([0.0, 0.0, 1.0]),
+    }
+}
+
+/// A polynomial's terms at a point, with their derivatives in the image coordinates.
+struct Terms<const N: usize> {
+    value: SVector<f64, N>,
+    d_a: SVector<f64, N>,
+    d_b: SVector<f64, N>,
 }
 
 /// Outlier rejection of the fits along the rays.
@@ -146,17 +182,67 @@ struct Robust {
     passes: usize,
 }
 
+/// A polynomial in inverse depth fitted over image coordinates relative to
+/// `(a0, b0)`, with what its uncertainty needs.
+#[derive(Clone, Copy)]
+struct InverseDepthFit<const N: usize> {
+    coef: SVector<f64, N>,
+    /// `(A^T W A)^-1`.
+    inv: SMatrix<f64, N, N>,
+    a0: f64,
+    b0: f64,
+    terms: fn(f64, f64) -> Terms<N>,
+    rms: f64,
+    sigma: f64,
+    count: usize,
+}
+
+impl<const N: usize> InverseDepthFit<N> {
+    /// The plane tangent to the fitted surface where the ray `u` (z > 0) meets
+    /// it: `1/z = v + g_a (a - a1) + g_b (b - b1)` at `(a1, b1) = (x/z, y/z)`,
+    /// i.e. `(g_a, g_b, v - g_a a1 - g_b b1) . p = 1`, its normal toward the
+    /// camera; the normal's standard error from the coefficients' covariance.
+    fn tangent_plane(&self, u: &Vector3<f64>) -> Option<Plane> {
+        if u.z <= 0.0 {
+            return None;
+        }
+        let (a1, b1) = (u.x / u.z, u.y / u.z);
+        let t = (self.terms)(a1 - self.a0, b1 - self.b0);
+        let v = t.value.dot(&self.coef);
+        if !(v > 0.0) {
+            return None;
+        }
+        let (ga, gb) = (t.d_a.dot(&self.coef), t.d_b.dot(&self.coef));
+        let coef = Vector3::new(ga, gb, v - ga * a1 - gb * b1);
+        let norm = coef.norm();
+        let (normal, offset) = if coef.z > 0.0 {
+            (-coef / norm, -1.0 / norm)
+        } else {
+            (coef / norm, 1.0 / norm)
+        };
+        // Residuals are in z units under the z^4 weights, so Cov(c) = sigma^2 (A^T W A)^-1;
+        // the normal turns by d(g_a, g_b) / v.
+        let var = t.d_a.dot(&(self.inv * t.d_a)) + t.d_b.dot(&(self.inv * t.d_b));
+        Some(Plane {
+            normal,
+            offset,
+            rms_mm: self.rms,
+            count: self.count,
+            normal_sigma_rad: self.sigma * var.max(0.0).sqrt() / v,
+        })
+    }
+}
+
 /// Weighted least squares of the inverse depth on `terms(a, b)` (whose first
 /// three are `1, a, b`) in image coordinates `(a, b) = (x/z, y/z) - centre`,
-/// with weights `z^4` so residuals are millimetres of z; returns the tangent
-/// plane at the centre, `1/z = c0 + c1 (a - a0) + c2 (b - b0)`.
+/// with weights `z^4` so residuals are millimetres of z.
 fn fit_inverse_depth<const N: usize>(
     points: &[Vector3<f64>],
     (a0, b0): (f64, f64),
-    terms: impl Fn(f64, f64) -> SVector<f64, N>,
+    terms: fn(f64, f64) -> Terms<N>,
     min_points: usize,
     robust: &Robust,
-) -> Option<Plane> {
+) -> Option<InverseDepthFit<N>> {
     // Each point's row, weight and right-hand side once (the passes only drop points).
     struct Term<const N: usize> {
         row: SVector<f64, N>,
@@ -172,7 +258,7 @@ fn fit_inverse_depth<const N: usize>(
             let z2 = p.z * p.z;
             let w = z2 * z2; // d(1/z) = dz / z^2
             Term {
-                row: terms(p.x / p.z - a0, p.y / p.z - b0),
+                row: terms(p.x / p.z - a0, p.y / p.z - b0).value,
                 z: p.z,
                 w,
                 rhs: w / p.z,
@@ -202,16 +288,16 @@ fn fit_inverse_depth<const N: usize>(
         add(&mut acc, &mut atb, p, 1.0);
         n += 1;
     }
-    let mut plane = None;
+    let mut fit = None;
     for pass in 0..=robust.passes {
         let ata = SMatrix::<f64, N, N>::from_fn(|i, j| if i <= j { acc[j][i] } else { acc[i][j] });
         if n < min_points {
-            return plane;
+            return fit;
         }
         let inv = ata.try_inverse()?;
         let c = inv * atb;
         if !c.iter().all(|v| v.is_finite()) || c[0] <= 0.0 {
-            return plane;
+            return fit;
         }
         let mut ss = 0.0;
         for p in t.iter_mut().filter(|p| p.keep) {
@@ -219,24 +305,15 @@ fn fit_inverse_depth<const N: usize>(
             ss += p.resid.powi(2);
         }
         let rms = (ss / n as f64).sqrt();
-        // The tangent plane coef . p = 1, its unit normal toward the camera.
-        let coef = Vector3::new(c[1], c[2], c[0] - c[1] * a0 - c[2] * b0);
-        let norm = coef.norm();
-        let (normal, offset) = if coef.z > 0.0 {
-            (-coef / norm, -1.0 / norm)
-        } else {
-            (coef / norm, 1.0 / norm)
-        };
-        // Residuals are in z units under the z^4 weights, so Cov(c) = sigma^2 (A^T W A)^-1;
-        // the normal turns by d(c1, c2) / c0.
-        let sigma = (ss / n.saturating_sub(N).max(1) as f64).sqrt(); // residual scale, N terms fitted
-        let normal_sigma_rad = sigma * (inv[(1, 1)] + inv[(2, 2)]).max(0.0).sqrt() / c[0];
-        plane = Some(Plane {
-            normal,
-            offset,
-            rms_mm: rms,
+        fit = Some(InverseDepthFit {
+            coef: c,
+            inv,
+            a0,
+            b0,
+            terms,
+            rms,
+            sigma: (ss / n.saturating_sub(N).max(1) as f64).sqrt(), // residual scale, N terms fitted
             count: n,
-            normal_sigma_rad,
         });
         if pass == robust.passes {
             break;
@@ -255,7 +332,7 @@ fn fit_inverse_depth<const N: usize>(
             break;
         }
     }
-    plane
+    fit
 }
 
 /// Local planes whose window grows until the normal is known to
@@ -297,40 +374,36 @@ pub fn local_planes_adaptive(
 
 /// Local planes over a `(2 radius + 1)^2` window: for every pixel where
 /// `mask` holds, the robust tangent plane (fitted along the rays, see
-/// [`fit_tangent_plane_along_rays`]) at the pixel's ray `rays`
-/// through the masked neighbours' points (`None` with fewer than
-/// `min_points`). The smooth-surface prior: a noisy per-pixel depth is
-/// replaced by its neighbourhood's plane.
+/// [`fit_tangent_plane_along_rays`]) at the pixel's ray `rays` through the
+/// masked neighbours' points (`None` with fewer than `min_points`). The
+/// smooth-surface prior: a noisy per-pixel depth is replaced by its
+/// neighbourhood's plane.
+///
+/// With `stride` above 1 the image is cut into `stride x stride` blocks and
+/// one window is fitted per block, around the block's masked pixel nearest
+/// its middle; every masked pixel of the block takes the fitted surface's
+/// tangent plane at its own ray (`stride^2` times fewer fits; `stride` 1 fits
+/// every pixel's own window).
 pub fn local_planes(
     points: &ImageBuf<Vector3<f64>>,
     rays: &ImageBuf<Vector3<f64>>,
     mask: &ImageBuf<bool>,
     radius: usize,
     min_points: usize,
+    stride: usize,
 ) -> ImageBuf<Option<Plane>> {
-    // Pixels in parallel over the current rayon pool.
-    let data = (0..points.len())
-        .into_par_iter()
-        .with_min_len(64)
-        .map(|i| {
-            if mask.data[i] {
-                local_plane_at(points, rays, mask, i, radius, min_points)
-            } else {
-                None
-            }
-        })
-        .collect();
-    ImageBuf {
-        width: points.width,
-        height: points.height,
-        data,
-    }
+    let blocks = Blocks::new(mask, stride);
+    let mut planes = ImageBuf::filled(points.width, points.height, None);
+    let all: Vec<usize> = (0..blocks.centres.len()).collect();
+    blocks.refit(&mut planes, &all, points, rays, mask, radius, min_points);
+    planes
 }
 
 /// Refits, after the points at `changed` moved, exactly the planes of
 /// [`local_planes`] whose window holds one of them (the others' windows are
 /// unchanged): the same planes as a full recomputation, at the cost of the
 /// windows touched.
+#[allow(clippy::too_many_arguments)] // local_planes' arguments and the moved pixels
 pub fn update_local_planes(
     planes: &mut ImageBuf<Option<Plane>>,
     points: &ImageBuf<Vector3<f64>>,
@@ -338,26 +411,92 @@ pub fn update_local_planes(
     mask: &ImageBuf<bool>,
     radius: usize,
     min_points: usize,
+    stride: usize,
     changed: &[usize],
 ) {
-    let (w, h) = (points.width, points.height);
-    let mut touched = vec![false; points.len()];
-    for &i in changed {
-        let (col, row) = (i % w, i / w);
-        for r in row.saturating_sub(radius)..(row + radius + 1).min(h) {
-            for c in col.saturating_sub(radius)..(col + radius + 1).min(w) {
-                touched[r * w + c] = mask.data[r * w + c];
-            }
+    let blocks = Blocks::new(mask, stride);
+    let w = points.width;
+    let r = radius as isize;
+    let redo: Vec<usize> = blocks
+        .centres
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| {
+            c.is_some_and(|c| {
+                let (cc, cr) = ((c % w) as isize, (c / w) as isize);
+                changed
+                    .iter()
+                    .any(|&i| ((i % w) as isize - cc).abs() <= r && ((i / w) as isize - cr).abs() <= r)
+            })
+        })
+        .map(|(b, _)| b)
+        .collect();
+    blocks.refit(planes, &redo, points, rays, mask, radius, min_points);
+}
+
+/// The blocks of a strided [`local_planes`]: each block's window centre (its
+/// masked pixel nearest the block's middle), `None` for a block without one.
+struct Blocks {
+    stride: usize,
+    across: usize,
+    centres: Vec<Option<usize>>,
+}
+
+impl Blocks {
+    fn new(mask: &ImageBuf<bool>, stride: usize) -> Self {
+        let s = stride.max(1);
+        let (w, h) = (mask.width, mask.height);
+        let (across, down) = (w.div_ceil(s), h.div_ceil(s));
+        let centres = (0..across * down)
+            .map(|b| {
+                let (c0, r0) = ((b % across) * s, (b / across) * s);
+                let (c1, r1) = ((c0 + s).min(w), (r0 + s).min(h));
+                // Twice the offset from the block's middle, so odd and even strides stay exact.
+                let (mc, mr) = ((c0 + c1 - 1) as isize, (r0 + r1 - 1) as isize);
+                (r0..r1)
+                    .flat_map(|r| (c0..c1).map(move |c| (r, c)))
+                    .filter(|&(r, c)| mask.data[r * w + c])
+                    .min_by_key(|&(r, c)| (2 * r as isize - mr).pow(2) + (2 * c as isize - mc).pow(2))
+                    .map(|(r, c)| r * w + c)
+            })
+            .collect();
+        Self {
+            stride: s,
+            across,
+            centres,
         }
     }
-    let redo: Vec<usize> = (0..points.len()).filter(|&i| touched[i]).collect();
-    let fits: Vec<Option<Plane>> = redo
-        .par_iter()
-        .with_min_len(64)
-        .map(|&i| local_plane_at(points, rays, mask, i, radius, min_points))
-        .collect();
-    for (i, p) in redo.into_iter().zip(fits) {
-        planes.data[i] = p;
+
+    /// Fits the windows of `blocks` (in parallel over the current rayon pool) and
+    /// writes their members' planes.
+    #[allow(clippy::too_many_arguments)]
+    fn refit(
+        &self,
+        planes: &mut ImageBuf<Option<Plane>>,
+        blocks: &[usize],
+        points: &ImageBuf<Vector3<f64>>,
+        rays: &ImageBuf<Vector3<f64>>,
+        mask: &ImageBuf<bool>,
+        radius: usize,
+        min_points: usize,
+    ) {
+        let fits: Vec<Option<WindowFit>> = blocks
+            .par_iter()
+            .with_min_len(8)
+            .map(|&b| window_fit(points, rays, mask, self.centres[b]?, radius, min_points))
+            .collect();
+        for (&b, fit) in blocks.iter().zip(fits) {
+            let (w, h, s) = (mask.width, mask.height, self.stride);
+            let (c0, r0) = ((b % self.across) * s, (b / self.across) * s);
+            for r in r0..(r0 + s).min(h) {
+                for c in c0..(c0 + s).min(w) {
+                    let i = r * w + c;
+                    if mask.data[i] {
+                        planes.data[i] = fit.as_ref().and_then(|f| f.tangent_plane(&rays.data[i]));
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -385,15 +524,31 @@ fn keep_near_median(points: &mut Vec<Vector3<f64>>, k: f64, floor_mm: f64) {
     });
 }
 
-/// The plane through the masked, finite points in the window around pixel `i`.
-fn local_plane_at(
+/// A window's fitted surface: the quadric, or a plane where the quadric failed.
+#[allow(clippy::large_enum_variant)] // short-lived, one per window; boxing would allocate per fit
+enum WindowFit {
+    Quadric(InverseDepthFit<6>),
+    Plane(InverseDepthFit<3>),
+}
+
+impl WindowFit {
+    fn tangent_plane(&self, u: &Vector3<f64>) -> Option<Plane> {
+        match self {
+            WindowFit::Quadric(f) => f.tangent_plane(u),
+            WindowFit::Plane(f) => f.tangent_plane(u),
+        }
+    }
+}
+
+/// The surface through the masked, finite points in the window around pixel `i`.
+fn window_fit(
     points: &ImageBuf<Vector3<f64>>,
     rays: &ImageBuf<Vector3<f64>>,
     mask: &ImageBuf<bool>,
     i: usize,
     radius: usize,
     min_points: usize,
-) -> Option<Plane> {
+) -> Option<WindowFit> {
     let (w, h) = (points.width, points.height);
     let (col, row) = (i % w, i / w);
     let mut window = Vec::with_capacity((2 * radius + 1).pow(2));
@@ -411,9 +566,25 @@ fn local_plane_at(
     if window.len() < min_points.max(3) {
         return None;
     }
-    // The tangent to a quadric where the window allows it (curved layers), else a plane.
-    fit_tangent_plane_along_rays(&window, &rays.data[i], 2.5, 1.0, 2)
-        .or_else(|| fit_plane_along_rays(&window, 2.5, 1.0, 2))
+    // The quadric where the window allows it (curved layers), else a plane.
+    let (k, floor_mm, passes) = (2.5, 1.0, 2);
+    if let Some(q) = fit_quadric_along_rays(&window, &rays.data[i], k, floor_mm, passes) {
+        return Some(WindowFit::Quadric(q));
+    }
+    let robust = Robust { k, floor_mm, passes };
+    fit_inverse_depth(&window, (0.0, 0.0), plane_terms, 3, &robust).map(WindowFit::Plane)
+}
+
+/// The tangent plane at pixel `i` of the surface through its window (see [`window_fit`]).
+fn local_plane_at(
+    points: &ImageBuf<Vector3<f64>>,
+    rays: &ImageBuf<Vector3<f64>>,
+    mask: &ImageBuf<bool>,
+    i: usize,
+    radius: usize,
+    min_points: usize,
+) -> Option<Plane> {
+    window_fit(points, rays, mask, i, radius, min_points)?.tangent_plane(&rays.data[i])
 }
 
 #[cfg(test)]
@@ -496,32 +667,68 @@ mod tests {
                 })
                 .collect(),
         };
-        let mut planes = local_planes(&points, &rays, &mask, 3, 12);
         let moved = [5 * w + 6, 15 * w + 20, 16 * w + 20, 26 * w + 36];
+        let before_move = points.clone();
         for &i in &moved {
             points.data[i] *= 1.2;
         }
-        update_local_planes(&mut planes, &points, &rays, &mask, 3, 12, &moved);
-        let full = local_planes(&points, &rays, &mask, 3, 12);
-        assert_eq!(planes.data, full.data);
-        // The update did refit: the planes before the move differ somewhere.
-        let before = local_planes(
-            &ImageBuf {
-                width: w,
-                height: h,
-                data: points
-                    .data
-                    .iter()
-                    .enumerate()
-                    .map(|(i, p)| if moved.contains(&i) { p / 1.2 } else { *p })
-                    .collect(),
-            },
-            &rays,
-            &mask,
-            3,
-            12,
-        );
-        assert_ne!(before.data, full.data);
+        // Every window on its own, and one window per 3 x 3 block.
+        for stride in [1, 3] {
+            let mut planes = local_planes(&before_move, &rays, &mask, 3, 12, stride);
+            update_local_planes(&mut planes, &points, &rays, &mask, 3, 12, stride, &moved);
+            let full = local_planes(&points, &rays, &mask, 3, 12, stride);
+            assert_eq!(planes.data, full.data, "stride {stride}");
+            // The update did refit: the planes before the move differ somewhere.
+            let before = local_planes(&before_move, &rays, &mask, 3, 12, stride);
+            assert_ne!(before.data, full.data, "stride {stride}");
+            // Every masked pixel has a plane (the windows hold enough points everywhere).
+            let masked = mask.data.iter().filter(|&&m| m).count();
+            assert_eq!(
+                full.data.iter().filter(|p| p.is_some()).count(),
+                masked,
+                "stride {stride}"
+            );
+        }
+    }
+
+    #[test]
+    fn strided_planes_follow_a_curved_layer() {
+        // A cylinder-like layer (inverse depth quadratic across the image) without noise:
+        // each pixel's tangent plane from its block's window is the exact one at its ray,
+        // as with a window of its own.
+        let (w, h) = (30usize, 24usize);
+        let rays = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| Vector3::new((i % w) as f64 * 0.005 - 0.07, (i / w) as f64 * 0.005 - 0.06, 1.0).normalize())
+                .collect(),
+        };
+        let inv_z = |a: f64, b: f64| 1e-3 * (1.0 + 0.3 * a - 0.2 * b + 4.0 * a * a + 1.5 * b * b);
+        let points = ImageBuf {
+            width: w,
+            height: h,
+            data: rays
+                .data
+                .iter()
+                .map(|u| u * (1.0 / inv_z(u.x / u.z, u.y / u.z)) / u.z)
+                .collect(),
+        };
+        let mask = ImageBuf::filled(w, h, true);
+        let own = local_planes(&points, &rays, &mask, 4, 12, 1);
+        let strided = local_planes(&points, &rays, &mask, 4, 12, 3);
+        for i in 0..w * h {
+            let (p, q) = (own.data[i].unwrap(), strided.data[i].unwrap());
+            let t = points.data[i].norm();
+            assert!((p.ray_distance(&rays.data[i]).unwrap() - t).abs() < 1e-6, "pixel {i}");
+            assert!((q.ray_distance(&rays.data[i]).unwrap() - t).abs() < 1e-6, "pixel {i}");
+            assert!(
+                (p.normal - q.normal).norm() < 1e-6,
+                "pixel {i}: {:?} {:?}",
+                p.normal,
+                q.normal
+            );
+        }
     }
 
     #[test]
