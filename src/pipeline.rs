@@ -11,7 +11,6 @@ use thiserror::Error;
 
 use crate::physics::camera::z_to_ray_distance;
 use crate::physics::emitted_light::{emitted_light_from_plane, EmittedLightError};
-use crate::physics::inversion::reading_sensitivity_to_ir;
 use crate::physics::segmentation::{
     changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
@@ -575,13 +574,7 @@ impl Pipeline {
                     .unwrap_or(self.config.threshold_mm / 3.0)
                     / light.sqrt();
                 let ir_sigma = bg.map(|b| b.ir_noise.data[i]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
-                let dfdi = reading_sensitivity_to_ir(
-                    &self.config.model,
-                    &o,
-                    est.foreground_distance_mm,
-                    xi.xi,
-                    self.config.bounds.max_albedo_cos,
-                );
+                let dfdi = est.reading_per_ir;
                 let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
                 Some((est, d_sigma.hypot(ir_term) / est.slope.abs()))
             })

@@ -85,6 +85,10 @@ pub struct LayerEstimate {
     /// millimetre of layer (with the IR held). A reading noise `s` becomes a
     /// layer noise `s / |slope|`: a nearly invisible layer has a slope near 0.
     pub slope: f64,
+    /// `d f / d I` at the estimate, the layer held: how far the predicted reading
+    /// moves per count of IR ([`reading_sensitivity_to_ir`]). IR noise `s`
+    /// becomes a layer noise `s |reading_per_ir| / |slope|`.
+    pub reading_per_ir: f64,
 }
 
 /// `X` for a hypothesis `(df, xi)` from the IR equation (Eq. 7-10).
@@ -197,15 +201,10 @@ pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, 
 /// layer's [`LayerEstimate::slope`], IR noise `s` becomes a layer noise
 /// `s |dF/dI| / |slope|`. NaN where the albedo is not admissible.
 pub fn reading_sensitivity_to_ir(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> f64 {
-    let h = (obs.ir.abs() * 1e-3).max(1e-9);
-    let fast = |ir: f64| FastPixel::new(model, &PixelObservation { ir, ..*obs }, xi, x_max);
-    if let (Some(lo), Some(hi)) = (fast(obs.ir - h), fast(obs.ir + h)) {
-        // Both residuals are against the same reading: their difference is the readings'.
-        return match (lo.eval(df), hi.eval(df)) {
-            (Some(a), Some(b)) => model.sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
-            _ => f64::NAN,
-        };
+    if let Some(fast) = FastPixel::new(model, obs, xi, x_max) {
+        return fast.derivatives(df).map_or(f64::NAN, |(_, per_ir)| per_ir);
     }
+    let h = (obs.ir.abs() * 1e-3).max(1e-9);
     let at = |ir: f64| {
         let o = PixelObservation { ir, ..*obs };
         albedo_cos(model, &o, df, xi, x_max).map(|x| predicted_reading(model, &o, df, xi, x))
@@ -276,6 +275,7 @@ fn estimate_at(
         roots,
         pinned,
         slope,
+        reading_per_ir: f64::NAN,
     }
 }
 
@@ -397,7 +397,10 @@ fn foreground_distance_generic(
         Some((root, _)) => (root, false),
         None => (best?, true),
     };
-    Some(estimate_at(sensor, s, pick.roots, pinned, eval))
+    Some(LayerEstimate {
+        reading_per_ir: reading_sensitivity_to_ir(model, obs, s.df, xi, bounds.max_albedo_cos),
+        ..estimate_at(sensor, s, pick.roots, pinned, eval)
+    })
 }
 
 /// The inversion's evaluations for the paper's two returns on a sinusoidal
@@ -512,6 +515,42 @@ impl FastPixel {
             return f64::NAN;
         }
         im.atan2(re) / self.k
+    }
+
+    /// The residual's derivatives at `df`, mm per mm of layer and mm per count
+    /// of IR, in closed form: with the rotated phasor `(Re, Im)`, `d angle =
+    /// (Re dIm - Im dRe) / (Re^2 + Im^2)`, its parts through `L1 = l1 X / df^2`,
+    /// `L2 = a X^p` and the IR equation's `dX` (implicit: `dX/dI = 1 / (b + a p
+    /// X^(p-1))`, `dX/d df = 2 b X / df / (b + a p X^(p-1))`). `None` where `X`
+    /// is not admissible.
+    fn derivatives(&self, df: f64) -> Option<(f64, f64)> {
+        let x = self.albedo(df)?;
+        let (l1, l2) = self.strengths(df, x);
+        let (sn, cs) = (self.k * df - self.phi_d).sin_cos();
+        let (re, im) = (l1 * cs + l2 * self.bg.0, l1 * sn + l2 * self.bg.1);
+        let b = self.l1 / (df * df);
+        // d L2 / d X.
+        let dl2_dx = if self.p == 2.0 {
+            2.0 * self.a * x
+        } else if self.p == 0.0 {
+            0.0
+        } else {
+            self.a
+        };
+        let dx_di = 1.0 / (b + dl2_dx);
+        let dx_ddf = 2.0 * b * x / df * dx_di;
+        let angle_rate = |dre: f64, dim: f64| (re * dim - im * dre) / (re * re + im * im) / self.k;
+        // Along df: L1 changes through X and 1/df^2, and turns with the phase.
+        let dl1 = b * dx_ddf - 2.0 * l1 / df;
+        let dl2 = dl2_dx * dx_ddf;
+        let slope = angle_rate(
+            dl1 * cs - l1 * self.k * sn + dl2 * self.bg.0,
+            dl1 * sn + l1 * self.k * cs + dl2 * self.bg.1,
+        );
+        // Along the IR at a fixed df.
+        let (dl1, dl2) = (b * dx_di, dl2_dx * dx_di);
+        let per_ir = angle_rate(dl1 * cs + dl2 * self.bg.0, dl1 * sn + dl2 * self.bg.1);
+        (slope.is_finite() && per_ir.is_finite()).then_some((slope, per_ir))
     }
 
     /// One full sample at `df`.
@@ -698,10 +737,11 @@ impl HumpRoots {
 
     /// Newton's method on the concave `e` from `x` (where `e <= 0`) toward the
     /// root between `x` and `toward`, kept within them.
-    fn newton(&self, mut x: f64, toward: f64) -> f64 {
+    fn newton(&self, mut x: f64, toward: f64, start: Option<(f64, f64)>) -> f64 {
         let (lo, hi) = (x.min(toward), x.max(toward));
+        let mut at = start;
         for _ in 0..50 {
-            let (e, de) = self.e(x);
+            let (e, de) = at.take().unwrap_or_else(|| self.e(x));
             let step = -e / de;
             if !step.is_finite() {
                 break;
@@ -735,11 +775,11 @@ impl HumpRoots {
                 continue;
             }
             let (el, dl) = self.e(l);
-            let (eu, _) = self.e(u);
+            let (eu, du) = self.e(u);
             match (el > 0.0, eu > 0.0) {
                 (true, true) => {}
-                (false, true) => found(self.newton(l, u)),
-                (true, false) => found(self.newton(u, l)),
+                (false, true) => found(self.newton(l, u, Some((el, dl)))),
+                (true, false) => found(self.newton(u, l, Some((eu, du)))),
                 (false, false) => {
                     // Two roots or none: around the maximum, which lies before the peak of
                     // |sin alpha| (e' = -tau' <= 0 there).
@@ -751,8 +791,8 @@ impl HumpRoots {
                         None
                     };
                     if let Some(top) = top {
-                        found(self.newton(l, top));
-                        found(self.newton(u, top));
+                        found(self.newton(l, top, Some((el, dl))));
+                        found(self.newton(u, top, Some((eu, du))));
                     }
                 }
             }
@@ -838,7 +878,16 @@ fn foreground_distance_fast(
             (best?, true)
         }
     };
-    Some(estimate_at(sensor, s, pick.roots, pinned, eval))
+    let (slope, reading_per_ir) = fast.derivatives(s.df).unwrap_or((f64::NAN, f64::NAN));
+    Some(LayerEstimate {
+        foreground_distance_mm: s.df,
+        albedo_cos: s.x,
+        residual_mm: s.residual,
+        roots: pick.roots,
+        pinned,
+        slope,
+        reading_per_ir,
+    })
 }
 
 /// The roots of [`foreground_distance_fast`] by the scan: every sign change of
@@ -1074,6 +1123,19 @@ mod tests {
         }
     }
 
+    /// `d f / d df` of the forward model by a difference of 1e-4 mm, one-sided where
+    /// the other side is not admissible.
+    fn fine_slope(m: &ForwardModel, obs: &PixelObservation, xi: f64, df: f64) -> f64 {
+        let f = |d: f64| albedo_cos(m, obs, d, xi, 1.0).map(|x| predicted_reading(m, obs, d, xi, x));
+        let (h, w) = (1e-4, |a: f64, b: f64| m.sensor.wrapped_difference_mm(a, b));
+        match (f(df - h), f(df), f(df + h)) {
+            (Some(a), _, Some(b)) => w(b, a) / (2.0 * h),
+            (Some(a), Some(c), None) => w(c, a) / h,
+            (None, Some(c), Some(b)) => w(b, c) / h,
+            _ => f64::NAN,
+        }
+    }
+
     /// The fast path (paper's returns on a sinusoid, roots from their closed structure)
     /// against the generic one (a scan of the forward model at 2 mm, fine enough not to
     /// step over a pair of roots or a steep one) on a grid of layers.
@@ -1121,10 +1183,31 @@ mod tests {
                                                 (f.residual_mm - g.residual_mm).abs() < 0.02,
                                                 "{case}: {f:?} {g:?}"
                                             );
+                                            // The closed-form slope against a fine difference of the
+                                            // forward model (one-sided at the albedo's bound).
+                                            let fd = fine_slope(&m, &obs, xi, f.foreground_distance_mm);
                                             assert!(
-                                                (f.slope - g.slope).abs() < 1e-3 * g.slope.abs().max(1.0),
-                                                "{f:?} {g:?}"
+                                                (f.slope - fd).abs() < 1e-3 * fd.abs().max(1.0),
+                                                "{case}: {} vs {fd}",
+                                                f.slope
                                             );
+                                            let per_ir =
+                                                reading_sensitivity_to_ir(&m, &obs, f.foreground_distance_mm, xi, 1.0);
+                                            let h = obs.ir * 1e-6;
+                                            let at = |ir: f64| {
+                                                let o = PixelObservation { ir, ..obs };
+                                                let d = f.foreground_distance_mm;
+                                                albedo_cos(&m, &o, d, xi, 1.0)
+                                                    .map(|x| predicted_reading(&m, &o, d, xi, x))
+                                            };
+                                            if let (Some(a), Some(c)) = (at(obs.ir - h), at(obs.ir + h)) {
+                                                let fd = m.sensor.wrapped_difference_mm(c, a) / (2.0 * h);
+                                                // (a floor of 1e-3 mm per IR of the pixel for a derivative near zero)
+                                                assert!(
+                                                    (per_ir - fd).abs() < 1e-3 * fd.abs().max(1.0 / obs.ir),
+                                                    "{case}: {per_ir} vs {fd}"
+                                                );
+                                            }
                                             checked += 1;
                                         }
                                         (None, None) => {}

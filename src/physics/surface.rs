@@ -222,7 +222,7 @@ impl<const N: usize> InverseDepthFit<N> {
         };
         // Residuals are in z units under the z^4 weights, so Cov(c) = sigma^2 (A^T W A)^-1;
         // the normal turns by d(g_a, g_b) / v.
-        let var = t.d_a.dot(&(self.inv * t.d_a)) + t.d_b.dot(&(self.inv * t.d_b));
+        let var = quadratic_form(&self.inv, &t.d_a) + quadratic_form(&self.inv, &t.d_b);
         Some(Plane {
             normal,
             offset,
@@ -231,6 +231,18 @@ impl<const N: usize> InverseDepthFit<N> {
             normal_sigma_rad: self.sigma * var.max(0.0).sqrt() / v,
         })
     }
+}
+
+/// `v^T m v` over the non-zero entries of `v` (a term's derivative has few).
+#[inline]
+fn quadratic_form<const N: usize>(m: &SMatrix<f64, N, N>, v: &SVector<f64, N>) -> f64 {
+    let mut sum = 0.0;
+    for (i, &vi) in v.iter().enumerate().filter(|(_, v)| **v != 0.0) {
+        for (j, &vj) in v.iter().enumerate().filter(|(_, v)| **v != 0.0) {
+            sum += vi * m[(i, j)] * vj;
+        }
+    }
+    sum
 }
 
 /// Weighted least squares of the inverse depth on `terms(a, b)` (whose first
@@ -337,7 +349,9 @@ fn fit_inverse_depth<const N: usize>(
 
 /// Local planes whose window grows until the normal is known to
 /// `max_normal_sigma_rad` (noisy layers need wide windows, curved ones narrow):
-/// for each pixel the first of `radii` (ascending) that reaches it, else the widest.
+/// for each masked pixel with a finite point the first of `radii` (ascending)
+/// that reaches it, else the widest. With `stride` above 1, one window per
+/// block as in [`local_planes`], its radius chosen at the block's centre.
 pub fn local_planes_adaptive(
     points: &ImageBuf<Vector3<f64>>,
     rays: &ImageBuf<Vector3<f64>>,
@@ -345,31 +359,36 @@ pub fn local_planes_adaptive(
     radii: &[usize],
     min_points: usize,
     max_normal_sigma_rad: f64,
+    stride: usize,
 ) -> ImageBuf<Option<Plane>> {
-    let plane_at = |i: usize| {
-        if !mask.data[i] || !points.data[i].x.is_finite() {
-            return None;
-        }
+    let with_point = ImageBuf {
+        width: mask.width,
+        height: mask.height,
+        data: mask
+            .data
+            .iter()
+            .zip(&points.data)
+            .map(|(&m, p)| m && p.x.is_finite())
+            .collect(),
+    };
+    let blocks = Blocks::new(&with_point, stride);
+    let mut planes = ImageBuf::filled(points.width, points.height, None);
+    let all: Vec<usize> = (0..blocks.centres.len()).collect();
+    blocks.refit(&mut planes, &all, &with_point, rays, |centre| {
         let mut out = None;
         for (k, &r) in radii.iter().enumerate() {
-            if let Some(p) = local_plane_at(points, rays, mask, i, r, min_points) {
-                out = Some(p);
-                if k + 1 == radii.len() || p.normal_sigma_rad <= max_normal_sigma_rad {
+            if let Some(fit) = window_fit(points, rays, mask, centre, r, min_points) {
+                let sigma = fit.tangent_plane(&rays.data[centre]).map(|p| p.normal_sigma_rad);
+                let done = k + 1 == radii.len() || sigma.is_some_and(|s| s <= max_normal_sigma_rad);
+                out = Some(fit);
+                if done {
                     break;
                 }
             }
         }
         out
-    };
-    ImageBuf {
-        width: points.width,
-        height: points.height,
-        data: (0..points.len())
-            .into_par_iter()
-            .with_min_len(64)
-            .map(plane_at)
-            .collect(),
-    }
+    });
+    planes
 }
 
 /// Local planes over a `(2 radius + 1)^2` window: for every pixel where
@@ -395,7 +414,9 @@ pub fn local_planes(
     let blocks = Blocks::new(mask, stride);
     let mut planes = ImageBuf::filled(points.width, points.height, None);
     let all: Vec<usize> = (0..blocks.centres.len()).collect();
-    blocks.refit(&mut planes, &all, points, rays, mask, radius, min_points);
+    blocks.refit(&mut planes, &all, mask, rays, |c| {
+        window_fit(points, rays, mask, c, radius, min_points)
+    });
     planes
 }
 
@@ -431,7 +452,9 @@ pub fn update_local_planes(
         })
         .map(|(b, _)| b)
         .collect();
-    blocks.refit(planes, &redo, points, rays, mask, radius, min_points);
+    blocks.refit(planes, &redo, mask, rays, |c| {
+        window_fit(points, rays, mask, c, radius, min_points)
+    });
 }
 
 /// The blocks of a strided [`local_planes`]: each block's window centre (its
@@ -467,31 +490,29 @@ impl Blocks {
         }
     }
 
-    /// Fits the windows of `blocks` (in parallel over the current rayon pool) and
-    /// writes their members' planes.
-    #[allow(clippy::too_many_arguments)]
+    /// Fits the windows of `blocks` with `fit` (given the centre; in parallel over
+    /// the current rayon pool) and writes the planes of their members (the
+    /// pixels of `members` in the block).
     fn refit(
         &self,
         planes: &mut ImageBuf<Option<Plane>>,
         blocks: &[usize],
-        points: &ImageBuf<Vector3<f64>>,
+        members: &ImageBuf<bool>,
         rays: &ImageBuf<Vector3<f64>>,
-        mask: &ImageBuf<bool>,
-        radius: usize,
-        min_points: usize,
+        fit: impl Fn(usize) -> Option<WindowFit> + Sync,
     ) {
         let fits: Vec<Option<WindowFit>> = blocks
             .par_iter()
             .with_min_len(8)
-            .map(|&b| window_fit(points, rays, mask, self.centres[b]?, radius, min_points))
+            .map(|&b| fit(self.centres[b]?))
             .collect();
         for (&b, fit) in blocks.iter().zip(fits) {
-            let (w, h, s) = (mask.width, mask.height, self.stride);
+            let (w, h, s) = (members.width, members.height, self.stride);
             let (c0, r0) = ((b % self.across) * s, (b / self.across) * s);
             for r in r0..(r0 + s).min(h) {
                 for c in c0..(c0 + s).min(w) {
                     let i = r * w + c;
-                    if mask.data[i] {
+                    if members.data[i] {
                         planes.data[i] = fit.as_ref().and_then(|f| f.tangent_plane(&rays.data[i]));
                     }
                 }
@@ -573,18 +594,6 @@ fn window_fit(
     }
     let robust = Robust { k, floor_mm, passes };
     fit_inverse_depth(&window, (0.0, 0.0), plane_terms, 3, &robust).map(WindowFit::Plane)
-}
-
-/// The tangent plane at pixel `i` of the surface through its window (see [`window_fit`]).
-fn local_plane_at(
-    points: &ImageBuf<Vector3<f64>>,
-    rays: &ImageBuf<Vector3<f64>>,
-    mask: &ImageBuf<bool>,
-    i: usize,
-    radius: usize,
-    min_points: usize,
-) -> Option<Plane> {
-    window_fit(points, rays, mask, i, radius, min_points)?.tangent_plane(&rays.data[i])
 }
 
 #[cfg(test)]

@@ -329,7 +329,7 @@ pub fn frame_profile(
             }
         }
         // Normals from the smooth-surface prior: local planes over the recovered layer.
-        let planes = local_planes_adaptive(&points, &sample.rays, &mask, &radii, 12, 0.05);
+        let planes = local_planes_adaptive(&points, &sample.rays, &mask, &radii, 12, 0.05, 2);
         let mut per_group: Vec<Vec<f64>> = vec![vec![]; n_groups];
         for i in 0..w * h {
             if obs.data[i].is_none() {
