@@ -155,7 +155,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
     }
     if let Some(n) = &node {
         text.push_str(&format!(
-            "node_latency ({} frames at {} Hz, xi {}): publication -> ~/depth/corrected arrival, median (p95): bare publish/subscribe of the same messages {:.2} ({:.2}) ms over {} of {} frames; through the node {:.2} ({:.2}) ms over {} of {}; added {:.2} ms median, {:.2} ms p95; node memory {} kB\n",
+            "node_latency ({} frames at {} Hz, xi {}): publication -> ~/depth/corrected arrival, median (p95): bare publish/subscribe of the same messages {:.2} ({:.2}) ms over {} of {} frames; through the node {:.2} ({:.2}) ms over {} of {}; added {:.2} ms median, {:.2} ms p95; node memory, peak of each minute: resident {} MB, live heap {} MB\n",
             a.node_frames,
             a.node_rate_hz,
             a.node_xi,
@@ -169,7 +169,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
             n.node.sent,
             n.added_median_ms,
             n.added_p95_ms,
-            n.node_stats["rss_kb"]
+            per_minute_peaks_mb(&n.node_stats["rss_kb"]),
+            per_minute_peaks_mb(&n.node_stats["heap_in_use_kb"]),
         ));
     }
     a.output.summary(text.trim_end());
@@ -186,6 +187,19 @@ pub fn run(a: BenchArgs) -> Result<()> {
         "node_latency": node,
     }))?;
     Ok(())
+}
+
+/// The largest of each minute's samples (the node samples once a second), MB, as `[a, b, ...]`.
+fn per_minute_peaks_mb(series_kb: &serde_json::Value) -> String {
+    let kb: Vec<u64> = series_kb
+        .as_array()
+        .map(|v| v.iter().filter_map(|x| x.as_u64()).collect())
+        .unwrap_or_default();
+    let peaks: Vec<String> = kb
+        .chunks(60)
+        .map(|m| format!("{:.0}", m.iter().copied().max().unwrap_or(0) as f64 / 1024.0))
+        .collect();
+    format!("[{}]", peaks.join(", "))
 }
 
 fn node_latency_run(a: &BenchArgs) -> Result<crate::node::latency::LatencyReport> {

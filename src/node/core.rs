@@ -146,7 +146,9 @@ impl<T> NodeCore<T> {
     }
 
     /// Takes a camera_info. A change of size or intrinsics forgets the
-    /// background (it no longer lines up); returns a message when that happens.
+    /// background (it no longer lines up) and starts a latch in progress over
+    /// with the new camera (its frames so far were of the old one); returns a
+    /// message when that happens.
     pub fn on_camera_info(&mut self, info: &CameraInfo) -> Result<Option<String>, DropCause> {
         if self
             .info
@@ -158,9 +160,16 @@ impl<T> NodeCore<T> {
         let k =
             Intrinsics::from_k(info.width as usize, info.height as usize, &info.k).ok_or(DropCause::BadCameraInfo)?;
         let had_background = self.background().is_some();
+        let range_mm = self.config.model.sensor.unambiguous_range_mm();
+        let restarted = self.latch.as_mut().map(|l| {
+            let dropped = l.latch.frames();
+            l.latch = BackgroundLatch::new(k.width, k.height, range_mm);
+            l.intrinsics = k;
+            dropped
+        });
         let note = self.info.as_ref().map(|(old, _)| {
             format!(
-                "camera_info changed ({}x{} -> {}x{}){}",
+                "camera_info changed ({}x{} -> {}x{}){}{}",
                 old.width,
                 old.height,
                 info.width,
@@ -169,7 +178,10 @@ impl<T> NodeCore<T> {
                     ": background forgotten, latch again"
                 } else {
                     ""
-                }
+                },
+                restarted.map_or_else(String::new, |n| format!(
+                    "; the latch in progress starts over with the new camera ({n} frames of the old one discarded)"
+                ))
             )
         });
         self.info = Some((info.clone(), k));
@@ -370,5 +382,66 @@ fn failure(msg: &str) -> TriggerResponse {
     TriggerResponse {
         success: false,
         message: msg.into(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image::{camera_info, depth_image, ir_image};
+    use crate::msgs::Header;
+    use crate::physics::{ImageBuf, Intrinsics};
+
+    fn pair(k: &Intrinsics, stamp_ns: u64) -> (Image, Image) {
+        let header = Header::new(stamp_ns, "tof_optical_frame");
+        let z = ImageBuf::filled(k.width, k.height, 2000.0f32);
+        let ir = ImageBuf::filled(k.width, k.height, 900.0f32);
+        (
+            depth_image(&header, &z, "16UC1").expect("encodes"),
+            ir_image(&header, &ir, "16UC1").expect("encodes"),
+        )
+    }
+
+    #[test]
+    fn a_camera_change_during_a_latch_starts_it_over() {
+        let mut core: NodeCore<u32> = NodeCore::new(PipelineConfig::default(), 3, std::time::Duration::from_secs(60));
+        let (small, big) = (
+            Intrinsics::from_fov(32, 24, 44.0, 35.0),
+            Intrinsics::from_fov(48, 36, 44.0, 35.0),
+        );
+        let header = Header::new(0, "tof_optical_frame");
+        assert_eq!(core.on_camera_info(&camera_info(&header, &small)), Ok(None));
+        assert!(core.start_latch(7).is_ok());
+        for stamp in 1..=2 {
+            let (d, i) = pair(&small, stamp);
+            let r = core.on_frame(&d, &i);
+            assert!(r.dropped.is_none() && r.replies.is_empty());
+        }
+        // The camera changes with the latch two frames in: it starts over on the new camera.
+        let note = core
+            .on_camera_info(&camera_info(&header, &big))
+            .expect("valid camera_info");
+        assert!(note.is_some_and(|n| n.contains("starts over") && n.contains("2 frames")));
+        // A late frame of the old size is dropped, not averaged into the new latch.
+        let (d, i) = pair(&small, 3);
+        assert_eq!(
+            core.on_frame(&d, &i).dropped.map(|d| d.0),
+            Some(DropCause::SizeMismatch)
+        );
+        // Three frames of the new camera complete the latch, with a success reply.
+        let mut replies = vec![];
+        for stamp in 4..=6 {
+            let (d, i) = pair(&big, stamp);
+            replies.extend(core.on_frame(&d, &i).replies);
+        }
+        assert_eq!(replies.len(), 1, "{replies:?}");
+        assert_eq!(replies[0].0, 7);
+        assert!(replies[0].1.success, "{}", replies[0].1.message);
+        assert!(
+            replies[0].1.message.contains("latched 3 frames"),
+            "{}",
+            replies[0].1.message
+        );
+        assert_eq!(core.intrinsics().map(|k| k.width), Some(48));
     }
 }

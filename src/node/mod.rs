@@ -118,7 +118,7 @@ pub struct NodeStats {
     /// queue to its four outputs handed to DDS): median, 95th percentile, max
     /// over the last 8192 frames.
     pub added_latency_ms: [f64; 3],
-    /// Resident memory, kB, every 5 s of the run (and at exit).
+    /// Resident memory, kB, every second of the run (and at exit).
     pub rss_kb: Vec<u64>,
     /// Heap bytes in live allocations, kB, at the same times (glibc's
     /// `mallinfo2`, empty elsewhere): what the node holds, as against what the
@@ -515,7 +515,7 @@ fn worker(
     let mut stats = NodeStats::default();
     let mut latencies: Vec<f64> = Vec::with_capacity(LATENCY_WINDOW);
     let mut last_report = Instant::now();
-    let mut last_rss = Instant::now();
+    let (mut last_sample, mut last_trim) = (Instant::now(), Instant::now());
     sample_memory(&mut stats);
     let mut reported_drops = 0u64;
     let reply = |t: Token, r: TriggerResponse| {
@@ -608,10 +608,15 @@ fn worker(
                 }
             }
         }
-        if last_rss.elapsed() >= Duration::from_secs(5) {
-            release_free_heap();
+        // Memory sampled every second: the DDS writers' samples are freed every 6 s, and a
+        // coarser sampling would alias that sawtooth. Free heap handed back every 5 s.
+        if last_sample.elapsed() >= Duration::from_secs(1) {
+            if last_trim.elapsed() >= Duration::from_secs(5) {
+                release_free_heap();
+                last_trim = Instant::now();
+            }
             sample_memory(&mut stats);
-            last_rss = Instant::now();
+            last_sample = Instant::now();
         }
         let drops = core.drops.total();
         if drops != reported_drops && last_report.elapsed() > Duration::from_secs(5) {
