@@ -614,6 +614,20 @@ fn bad_nonexistent_bag() {
     );
 }
 
+/// B1c: a prior stride of 0 is refused before the bag is read.
+#[test]
+fn bad_prior_stride() {
+    let dir = temp();
+    let bag = bundled("document_holder.mcap");
+    replay_fails(
+        dir.path(),
+        bag.to_str().expect("a UTF-8 path"),
+        &["--prior-stride-px", "0"],
+        &["--prior-stride-px", "0"],
+        &[],
+    );
+}
+
 /// B1b: the OS error is said once (a repeated cause reads as two failures).
 #[test]
 fn bad_nonexistent_bag_says_the_cause_once() {

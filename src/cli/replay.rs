@@ -36,6 +36,10 @@ pub struct ReplayArgs {
     /// Radius (pixels) of the smooth-surface prior on the recovered layer (0: per-pixel inversion only).
     #[arg(long, default_value_t = 4)]
     pub prior_radius_px: usize,
+    /// The prior fits one window per square block of this many pixels a side, each pixel taking
+    /// the fitted surface's tangent at its own ray (1: a window for every pixel; slower).
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u64).range(1..=16))]
+    pub prior_stride_px: u64,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
     #[command(flatten)]
@@ -61,6 +65,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     }
     let mut config = a.pipeline.config()?;
     config.prior_radius_px = a.prior_radius_px;
+    config.prior_stride_px = a.prior_stride_px as usize;
     config.xi = match a.xi {
         Some(x) => XiChoice::Fixed(x),
         None => XiChoice::Estimate(method),
