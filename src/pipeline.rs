@@ -15,7 +15,7 @@ use crate::physics::segmentation::{
     changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
 use crate::physics::stats::median_and_sigma;
-use crate::physics::surface::{local_planes, update_local_planes};
+use crate::physics::surface::{local_planes, update_local_planes, Windows};
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
     foreground_distance, ForwardModel, ImageBuf, Intrinsics, InversionBounds, LayerEstimate, PixelObservation, Sensor,
@@ -602,14 +602,12 @@ impl Pipeline {
             }
         }
         if self.config.prior_radius_px > 0 {
-            let mut planes = local_planes(
-                &points,
-                &self.rays,
-                &obs.mask,
-                self.config.prior_radius_px,
-                12,
-                self.config.prior_stride_px,
-            );
+            let windows = Windows {
+                radius: self.config.prior_radius_px,
+                min_points: 12,
+                stride: self.config.prior_stride_px,
+            };
+            let mut planes = local_planes(&points, &self.rays, &obs.mask, &windows);
             // Where a pixel fits several layers, the one its neighbourhood's surface is nearest
             // (the first pass took the one nearest the reading); then the surface again.
             let repicks: Vec<Option<f64>> = several_roots
@@ -631,16 +629,7 @@ impl Pipeline {
                 }
             }
             // The windows those pixels are in, refitted (the same planes as refitting all).
-            update_local_planes(
-                &mut planes,
-                &points,
-                &self.rays,
-                &obs.mask,
-                self.config.prior_radius_px,
-                12,
-                self.config.prior_stride_px,
-                &repicked,
-            );
+            update_local_planes(&mut planes, &points, &self.rays, &obs.mask, &windows, &repicked);
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
             for i in 0..n {
                 if !obs.mask.data[i] {

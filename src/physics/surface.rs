@@ -391,10 +391,22 @@ pub fn local_planes_adaptive(
     planes
 }
 
+/// The windows of [`local_planes`]: `(2 radius + 1)^2` pixels, fitted when
+/// they hold at least `min_points` points, one per `stride x stride` block.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Windows {
+    /// Half-width, pixels.
+    pub radius: usize,
+    /// Fewest points a window is fitted with.
+    pub min_points: usize,
+    /// Side of the blocks that share a window, pixels (1: every pixel its own).
+    pub stride: usize,
+}
+
 /// Local planes over a `(2 radius + 1)^2` window: for every pixel where
 /// `mask` holds, the robust tangent plane (fitted along the rays, see
 /// [`fit_tangent_plane_along_rays`]) at the pixel's ray `rays` through the
-/// masked neighbours' points (`None` with fewer than `min_points`). The
+/// masked neighbours' points (`None` with fewer than `windows.min_points`). The
 /// smooth-surface prior: a noisy per-pixel depth is replaced by its
 /// neighbourhood's plane.
 ///
@@ -407,15 +419,13 @@ pub fn local_planes(
     points: &ImageBuf<Vector3<f64>>,
     rays: &ImageBuf<Vector3<f64>>,
     mask: &ImageBuf<bool>,
-    radius: usize,
-    min_points: usize,
-    stride: usize,
+    windows: &Windows,
 ) -> ImageBuf<Option<Plane>> {
-    let blocks = Blocks::new(mask, stride);
+    let blocks = Blocks::new(mask, windows.stride);
     let mut planes = ImageBuf::filled(points.width, points.height, None);
     let all: Vec<usize> = (0..blocks.centres.len()).collect();
     blocks.refit(&mut planes, &all, mask, rays, |c| {
-        window_fit(points, rays, mask, c, radius, min_points)
+        window_fit(points, rays, mask, c, windows.radius, windows.min_points)
     });
     planes
 }
@@ -424,20 +434,17 @@ pub fn local_planes(
 /// [`local_planes`] whose window holds one of them (the others' windows are
 /// unchanged): the same planes as a full recomputation, at the cost of the
 /// windows touched.
-#[allow(clippy::too_many_arguments)] // local_planes' arguments and the moved pixels
 pub fn update_local_planes(
     planes: &mut ImageBuf<Option<Plane>>,
     points: &ImageBuf<Vector3<f64>>,
     rays: &ImageBuf<Vector3<f64>>,
     mask: &ImageBuf<bool>,
-    radius: usize,
-    min_points: usize,
-    stride: usize,
+    windows: &Windows,
     changed: &[usize],
 ) {
-    let blocks = Blocks::new(mask, stride);
+    let blocks = Blocks::new(mask, windows.stride);
     let w = points.width;
-    let r = radius as isize;
+    let r = windows.radius as isize;
     let redo: Vec<usize> = blocks
         .centres
         .iter()
@@ -453,7 +460,7 @@ pub fn update_local_planes(
         .map(|(b, _)| b)
         .collect();
     blocks.refit(planes, &redo, mask, rays, |c| {
-        window_fit(points, rays, mask, c, radius, min_points)
+        window_fit(points, rays, mask, c, windows.radius, windows.min_points)
     });
 }
 
@@ -644,18 +651,25 @@ mod tests {
         assert!(p.normal.z < -0.9, "{:?}", p.normal);
     }
 
+    /// Unit rays of a `w x h` pinhole image, `step` apart in `x/z` and `y/z` from `origin`.
+    fn ray_grid(w: usize, h: usize, step: f64, origin: (f64, f64)) -> ImageBuf<Vector3<f64>> {
+        ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| {
+                    Vector3::new(origin.0 + (i % w) as f64 * step, origin.1 + (i / w) as f64 * step, 1.0).normalize()
+                })
+                .collect(),
+        }
+    }
+
     #[test]
     fn updating_moved_windows_equals_refitting_all() {
         // A noisy tilted plane under a masked region; move a few points, then compare the
         // windowed update with a full recomputation, plane for plane.
         let (w, h) = (40usize, 30usize);
-        let rays = ImageBuf {
-            width: w,
-            height: h,
-            data: (0..w * h)
-                .map(|i| Vector3::new((i % w) as f64 * 0.004 - 0.08, (i / w) as f64 * 0.004 - 0.06, 1.0).normalize())
-                .collect(),
-        };
+        let rays = ray_grid(w, h, 0.004, (-0.08, -0.06));
         let mask = ImageBuf {
             width: w,
             height: h,
@@ -683,12 +697,17 @@ mod tests {
         }
         // Every window on its own, and one window per 3 x 3 block.
         for stride in [1, 3] {
-            let mut planes = local_planes(&before_move, &rays, &mask, 3, 12, stride);
-            update_local_planes(&mut planes, &points, &rays, &mask, 3, 12, stride, &moved);
-            let full = local_planes(&points, &rays, &mask, 3, 12, stride);
+            let windows = Windows {
+                radius: 3,
+                min_points: 12,
+                stride,
+            };
+            let mut planes = local_planes(&before_move, &rays, &mask, &windows);
+            update_local_planes(&mut planes, &points, &rays, &mask, &windows, &moved);
+            let full = local_planes(&points, &rays, &mask, &windows);
             assert_eq!(planes.data, full.data, "stride {stride}");
             // The update did refit: the planes before the move differ somewhere.
-            let before = local_planes(&before_move, &rays, &mask, 3, 12, stride);
+            let before = local_planes(&before_move, &rays, &mask, &windows);
             assert_ne!(before.data, full.data, "stride {stride}");
             // Every masked pixel has a plane (the windows hold enough points everywhere).
             let masked = mask.data.iter().filter(|&&m| m).count();
@@ -706,13 +725,7 @@ mod tests {
         // each pixel's tangent plane from its block's window is the exact one at its ray,
         // as with a window of its own.
         let (w, h) = (30usize, 24usize);
-        let rays = ImageBuf {
-            width: w,
-            height: h,
-            data: (0..w * h)
-                .map(|i| Vector3::new((i % w) as f64 * 0.005 - 0.07, (i / w) as f64 * 0.005 - 0.06, 1.0).normalize())
-                .collect(),
-        };
+        let rays = ray_grid(w, h, 0.005, (-0.07, -0.06));
         let inv_z = |a: f64, b: f64| 1e-3 * (1.0 + 0.3 * a - 0.2 * b + 4.0 * a * a + 1.5 * b * b);
         let points = ImageBuf {
             width: w,
@@ -724,8 +737,13 @@ mod tests {
                 .collect(),
         };
         let mask = ImageBuf::filled(w, h, true);
-        let own = local_planes(&points, &rays, &mask, 4, 12, 1);
-        let strided = local_planes(&points, &rays, &mask, 4, 12, 3);
+        let windows = |stride| Windows {
+            radius: 4,
+            min_points: 12,
+            stride,
+        };
+        let own = local_planes(&points, &rays, &mask, &windows(1));
+        let strided = local_planes(&points, &rays, &mask, &windows(3));
         for i in 0..w * h {
             let (p, q) = (own.data[i].unwrap(), strided.data[i].unwrap());
             let t = points.data[i].norm();
