@@ -103,6 +103,10 @@ pub struct XiSettings {
     /// Narrowest radius, in image pixels, of the local planes that give the normals
     /// (widened up to 6x where the recovered layer is too noisy for it).
     pub normal_radius_px: usize,
+    /// The normals' windows are shared by square blocks of this many lattice
+    /// steps a side, each pixel taking the fitted surface's tangent at its own
+    /// ray (1: a window for every sampled pixel).
+    pub normal_block_steps: usize,
     /// Groups (by measured distance) a frame is split into.
     pub groups_per_frame: usize,
     /// Fewest pixels in a group.
@@ -118,6 +122,7 @@ impl Default for XiSettings {
         Self {
             max_pixels_per_frame: 1500,
             normal_radius_px: 3,
+            normal_block_steps: 3,
             groups_per_frame: 3,
             min_group_pixels: 40,
             max_frames_pooled: 64,
@@ -329,7 +334,15 @@ pub fn frame_profile(
             }
         }
         // Normals from the smooth-surface prior: local planes over the recovered layer.
-        let planes = local_planes_adaptive(&points, &sample.rays, &mask, &radii, 12, 0.05, 2);
+        let planes = local_planes_adaptive(
+            &points,
+            &sample.rays,
+            &mask,
+            &radii,
+            12,
+            0.05,
+            settings.normal_block_steps,
+        );
         let mut per_group: Vec<Vec<f64>> = vec![vec![]; n_groups];
         for i in 0..w * h {
             if obs.data[i].is_none() {
