@@ -785,7 +785,7 @@ impl HumpRoots {
                     // |sin alpha| (e' = -tau' <= 0 there).
                     let top = if peak > l && peak < u && self.e(peak).0 > 0.0 {
                         Some(peak)
-                    } else if dl > 0.0 {
+                    } else if dl > 0.0 && peak.min(u) > l {
                         self.maximum(l, peak.min(u)).filter(|&x| self.e(x).0 > 0.0)
                     } else {
                         None
