@@ -170,7 +170,8 @@ pub fn heap_in_use_kb() -> Option<u64> {
     {
         // SAFETY: mallinfo2 only reads the allocator's counters.
         let m = unsafe { libc::mallinfo2() };
-        Some(((m.uordblks + m.hblkhd) / 1024) as u64)
+        // glibc's in-use bytes and mappings, and the binary allocator's own mappings.
+        Some(((m.uordblks + m.hblkhd + crate::alloc::mapped_bytes()) / 1024) as u64)
     }
     #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
     None

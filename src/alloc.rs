@@ -1,0 +1,203 @@
+//! The binary's global allocator: allocations of [`LARGE`] bytes and more get
+//! an anonymous mapping of their own (`mmap`; `mremap` when they grow;
+//! `munmap` when freed), everything smaller goes to the system allocator.
+//!
+//! Why: the node publishes about 0.6 MB a frame that RustDDS keeps for up to
+//! 6 s, in buffers grown by `realloc` (serialization into a `Vec`). glibc
+//! grows such a buffer inside its malloc arenas when it can, and over
+//! minutes the arenas fragment: resident memory climbs while the bytes in
+//! live allocations stay flat (README, The node). A buffer in a mapping of
+//! its own is handed back to the kernel the moment it is freed. Linux only;
+//! elsewhere everything goes to the system allocator.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// Smallest allocation given a mapping of its own, bytes.
+pub const LARGE: usize = 64 * 1024;
+
+/// Page size the mappings are rounded to (mmap's alignment on Linux).
+const PAGE: usize = 4096;
+
+/// Bytes in mappings of this allocator now.
+static MAPPED: AtomicUsize = AtomicUsize::new(0);
+
+/// Bytes currently held in this allocator's own mappings (0 off Linux).
+pub fn mapped_bytes() -> usize {
+    MAPPED.load(Ordering::Relaxed)
+}
+
+/// Large allocations in mappings of their own, the rest from [`System`].
+pub struct LargeMapped;
+
+#[cfg(target_os = "linux")]
+fn is_large(layout: &Layout) -> bool {
+    layout.size() >= LARGE && layout.align() <= PAGE
+}
+
+#[cfg(not(target_os = "linux"))]
+fn is_large(_: &Layout) -> bool {
+    false
+}
+
+fn pages(bytes: usize) -> usize {
+    bytes.div_ceil(PAGE) * PAGE
+}
+
+#[cfg(target_os = "linux")]
+unsafe fn map(len: usize) -> *mut u8 {
+    // SAFETY: an anonymous private mapping of `len` bytes, no file.
+    let p = unsafe {
+        libc::mmap(
+            std::ptr::null_mut(),
+            len,
+            libc::PROT_READ | libc::PROT_WRITE,
+            libc::MAP_PRIVATE | libc::MAP_ANONYMOUS,
+            -1,
+            0,
+        )
+    };
+    if p == libc::MAP_FAILED {
+        return std::ptr::null_mut();
+    }
+    MAPPED.fetch_add(len, Ordering::Relaxed);
+    p.cast()
+}
+
+#[cfg(not(target_os = "linux"))]
+unsafe fn map(_: usize) -> *mut u8 {
+    std::ptr::null_mut()
+}
+
+#[cfg(target_os = "linux")]
+unsafe fn unmap(p: *mut u8, len: usize) {
+    // SAFETY: `p` is a mapping of `len` bytes made by `map` or `remap`.
+    unsafe { libc::munmap(p.cast(), len) };
+    MAPPED.fetch_sub(len, Ordering::Relaxed);
+}
+
+#[cfg(not(target_os = "linux"))]
+unsafe fn unmap(_: *mut u8, _: usize) {}
+
+#[cfg(target_os = "linux")]
+unsafe fn remap(p: *mut u8, old: usize, new: usize) -> *mut u8 {
+    // SAFETY: `p` is a mapping of `old` bytes made by `map` or `remap`; the kernel may move it.
+    let q = unsafe { libc::mremap(p.cast(), old, new, libc::MREMAP_MAYMOVE) };
+    if q == libc::MAP_FAILED {
+        return std::ptr::null_mut();
+    }
+    MAPPED.fetch_add(new, Ordering::Relaxed);
+    MAPPED.fetch_sub(old, Ordering::Relaxed);
+    q.cast()
+}
+
+#[cfg(not(target_os = "linux"))]
+unsafe fn remap(_: *mut u8, _: usize, _: usize) -> *mut u8 {
+    std::ptr::null_mut()
+}
+
+// SAFETY: every pointer goes back to the allocator that made it: a layout is
+// large or not by its size and alignment, which `dealloc` and `realloc` are
+// given unchanged (GlobalAlloc's contract), and a reallocation that crosses
+// `LARGE` copies into the other allocator and frees the old block.
+unsafe impl GlobalAlloc for LargeMapped {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if is_large(&layout) {
+            // SAFETY: a fresh mapping; page alignment covers `layout.align()`.
+            unsafe { map(pages(layout.size())) }
+        } else {
+            // SAFETY: forwarded with the caller's layout.
+            unsafe { System.alloc(layout) }
+        }
+    }
+
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        if is_large(&layout) {
+            // SAFETY: anonymous mappings are zero-filled.
+            unsafe { map(pages(layout.size())) }
+        } else {
+            // SAFETY: forwarded with the caller's layout.
+            unsafe { System.alloc_zeroed(layout) }
+        }
+    }
+
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        if is_large(&layout) {
+            // SAFETY: a large layout's block is a mapping of these pages.
+            unsafe { unmap(ptr, pages(layout.size())) }
+        } else {
+            // SAFETY: a small layout's block came from System.
+            unsafe { System.dealloc(ptr, layout) }
+        }
+    }
+
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        // SAFETY: GlobalAlloc::realloc guarantees `new_size`, rounded to the alignment, fits isize.
+        let new_layout = unsafe { Layout::from_size_align_unchecked(new_size, layout.align()) };
+        match (is_large(&layout), is_large(&new_layout)) {
+            // SAFETY: both small: System's own block, resized by System.
+            (false, false) => unsafe { System.realloc(ptr, layout, new_size) },
+            (true, true) => {
+                let (old, new) = (pages(layout.size()), pages(new_size));
+                if old == new {
+                    return ptr;
+                }
+                // SAFETY: `ptr` is a mapping of `old` bytes.
+                unsafe { remap(ptr, old, new) }
+            }
+            _ => {
+                // Crossing the threshold: a block from the other side, the contents copied.
+                // SAFETY: `new_layout` is valid (above); the old block is freed with its own layout.
+                unsafe {
+                    let q = self.alloc(new_layout);
+                    if !q.is_null() {
+                        std::ptr::copy_nonoverlapping(ptr, q, layout.size().min(new_size));
+                        self.dealloc(ptr, layout);
+                    }
+                    q
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blocks_keep_their_contents_across_the_threshold() {
+        let a = LargeMapped;
+        let small = Layout::from_size_align(1000, 8).unwrap();
+        // SAFETY: each block is used within its size and freed once with its layout.
+        unsafe {
+            let p = a.alloc(small);
+            assert!(!p.is_null());
+            for i in 0..1000 {
+                *p.add(i) = (i % 251) as u8;
+            }
+            // Small -> large -> larger (mremap) -> small again.
+            let q = a.realloc(p, small, 100_000);
+            let large = Layout::from_size_align(100_000, 8).unwrap();
+            assert!(!q.is_null());
+            for i in 0..1000 {
+                assert_eq!(*q.add(i), (i % 251) as u8);
+            }
+            *q.add(99_999) = 7;
+            let r = a.realloc(q, large, 3_000_000);
+            let larger = Layout::from_size_align(3_000_000, 8).unwrap();
+            assert!(!r.is_null());
+            assert_eq!((*r.add(500), *r.add(99_999)), ((500 % 251) as u8, 7));
+            #[cfg(target_os = "linux")]
+            assert!(mapped_bytes() >= 3_000_000);
+            let s = a.realloc(r, larger, 600);
+            assert!(!s.is_null());
+            assert_eq!(*s.add(599), (599 % 251) as u8);
+            a.dealloc(s, Layout::from_size_align(600, 8).unwrap());
+            // A zeroed large block is zero.
+            let z = a.alloc_zeroed(large);
+            assert!((0..100_000).all(|i| *z.add(i) == 0));
+            a.dealloc(z, large);
+        }
+    }
+}
