@@ -15,11 +15,11 @@ use crate::physics::segmentation::{
     changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
 use crate::physics::stats::median_and_sigma;
-use crate::physics::surface::{local_planes, update_local_planes, Windows};
+use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
-    foreground_distance, ForwardModel, ImageBuf, Intrinsics, InversionBounds, LayerEstimate, PixelObservation, Sensor,
-    XiEstimate, XiMethod,
+    foreground_distance, reading_sensitivity_to_ir, ForwardModel, ImageBuf, Intrinsics, InversionBounds, LayerEstimate,
+    PixelObservation, Sensor, XiEstimate, XiMethod,
 };
 
 /// Why a frame or a latch could not be processed.
@@ -574,9 +574,20 @@ impl Pipeline {
                     .unwrap_or(self.config.threshold_mm / 3.0)
                     / light.sqrt();
                 let ir_sigma = bg.map(|b| b.ir_noise.data[i]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
-                let dfdi = est.reading_per_ir;
+                let dfdi = if est.reading_per_ir.is_nan() && ir_sigma > 0.0 {
+                    // The generic path leaves it to us.
+                    reading_sensitivity_to_ir(
+                        &self.config.model,
+                        &o,
+                        est.foreground_distance_mm,
+                        xi.xi,
+                        self.config.bounds.max_albedo_cos,
+                    )
+                } else {
+                    est.reading_per_ir
+                };
                 let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
-                Some((est, d_sigma.hypot(ir_term) / est.slope.abs()))
+                Some((est, (d_sigma * d_sigma + ir_term * ir_term).sqrt() / est.slope.abs()))
             })
             .collect();
         for i in 0..n {
@@ -607,14 +618,14 @@ impl Pipeline {
                 min_points: 12,
                 stride: self.config.prior_stride_px,
             };
-            let mut planes = local_planes(&points, &self.rays, &obs.mask, &windows);
+            let mut surfaces = LocalSurfaces::new(&points, &self.rays, &obs.mask, &windows);
             // Where a pixel fits several layers, the one its neighbourhood's surface is nearest
             // (the first pass took the one nearest the reading); then the surface again.
             let repicks: Vec<Option<f64>> = several_roots
                 .par_iter()
                 .map(|&i| {
-                    let (o, p) = (obs.observations.data[i]?, planes.data[i]?);
-                    let t = p.ray_distance(&self.rays.data[i])?;
+                    let o = obs.observations.data[i]?;
+                    let t = surfaces.ray_distance(i, &self.rays, &obs.mask)?;
                     let est = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, Some(t))?;
                     (!est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5)
                         .then_some(est.foreground_distance_mm)
@@ -628,25 +639,21 @@ impl Pipeline {
                     repicked.push(i);
                 }
             }
-            // The windows those pixels are in, refitted (the same planes as refitting all).
-            update_local_planes(&mut planes, &points, &self.rays, &obs.mask, &windows, &repicked);
+            // The windows those pixels are in, refitted (the same surfaces as refitting all).
+            surfaces.update(&points, &self.rays, &obs.mask, &windows, &repicked);
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
             for i in 0..n {
-                if !obs.mask.data[i] {
+                let Some(o) = obs.observations.data[i] else {
                     continue;
-                }
-                let plane = planes.data[i].or_else(|| {
-                    if obs.observations.data[i].is_some() {
-                        nearest_plane(&planes, i, self.config.prior_radius_px)
-                    } else {
-                        None
-                    }
+                };
+                let t = surfaces.ray_distance(i, &self.rays, &obs.mask).or_else(|| {
+                    surfaces
+                        .nearest_plane(i, self.config.prior_radius_px, &self.rays, &obs.mask)
+                        .and_then(|p| p.ray_distance(&self.rays.data[i]))
                 });
-                if let Some(t) = plane.and_then(|p| p.ray_distance(&self.rays.data[i])) {
-                    if let Some(o) = obs.observations.data[i] {
-                        if t > self.config.bounds.min_distance_mm && t < o.background_distance_mm {
-                            df[i] = t;
-                        }
+                if let Some(t) = t {
+                    if t > self.config.bounds.min_distance_mm && t < o.background_distance_mm {
+                        df[i] = t;
                     }
                 }
             }
@@ -751,32 +758,6 @@ impl Pipeline {
             .collect();
         Some((est.profile, translucency::eq12_flat_range(&r, est.pixels)))
     }
-}
-
-fn nearest_plane(
-    planes: &ImageBuf<Option<crate::physics::surface::Plane>>,
-    i: usize,
-    radius: usize,
-) -> Option<crate::physics::surface::Plane> {
-    let (w, h) = (planes.width, planes.height);
-    let (c, r) = ((i % w) as isize, (i / w) as isize);
-    let rad = radius as isize;
-    let mut best: Option<(isize, crate::physics::surface::Plane)> = None;
-    for dr in -rad..=rad {
-        for dc in -rad..=rad {
-            let (cc, rr) = (c + dc, r + dr);
-            if cc < 0 || rr < 0 || cc >= w as isize || rr >= h as isize {
-                continue;
-            }
-            if let Some(p) = planes.data[rr as usize * w + cc as usize] {
-                let d2 = dr * dr + dc * dc;
-                if best.is_none_or(|(b, _)| d2 < b) {
-                    best = Some((d2, p));
-                }
-            }
-        }
-    }
-    best.map(|b| b.1)
 }
 
 /// Finds where the scene changes: the first frame whose readings (ray

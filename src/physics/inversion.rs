@@ -87,7 +87,9 @@ pub struct LayerEstimate {
     pub slope: f64,
     /// `d f / d I` at the estimate, the layer held: how far the predicted reading
     /// moves per count of IR ([`reading_sensitivity_to_ir`]). IR noise `s`
-    /// becomes a layer noise `s |reading_per_ir| / |slope|`.
+    /// becomes a layer noise `s |reading_per_ir| / |slope|`. Filled in closed
+    /// form on the sinusoid's fast path; NaN on the generic path, which leaves
+    /// it to callers that need it (it costs two more model evaluations there).
     pub reading_per_ir: f64,
 }
 
@@ -202,7 +204,7 @@ pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, 
 /// `s |dF/dI| / |slope|`. NaN where the albedo is not admissible.
 pub fn reading_sensitivity_to_ir(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> f64 {
     if let Some(fast) = FastPixel::new(model, obs, xi, x_max) {
-        return fast.derivatives(df).map_or(f64::NAN, |(_, per_ir)| per_ir);
+        return fast.derivatives(df, None).map_or(f64::NAN, |(_, per_ir)| per_ir);
     }
     let h = (obs.ir.abs() * 1e-3).max(1e-9);
     let at = |ir: f64| {
@@ -221,6 +223,9 @@ struct Sample {
     df: f64,
     residual: f64,
     x: f64,
+    /// The fast path's `(sin, cos)` of the layer's rotated phase at `df`, for
+    /// the derivatives there, when computed.
+    turn: Option<(f64, f64)>,
 }
 
 /// The roots a scan has found, and the one the root rule picks: the nearest
@@ -330,6 +335,7 @@ fn foreground_distance_generic(
             df,
             residual: sensor.wrapped_difference_mm(pred, obs.distance_mm),
             x,
+            turn: None,
         })
     };
     let n = ((hi - lo) / bounds.scan_step_mm).ceil().max(2.0) as usize;
@@ -362,6 +368,7 @@ fn foreground_distance_generic(
                         df: f64::NAN,
                         residual: f64::NAN,
                         x: f64::NAN,
+                        turn: None,
                     });
                 }
             }
@@ -397,10 +404,7 @@ fn foreground_distance_generic(
         Some((root, _)) => (root, false),
         None => (best?, true),
     };
-    Some(LayerEstimate {
-        reading_per_ir: reading_sensitivity_to_ir(model, obs, s.df, xi, bounds.max_albedo_cos),
-        ..estimate_at(sensor, s, pick.roots, pinned, eval)
-    })
+    Some(estimate_at(sensor, s, pick.roots, pinned, eval))
 }
 
 /// The inversion's evaluations for the paper's two returns on a sinusoidal
@@ -503,9 +507,15 @@ impl FastPixel {
     /// The mixed phasor, rotated by minus the reading's phase.
     #[inline]
     fn phasor(&self, df: f64, x: f64) -> (f64, f64) {
+        self.phasor_turned(df, x).0
+    }
+
+    /// [`Self::phasor`], with the layer's `(sin, cos)` it turned by.
+    #[inline]
+    fn phasor_turned(&self, df: f64, x: f64) -> ((f64, f64), (f64, f64)) {
         let (l1, l2) = self.strengths(df, x);
         let (s, c) = (self.k * df - self.phi_d).sin_cos();
-        (l1 * c + l2 * self.bg.0, l1 * s + l2 * self.bg.1)
+        ((l1 * c + l2 * self.bg.0, l1 * s + l2 * self.bg.1), (s, c))
     }
 
     /// The wrapped residual, mm, of a rotated phasor (NaN when it is zero: nothing decodes).
@@ -522,11 +532,11 @@ impl FastPixel {
     /// (Re dIm - Im dRe) / (Re^2 + Im^2)`, its parts through `L1 = l1 X / df^2`,
     /// `L2 = a X^p` and the IR equation's `dX` (implicit: `dX/dI = 1 / (b + a p
     /// X^(p-1))`, `dX/d df = 2 b X / df / (b + a p X^(p-1))`). `None` where `X`
-    /// is not admissible.
-    fn derivatives(&self, df: f64) -> Option<(f64, f64)> {
+    /// is not admissible. `turn`: the layer's `(sin, cos)` at `df`, if known.
+    fn derivatives(&self, df: f64, turn: Option<(f64, f64)>) -> Option<(f64, f64)> {
         let x = self.albedo(df)?;
         let (l1, l2) = self.strengths(df, x);
-        let (sn, cs) = (self.k * df - self.phi_d).sin_cos();
+        let (sn, cs) = turn.unwrap_or_else(|| (self.k * df - self.phi_d).sin_cos());
         let (re, im) = (l1 * cs + l2 * self.bg.0, l1 * sn + l2 * self.bg.1);
         let b = self.l1 / (df * df);
         // d L2 / d X.
@@ -557,9 +567,14 @@ impl FastPixel {
     #[inline]
     fn eval(&self, df: f64) -> Option<Sample> {
         let x = self.albedo(df)?;
-        let (re, im) = self.phasor(df, x);
+        let ((re, im), turn) = self.phasor_turned(df, x);
         let residual = self.residual_mm(re, im);
-        residual.is_finite().then_some(Sample { df, residual, x })
+        residual.is_finite().then_some(Sample {
+            df,
+            residual,
+            x,
+            turn: Some(turn),
+        })
     }
 }
 
@@ -586,6 +601,7 @@ impl ScanSample {
             df: self.df,
             residual: fast.residual_mm(self.re, self.im),
             x: self.x,
+            turn: None,
         }
     }
 }
@@ -878,7 +894,7 @@ fn foreground_distance_fast(
             (best?, true)
         }
     };
-    let (slope, reading_per_ir) = fast.derivatives(s.df).unwrap_or((f64::NAN, f64::NAN));
+    let (slope, reading_per_ir) = fast.derivatives(s.df, s.turn).unwrap_or((f64::NAN, f64::NAN));
     Some(LayerEstimate {
         foreground_distance_mm: s.df,
         albedo_cos: s.x,

@@ -1,7 +1,7 @@
 //! Plane fits over 3D points: the white calibration plane (Eq. 13), and the
 //! smooth-surface prior on a recovered layer (local planes over a window).
 
-use nalgebra::{Matrix3, SMatrix, SVector, SymmetricEigen, Vector3};
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
 use super::buffer::ImageBuf;
@@ -108,7 +108,7 @@ pub fn fit_plane_robust(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: 
 /// are dropped and the fit repeated, `passes` times.
 pub fn fit_plane_along_rays(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: usize) -> Option<Plane> {
     let robust = Robust { k, floor_mm, passes };
-    fit_inverse_depth(points, (0.0, 0.0), plane_terms, 3, &robust)?.tangent_plane(&Vector3::new(0.0, 0.0, 1.0))
+    fit_inverse_depth(points, (0.0, 0.0), PLANE, 3, &robust)?.tangent_plane(&Vector3::new(0.0, 0.0, 1.0))
 }
 
 /// The plane tangent, at the ray `center` (a unit or z = 1 ray), to a smooth
@@ -141,38 +141,110 @@ fn fit_quadric_along_rays(
         return None;
     }
     let robust = Robust { k, floor_mm, passes };
-    fit_inverse_depth(
-        points,
-        (center.x / center.z, center.y / center.z),
-        quadric_terms,
-        10,
-        &robust,
-    )
+    fit_inverse_depth(points, (center.x / center.z, center.y / center.z), QUADRIC, 10, &robust)
 }
 
-/// The quadric's terms at `(a, b)` and their derivatives in `a` and `b`.
-fn quadric_terms(a: f64, b: f64) -> Terms<6> {
-    Terms {
-        value: SVector::<f64, 6>::from([1.0, a, b, a * a, a * b, b * b]),
-        d_a: SVector::<f64, 6>::from([0.0, 1.0, 0.0, 2.0 * a, b, 0.0]),
-        d_b: SVector::<f64, 6>::from([0.0, 0.0, 1.0, 0.0, a, 2.0 * b]),
+/// A polynomial basis in image coordinates `(a, b)`: its terms (the fit's
+/// columns, the first three `1, a, b`) and their derivatives in `a` and `b`
+/// (the tangent plane's slopes).
+#[derive(Clone, Copy)]
+struct Basis<const N: usize> {
+    value: fn(f64, f64) -> [f64; N],
+    d_a: fn(f64, f64) -> [f64; N],
+    d_b: fn(f64, f64) -> [f64; N],
+}
+
+/// The quadric `1, a, b, a^2, a b, b^2`.
+const QUADRIC: Basis<6> = Basis {
+    value: |a, b| [1.0, a, b, a * a, a * b, b * b],
+    d_a: |a, b| [0.0, 1.0, 0.0, 2.0 * a, b, 0.0],
+    d_b: |a, b| [0.0, 0.0, 1.0, 0.0, a, 2.0 * b],
+};
+
+/// The plane `1, a, b`.
+const PLANE: Basis<3> = Basis {
+    value: |a, b| [1.0, a, b],
+    d_a: |_, _| [0.0, 1.0, 0.0],
+    d_b: |_, _| [0.0, 0.0, 1.0],
+};
+
+/// A symmetric positive definite matrix factored as `L D L^T` (`L` unit lower
+/// triangular): the normal equations' solve, and the quadratic forms of their
+/// inverse (the coefficients' covariance) without forming it.
+#[derive(Debug, Clone, Copy)]
+struct Ldl<const N: usize> {
+    /// `l[i][j]`, `j < i`.
+    l: [[f64; N]; N],
+    d: [f64; N],
+}
+
+impl<const N: usize> Ldl<N> {
+    /// Factors the matrix whose lower triangle is `a[i][j]`, `j <= i`. `None`
+    /// when a pivot falls below `1e-10` of its diagonal entry: a column the
+    /// others (nearly) span, as a quadric's on points in two rows.
+    fn new(a: &[[f64; N]; N]) -> Option<Self> {
+        let mut l = [[0.0; N]; N];
+        let mut d = [0.0; N];
+        for j in 0..N {
+            let mut dj = a[j][j];
+            for k in 0..j {
+                dj -= l[j][k] * l[j][k] * d[k];
+            }
+            if !(dj > 1e-10 * a[j][j]) {
+                return None;
+            }
+            d[j] = dj;
+            for i in j + 1..N {
+                let mut v = a[i][j];
+                for k in 0..j {
+                    v -= l[i][k] * l[j][k] * d[k];
+                }
+                l[i][j] = v / dj;
+            }
+        }
+        Some(Self { l, d })
+    }
+
+    /// `L y = v`.
+    #[inline]
+    fn forward(&self, v: &[f64; N]) -> [f64; N] {
+        let mut y = *v;
+        for i in 0..N {
+            for k in 0..i {
+                y[i] -= self.l[i][k] * y[k];
+            }
+        }
+        y
+    }
+
+    /// `A x = b`.
+    fn solve(&self, b: &[f64; N]) -> [f64; N] {
+        let mut x = self.forward(b);
+        for i in 0..N {
+            x[i] /= self.d[i];
+        }
+        for i in (0..N).rev() {
+            for k in i + 1..N {
+                x[i] -= self.l[k][i] * x[k];
+            }
+        }
+        x
+    }
+
+    /// `v^T A^-1 v`.
+    fn inverse_form(&self, v: &[f64; N]) -> f64 {
+        let y = self.forward(v);
+        (0..N).map(|i| y[i] * y[i] / self.d[i]).sum()
     }
 }
 
-/// The plane's terms `1, a, b` and their derivatives.
-fn plane_terms(a: f64, b: f64) -> Terms<3> {
-    Terms {
-        value: SVector::<f64, 3>::from([1.0, a, b]),
-        d_a: SVector::<f64, 3>::from([0.0, 1.0, 0.0]),
-        d_b: SVector::<f64, 3>::from([0.0, 0.0, 1.0]),
+#[inline]
+fn dot<const N: usize>(a: &[f64; N], b: &[f64; N]) -> f64 {
+    let mut s = 0.0;
+    for i in 0..N {
+        s += a[i] * b[i];
     }
-}
-
-/// A polynomial's terms at a point, with their derivatives in the image coordinates.
-struct Terms<const N: usize> {
-    value: SVector<f64, N>,
-    d_a: SVector<f64, N>,
-    d_b: SVector<f64, N>,
+    s
 }
 
 /// Outlier rejection of the fits along the rays.
@@ -186,33 +258,49 @@ struct Robust {
 /// `(a0, b0)`, with what its uncertainty needs.
 #[derive(Clone, Copy)]
 struct InverseDepthFit<const N: usize> {
-    coef: SVector<f64, N>,
-    /// `(A^T W A)^-1`.
-    inv: SMatrix<f64, N, N>,
+    coef: [f64; N],
+    /// `A^T W A`, factored.
+    normal: Ldl<N>,
     a0: f64,
     b0: f64,
-    terms: fn(f64, f64) -> Terms<N>,
+    basis: Basis<N>,
     rms: f64,
     sigma: f64,
     count: usize,
 }
 
 impl<const N: usize> InverseDepthFit<N> {
+    /// The fitted inverse depth `1/z` where the ray `u` (z > 0) meets it, if positive.
+    #[inline]
+    fn inverse_depth(&self, u: &Vector3<f64>) -> Option<f64> {
+        if u.z <= 0.0 {
+            return None;
+        }
+        let v = dot(
+            &(self.basis.value)(u.x / u.z - self.a0, u.y / u.z - self.b0),
+            &self.coef,
+        );
+        (v > 0.0).then_some(v)
+    }
+
+    /// The distance along the unit ray `u` to the fitted surface: that of the
+    /// tangent plane at `u` ([`Self::tangent_plane`]), `1 / (v u_z)`, without
+    /// the plane.
+    #[inline]
+    fn ray_distance(&self, u: &Vector3<f64>) -> Option<f64> {
+        self.inverse_depth(u).map(|v| 1.0 / (v * u.z))
+    }
+
     /// The plane tangent to the fitted surface where the ray `u` (z > 0) meets
     /// it: `1/z = v + g_a (a - a1) + g_b (b - b1)` at `(a1, b1) = (x/z, y/z)`,
     /// i.e. `(g_a, g_b, v - g_a a1 - g_b b1) . p = 1`, its normal toward the
     /// camera; the normal's standard error from the coefficients' covariance.
     fn tangent_plane(&self, u: &Vector3<f64>) -> Option<Plane> {
-        if u.z <= 0.0 {
-            return None;
-        }
+        let v = self.inverse_depth(u)?;
         let (a1, b1) = (u.x / u.z, u.y / u.z);
-        let t = (self.terms)(a1 - self.a0, b1 - self.b0);
-        let v = t.value.dot(&self.coef);
-        if !(v > 0.0) {
-            return None;
-        }
-        let (ga, gb) = (t.d_a.dot(&self.coef), t.d_b.dot(&self.coef));
+        let (ra, rb) = (a1 - self.a0, b1 - self.b0);
+        let (d_a, d_b) = ((self.basis.d_a)(ra, rb), (self.basis.d_b)(ra, rb));
+        let (ga, gb) = (dot(&d_a, &self.coef), dot(&d_b, &self.coef));
         let coef = Vector3::new(ga, gb, v - ga * a1 - gb * b1);
         let norm = coef.norm();
         let (normal, offset) = if coef.z > 0.0 {
@@ -222,7 +310,7 @@ impl<const N: usize> InverseDepthFit<N> {
         };
         // Residuals are in z units under the z^4 weights, so Cov(c) = sigma^2 (A^T W A)^-1;
         // the normal turns by d(g_a, g_b) / v.
-        let var = quadratic_form(&self.inv, &t.d_a) + quadratic_form(&self.inv, &t.d_b);
+        let var = self.normal.inverse_form(&d_a) + self.normal.inverse_form(&d_b);
         Some(Plane {
             normal,
             offset,
@@ -233,31 +321,19 @@ impl<const N: usize> InverseDepthFit<N> {
     }
 }
 
-/// `v^T m v` over the non-zero entries of `v` (a term's derivative has few).
-#[inline]
-fn quadratic_form<const N: usize>(m: &SMatrix<f64, N, N>, v: &SVector<f64, N>) -> f64 {
-    let mut sum = 0.0;
-    for (i, &vi) in v.iter().enumerate().filter(|(_, v)| **v != 0.0) {
-        for (j, &vj) in v.iter().enumerate().filter(|(_, v)| **v != 0.0) {
-            sum += vi * m[(i, j)] * vj;
-        }
-    }
-    sum
-}
-
 /// Weighted least squares of the inverse depth on `terms(a, b)` (whose first
 /// three are `1, a, b`) in image coordinates `(a, b) = (x/z, y/z) - centre`,
 /// with weights `z^4` so residuals are millimetres of z.
 fn fit_inverse_depth<const N: usize>(
     points: &[Vector3<f64>],
     (a0, b0): (f64, f64),
-    terms: fn(f64, f64) -> Terms<N>,
+    basis: Basis<N>,
     min_points: usize,
     robust: &Robust,
 ) -> Option<InverseDepthFit<N>> {
     // Each point's row, weight and right-hand side once (the passes only drop points).
     struct Term<const N: usize> {
-        row: SVector<f64, N>,
+        row: [f64; N],
         z: f64,
         w: f64,
         rhs: f64,
@@ -270,7 +346,7 @@ fn fit_inverse_depth<const N: usize>(
             let z2 = p.z * p.z;
             let w = z2 * z2; // d(1/z) = dz / z^2
             Term {
-                row: terms(p.x / p.z - a0, p.y / p.z - b0).value,
+                row: (basis.value)(p.x / p.z - a0, p.y / p.z - b0),
                 z: p.z,
                 w,
                 rhs: w / p.z,
@@ -279,22 +355,21 @@ fn fit_inverse_depth<const N: usize>(
             }
         })
         .collect();
-    // The normal equations, upper triangle only (the matrix is symmetric), in plain arrays:
-    // built once over every point, then each pass takes out the points it drops (a
-    // downdate) instead of summing the kept ones again.
+    // The normal equations, lower triangle only (the matrix is symmetric): built once over
+    // every point, then each pass takes out the points it drops (a downdate) instead of
+    // summing the kept ones again.
     let mut acc = [[0.0f64; N]; N];
-    let mut atb = SVector::<f64, N>::zeros();
+    let mut atb = [0.0f64; N];
     let mut n = 0;
-    let add = |acc: &mut [[f64; N]; N], atb: &mut SVector<f64, N>, p: &Term<N>, sign: f64| {
-        let r: [f64; N] = p.row.into();
-        let w = sign * p.w;
-        for (j, col) in acc.iter_mut().enumerate() {
-            let rw = r[j] * w;
-            for (i, a) in col.iter_mut().enumerate().take(j + 1) {
-                *a += r[i] * rw;
+    let add = |acc: &mut [[f64; N]; N], atb: &mut [f64; N], p: &Term<N>, sign: f64| {
+        let (w, rhs) = (sign * p.w, sign * p.rhs);
+        for i in 0..N {
+            let rw = p.row[i] * w;
+            for j in 0..=i {
+                acc[i][j] += p.row[j] * rw;
             }
+            atb[i] += p.row[i] * rhs;
         }
-        *atb += p.row * (sign * p.rhs);
     };
     for p in t.iter().filter(|p| p.keep) {
         add(&mut acc, &mut atb, p, 1.0);
@@ -302,27 +377,26 @@ fn fit_inverse_depth<const N: usize>(
     }
     let mut fit = None;
     for pass in 0..=robust.passes {
-        let ata = SMatrix::<f64, N, N>::from_fn(|i, j| if i <= j { acc[j][i] } else { acc[i][j] });
         if n < min_points {
             return fit;
         }
-        let inv = ata.try_inverse()?;
-        let c = inv * atb;
+        let normal = Ldl::new(&acc)?;
+        let c = normal.solve(&atb);
         if !c.iter().all(|v| v.is_finite()) || c[0] <= 0.0 {
             return fit;
         }
         let mut ss = 0.0;
         for p in t.iter_mut().filter(|p| p.keep) {
-            p.resid = (p.z - 1.0 / p.row.dot(&c)).abs();
-            ss += p.resid.powi(2);
+            p.resid = (p.z - 1.0 / dot(&p.row, &c)).abs();
+            ss += p.resid * p.resid;
         }
         let rms = (ss / n as f64).sqrt();
         fit = Some(InverseDepthFit {
             coef: c,
-            inv,
+            normal,
             a0,
             b0,
-            terms,
+            basis,
             rms,
             sigma: (ss / n.saturating_sub(N).max(1) as f64).sqrt(), // residual scale, N terms fitted
             count: n,
@@ -372,9 +446,8 @@ pub fn local_planes_adaptive(
             .collect(),
     };
     let blocks = Blocks::new(&with_point, stride);
-    let mut planes = ImageBuf::filled(points.width, points.height, None);
     let all: Vec<usize> = (0..blocks.centres.len()).collect();
-    blocks.refit(&mut planes, &all, &with_point, rays, |centre| {
+    let fits = blocks.fit(&all, |centre| {
         let mut out = None;
         for (k, &r) in radii.iter().enumerate() {
             if let Some(fit) = window_fit(points, rays, mask, centre, r, min_points) {
@@ -388,7 +461,7 @@ pub fn local_planes_adaptive(
         }
         out
     });
-    planes
+    LocalSurfaces { blocks, fits }.planes(rays, &with_point)
 }
 
 /// The windows of [`local_planes`]: `(2 radius + 1)^2` pixels, fitted when
@@ -408,63 +481,143 @@ pub struct Windows {
 /// [`fit_tangent_plane_along_rays`]) at the pixel's ray `rays` through the
 /// masked neighbours' points (`None` with fewer than `windows.min_points`). The
 /// smooth-surface prior: a noisy per-pixel depth is replaced by its
-/// neighbourhood's plane.
-///
-/// With `stride` above 1 the image is cut into `stride x stride` blocks and
-/// one window is fitted per block, around the block's masked pixel nearest
-/// its middle; every masked pixel of the block takes the fitted surface's
-/// tangent plane at its own ray (`stride^2` times fewer fits; `stride` 1 fits
-/// every pixel's own window).
+/// neighbourhood's plane. The planes of [`LocalSurfaces`], pixel by pixel.
 pub fn local_planes(
     points: &ImageBuf<Vector3<f64>>,
     rays: &ImageBuf<Vector3<f64>>,
     mask: &ImageBuf<bool>,
     windows: &Windows,
 ) -> ImageBuf<Option<Plane>> {
-    let blocks = Blocks::new(mask, windows.stride);
-    let mut planes = ImageBuf::filled(points.width, points.height, None);
-    let all: Vec<usize> = (0..blocks.centres.len()).collect();
-    blocks.refit(&mut planes, &all, mask, rays, |c| {
-        window_fit(points, rays, mask, c, windows.radius, windows.min_points)
-    });
-    planes
+    LocalSurfaces::new(points, rays, mask, windows).planes(rays, mask)
 }
 
-/// Refits, after the points at `changed` moved, exactly the planes of
-/// [`local_planes`] whose window holds one of them (the others' windows are
-/// unchanged): the same planes as a full recomputation, at the cost of the
-/// windows touched.
-pub fn update_local_planes(
-    planes: &mut ImageBuf<Option<Plane>>,
-    points: &ImageBuf<Vector3<f64>>,
-    rays: &ImageBuf<Vector3<f64>>,
-    mask: &ImageBuf<bool>,
-    windows: &Windows,
-    changed: &[usize],
-) {
-    let blocks = Blocks::new(mask, windows.stride);
-    let w = points.width;
-    let r = windows.radius as isize;
-    let redo: Vec<usize> = blocks
-        .centres
-        .iter()
-        .enumerate()
-        .filter(|(_, c)| {
-            c.is_some_and(|c| {
-                let (cc, cr) = ((c % w) as isize, (c / w) as isize);
-                changed
-                    .iter()
-                    .any(|&i| ((i % w) as isize - cc).abs() <= r && ((i / w) as isize - cr).abs() <= r)
+/// The smooth-surface prior's fitted windows, one per block: with `stride`
+/// above 1 the image is cut into `stride x stride` blocks and one window is
+/// fitted per block, around the block's masked pixel nearest its middle;
+/// every masked pixel of the block takes the fitted surface's tangent plane at
+/// its own ray (`stride^2` times fewer fits; `stride` 1 fits every pixel's own
+/// window). A pixel's plane is made only when asked for
+/// ([`LocalSurfaces::plane`]); [`LocalSurfaces::ray_distance`] skips it.
+pub struct LocalSurfaces {
+    blocks: Blocks,
+    fits: Vec<Option<WindowFit>>,
+}
+
+impl LocalSurfaces {
+    /// Fits every block's window over the masked, finite `points`.
+    pub fn new(
+        points: &ImageBuf<Vector3<f64>>,
+        rays: &ImageBuf<Vector3<f64>>,
+        mask: &ImageBuf<bool>,
+        windows: &Windows,
+    ) -> Self {
+        let blocks = Blocks::new(mask, windows.stride);
+        let all: Vec<usize> = (0..blocks.centres.len()).collect();
+        let fits = blocks.fit(&all, |c| {
+            window_fit(points, rays, mask, c, windows.radius, windows.min_points)
+        });
+        Self { blocks, fits }
+    }
+
+    /// Refits, after the points at `changed` moved, exactly the windows that
+    /// hold one of them (the others are unchanged): the same surfaces as a
+    /// full recomputation, at the cost of the windows touched. `mask` and
+    /// `windows` must be those the surfaces were made with.
+    pub fn update(
+        &mut self,
+        points: &ImageBuf<Vector3<f64>>,
+        rays: &ImageBuf<Vector3<f64>>,
+        mask: &ImageBuf<bool>,
+        windows: &Windows,
+        changed: &[usize],
+    ) {
+        let w = points.width;
+        let r = windows.radius as isize;
+        let redo: Vec<usize> = self
+            .blocks
+            .centres
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| {
+                c.is_some_and(|c| {
+                    let (cc, cr) = ((c % w) as isize, (c / w) as isize);
+                    changed
+                        .iter()
+                        .any(|&i| ((i % w) as isize - cc).abs() <= r && ((i / w) as isize - cr).abs() <= r)
+                })
             })
-        })
-        .map(|(b, _)| b)
-        .collect();
-    blocks.refit(planes, &redo, mask, rays, |c| {
-        window_fit(points, rays, mask, c, windows.radius, windows.min_points)
-    });
+            .map(|(b, _)| b)
+            .collect();
+        let fits = self.blocks.fit(&redo, |c| {
+            window_fit(points, rays, mask, c, windows.radius, windows.min_points)
+        });
+        for (b, f) in redo.into_iter().zip(fits) {
+            self.fits[b] = f;
+        }
+    }
+
+    /// The fitted surface of pixel `i`'s block, for a pixel of `mask`.
+    #[inline]
+    fn fit_of(&self, i: usize, mask: &ImageBuf<bool>) -> Option<&WindowFit> {
+        if !mask.data[i] {
+            return None;
+        }
+        let s = self.blocks.stride;
+        let (c, r) = (i % mask.width, i / mask.width);
+        self.fits[(r / s) * self.blocks.across + c / s].as_ref()
+    }
+
+    /// The tangent plane at pixel `i`'s ray (`None` off `mask` or without a fit).
+    pub fn plane(&self, i: usize, rays: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> Option<Plane> {
+        self.fit_of(i, mask)?.tangent_plane(&rays.data[i])
+    }
+
+    /// `plane(i).ray_distance(rays[i])`, up to rounding, without making the plane.
+    pub fn ray_distance(&self, i: usize, rays: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> Option<f64> {
+        self.fit_of(i, mask)?.ray_distance(&rays.data[i])
+    }
+
+    /// The plane of the pixel nearest `i` (within `radius`, in image distance) that has one.
+    pub fn nearest_plane(
+        &self,
+        i: usize,
+        radius: usize,
+        rays: &ImageBuf<Vector3<f64>>,
+        mask: &ImageBuf<bool>,
+    ) -> Option<Plane> {
+        let (w, h) = (mask.width, mask.height);
+        let (c, r) = ((i % w) as isize, (i / w) as isize);
+        let rad = radius as isize;
+        let mut best: Option<(isize, Plane)> = None;
+        for dr in -rad..=rad {
+            for dc in -rad..=rad {
+                let (cc, rr) = (c + dc, r + dr);
+                if cc < 0 || rr < 0 || cc >= w as isize || rr >= h as isize {
+                    continue;
+                }
+                let d2 = dr * dr + dc * dc;
+                if best.is_some_and(|(b, _)| d2 >= b) {
+                    continue;
+                }
+                if let Some(p) = self.plane(rr as usize * w + cc as usize, rays, mask) {
+                    best = Some((d2, p));
+                }
+            }
+        }
+        best.map(|b| b.1)
+    }
+
+    /// Every pixel's plane ([`Self::plane`]).
+    pub fn planes(&self, rays: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> ImageBuf<Option<Plane>> {
+        ImageBuf {
+            width: mask.width,
+            height: mask.height,
+            data: (0..mask.data.len()).map(|i| self.plane(i, rays, mask)).collect(),
+        }
+    }
 }
 
-/// The blocks of a strided [`local_planes`]: each block's window centre (its
+/// The blocks of a strided [`LocalSurfaces`]: each block's window centre (its
 /// masked pixel nearest the block's middle), `None` for a block without one.
 struct Blocks {
     stride: usize,
@@ -498,33 +651,13 @@ impl Blocks {
     }
 
     /// Fits the windows of `blocks` with `fit` (given the centre; in parallel over
-    /// the current rayon pool) and writes the planes of their members (the
-    /// pixels of `members` in the block).
-    fn refit(
-        &self,
-        planes: &mut ImageBuf<Option<Plane>>,
-        blocks: &[usize],
-        members: &ImageBuf<bool>,
-        rays: &ImageBuf<Vector3<f64>>,
-        fit: impl Fn(usize) -> Option<WindowFit> + Sync,
-    ) {
-        let fits: Vec<Option<WindowFit>> = blocks
+    /// the current rayon pool).
+    fn fit(&self, blocks: &[usize], fit: impl Fn(usize) -> Option<WindowFit> + Sync) -> Vec<Option<WindowFit>> {
+        blocks
             .par_iter()
             .with_min_len(8)
             .map(|&b| fit(self.centres[b]?))
-            .collect();
-        for (&b, fit) in blocks.iter().zip(fits) {
-            let (w, h, s) = (members.width, members.height, self.stride);
-            let (c0, r0) = ((b % self.across) * s, (b / self.across) * s);
-            for r in r0..(r0 + s).min(h) {
-                for c in c0..(c0 + s).min(w) {
-                    let i = r * w + c;
-                    if members.data[i] {
-                        planes.data[i] = fit.as_ref().and_then(|f| f.tangent_plane(&rays.data[i]));
-                    }
-                }
-            }
-        }
+            .collect()
     }
 }
 
@@ -535,12 +668,16 @@ fn keep_near_median(points: &mut Vec<Vector3<f64>>, k: f64, floor_mm: f64) {
         return;
     }
     let norms: Vec<f64> = points.iter().map(|p| p.norm()).collect();
-    let med = median_select(&mut norms.clone());
     // Every point within the floor of the median is kept whatever the spread: no need
-    // to measure it (the common case on a smooth layer).
+    // to measure it (the common case on a smooth layer). Within the floor of each other,
+    // they are within it of the median too.
     let (lo, hi) = norms
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    if hi - lo <= floor_mm {
+        return;
+    }
+    let med = median_select(&mut norms.clone());
     if med - lo <= floor_mm && hi - med <= floor_mm {
         return;
     }
@@ -564,6 +701,14 @@ impl WindowFit {
         match self {
             WindowFit::Quadric(f) => f.tangent_plane(u),
             WindowFit::Plane(f) => f.tangent_plane(u),
+        }
+    }
+
+    #[inline]
+    fn ray_distance(&self, u: &Vector3<f64>) -> Option<f64> {
+        match self {
+            WindowFit::Quadric(f) => f.ray_distance(u),
+            WindowFit::Plane(f) => f.ray_distance(u),
         }
     }
 }
@@ -600,7 +745,7 @@ fn window_fit(
         return Some(WindowFit::Quadric(q));
     }
     let robust = Robust { k, floor_mm, passes };
-    fit_inverse_depth(&window, (0.0, 0.0), plane_terms, 3, &robust).map(WindowFit::Plane)
+    fit_inverse_depth(&window, (0.0, 0.0), PLANE, 3, &robust).map(WindowFit::Plane)
 }
 
 #[cfg(test)]
@@ -702,8 +847,9 @@ mod tests {
                 min_points: 12,
                 stride,
             };
-            let mut planes = local_planes(&before_move, &rays, &mask, &windows);
-            update_local_planes(&mut planes, &points, &rays, &mask, &windows, &moved);
+            let mut surfaces = LocalSurfaces::new(&before_move, &rays, &mask, &windows);
+            surfaces.update(&points, &rays, &mask, &windows, &moved);
+            let planes = surfaces.planes(&rays, &mask);
             let full = local_planes(&points, &rays, &mask, &windows);
             assert_eq!(planes.data, full.data, "stride {stride}");
             // The update did refit: the planes before the move differ somewhere.
