@@ -7,11 +7,19 @@
 //! grows such a buffer inside its malloc arenas when it can, and over
 //! minutes the arenas fragment: resident memory climbs while the bytes in
 //! live allocations stay flat (README, The node). A buffer in a mapping of
-//! its own is handed back to the kernel the moment it is freed. Linux only;
+//! its own is handed back to the kernel when it is freed. Linux only;
 //! elsewhere everything goes to the system allocator.
+//!
+//! A freed mapping is first kept in a small cache ([`CACHE_SLOTS`] mappings,
+//! at most [`CACHE_BYTES`] in all, the oldest handed back first) and reused by
+//! the next allocation of the same page count: the pipeline's per-frame
+//! buffers come back at the same sizes every frame, and a fresh mapping costs
+//! a page fault for each page it touches. The cache bounds what is kept, so
+//! resident memory stays flat.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
 
 /// Smallest allocation given a mapping of its own, bytes.
 pub const LARGE: usize = 64 * 1024;
@@ -22,9 +30,90 @@ const PAGE: usize = 4096;
 /// Bytes in mappings of this allocator now.
 static MAPPED: AtomicUsize = AtomicUsize::new(0);
 
-/// Bytes currently held in this allocator's own mappings (0 off Linux).
+/// Bytes currently held in this allocator's own mappings by live
+/// allocations (0 off Linux; the cache's are [`cached_bytes`]).
 pub fn mapped_bytes() -> usize {
     MAPPED.load(Ordering::Relaxed)
+}
+
+/// Most freed mappings kept for reuse.
+pub const CACHE_SLOTS: usize = 16;
+
+/// Most bytes kept in freed mappings for reuse; a larger mapping is handed back at once.
+pub const CACHE_BYTES: usize = 32 << 20;
+
+/// Bytes in freed mappings kept for reuse.
+static CACHED: AtomicUsize = AtomicUsize::new(0);
+
+/// Bytes in freed mappings kept for reuse now (resident, not live).
+pub fn cached_bytes() -> usize {
+    CACHED.load(Ordering::Relaxed)
+}
+
+/// Freed mappings `(address, length)`, oldest first.
+struct Cache {
+    slots: [(usize, usize); CACHE_SLOTS],
+    len: usize,
+    bytes: usize,
+}
+
+static CACHE: Mutex<Cache> = Mutex::new(Cache {
+    slots: [(0, 0); CACHE_SLOTS],
+    len: 0,
+    bytes: 0,
+});
+
+fn cache() -> std::sync::MutexGuard<'static, Cache> {
+    // Nothing panics while the lock is held; a poisoned lock still holds a consistent cache.
+    CACHE.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A cached mapping of exactly `len` bytes (the newest such), taken out of the cache.
+fn take_cached(len: usize) -> Option<*mut u8> {
+    let mut c = cache();
+    let n = c.len;
+    let k = (0..n).rev().find(|&k| c.slots[k].1 == len)?;
+    let (addr, _) = c.slots[k];
+    c.slots.copy_within(k + 1..n, k);
+    c.len -= 1;
+    c.bytes -= len;
+    CACHED.fetch_sub(len, Ordering::Relaxed);
+    MAPPED.fetch_add(len, Ordering::Relaxed);
+    Some(addr as *mut u8)
+}
+
+/// Keeps the freed mapping `p` of `len` bytes for reuse, handing back the
+/// oldest ones to make room; `false` (nothing kept) when it is too large.
+fn keep_cached(p: *mut u8, len: usize) -> bool {
+    if len > CACHE_BYTES / 2 {
+        return false;
+    }
+    let mut evicted = [(0usize, 0usize); CACHE_SLOTS];
+    let mut n_evicted = 0;
+    {
+        let mut c = cache();
+        while c.len == CACHE_SLOTS || c.bytes + len > CACHE_BYTES {
+            let oldest = c.slots[0];
+            let n = c.len;
+            c.slots.copy_within(1..n, 0);
+            c.len -= 1;
+            c.bytes -= oldest.1;
+            evicted[n_evicted] = oldest;
+            n_evicted += 1;
+        }
+        let n = c.len;
+        c.slots[n] = (p as usize, len);
+        c.len += 1;
+        c.bytes += len;
+        MAPPED.fetch_sub(len, Ordering::Relaxed);
+        CACHED.fetch_add(len, Ordering::Relaxed);
+    }
+    for &(addr, l) in &evicted[..n_evicted] {
+        CACHED.fetch_sub(l, Ordering::Relaxed);
+        // SAFETY: an evicted mapping of `l` bytes, no longer in the cache or in use.
+        unsafe { unmap_raw(addr as *mut u8, l) };
+    }
+    true
 }
 
 /// Large allocations in mappings of their own, the rest from [`System`].
@@ -69,15 +158,23 @@ unsafe fn map(_: usize) -> *mut u8 {
     std::ptr::null_mut()
 }
 
-#[cfg(target_os = "linux")]
+/// Frees a live mapping: into the cache, or back to the kernel.
 unsafe fn unmap(p: *mut u8, len: usize) {
+    if !keep_cached(p, len) {
+        // SAFETY: `p` is a mapping of `len` bytes made by `map` or `remap`.
+        unsafe { unmap_raw(p, len) };
+        MAPPED.fetch_sub(len, Ordering::Relaxed);
+    }
+}
+
+#[cfg(target_os = "linux")]
+unsafe fn unmap_raw(p: *mut u8, len: usize) {
     // SAFETY: `p` is a mapping of `len` bytes made by `map` or `remap`.
     unsafe { libc::munmap(p.cast(), len) };
-    MAPPED.fetch_sub(len, Ordering::Relaxed);
 }
 
 #[cfg(not(target_os = "linux"))]
-unsafe fn unmap(_: *mut u8, _: usize) {}
+unsafe fn unmap_raw(_: *mut u8, _: usize) {}
 
 #[cfg(target_os = "linux")]
 unsafe fn remap(p: *mut u8, old: usize, new: usize) -> *mut u8 {
@@ -103,8 +200,12 @@ unsafe fn remap(_: *mut u8, _: usize, _: usize) -> *mut u8 {
 unsafe impl GlobalAlloc for LargeMapped {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         if is_large(&layout) {
-            // SAFETY: a fresh mapping; page alignment covers `layout.align()`.
-            unsafe { map(pages(layout.size())) }
+            let len = pages(layout.size());
+            match take_cached(len) {
+                Some(p) => p,
+                // SAFETY: a fresh mapping; page alignment covers `layout.align()`.
+                None => unsafe { map(len) },
+            }
         } else {
             // SAFETY: forwarded with the caller's layout.
             unsafe { System.alloc(layout) }
@@ -113,8 +214,16 @@ unsafe impl GlobalAlloc for LargeMapped {
 
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
         if is_large(&layout) {
-            // SAFETY: anonymous mappings are zero-filled.
-            unsafe { map(pages(layout.size())) }
+            let len = pages(layout.size());
+            match take_cached(len) {
+                Some(p) => {
+                    // SAFETY: a cached mapping of `len >= layout.size()` bytes, now this block's.
+                    unsafe { std::ptr::write_bytes(p, 0, layout.size()) };
+                    p
+                }
+                // SAFETY: anonymous mappings are zero-filled.
+                None => unsafe { map(len) },
+            }
         } else {
             // SAFETY: forwarded with the caller's layout.
             unsafe { System.alloc_zeroed(layout) }
@@ -198,6 +307,41 @@ mod tests {
             let z = a.alloc_zeroed(large);
             assert!((0..100_000).all(|i| *z.add(i) == 0));
             a.dealloc(z, large);
+        }
+    }
+
+    #[test]
+    #[cfg(target_os = "linux")]
+    fn freed_mappings_are_reused_by_size_and_the_oldest_handed_back() {
+        let a = LargeMapped;
+        // Sizes no other test uses (the cache is shared).
+        let layout = |k: usize| Layout::from_size_align((300 + k) * PAGE, 8).unwrap();
+        // SAFETY: each block is used within its size and freed once with its layout.
+        unsafe {
+            let p = a.alloc(layout(0));
+            std::ptr::write_bytes(p, 0xab, layout(0).size());
+            a.dealloc(p, layout(0));
+            // The same page count comes back from the cache, zeroed when asked.
+            let q = a.alloc_zeroed(layout(0));
+            assert_eq!(q, p);
+            assert!((0..layout(0).size()).all(|i| *q.add(i) == 0));
+            a.dealloc(q, layout(0));
+            // Past CACHE_SLOTS freed mappings, the oldest are handed back.
+            let blocks: Vec<*mut u8> = (1..=CACHE_SLOTS + 4).map(|k| a.alloc(layout(k))).collect();
+            for (k, &b) in (1..).zip(&blocks) {
+                a.dealloc(b, layout(k));
+            }
+            assert!(cached_bytes() <= CACHE_BYTES);
+            assert!(take_cached(layout(1).size()).is_none(), "the oldest is gone");
+            let newest = layout(CACHE_SLOTS + 4).size();
+            let b = take_cached(newest).expect("the newest is kept");
+            a.dealloc(b, layout(CACHE_SLOTS + 4));
+            // Too large for the cache: handed back at once.
+            let big = Layout::from_size_align(CACHE_BYTES / 2 + PAGE, 8).unwrap();
+            let before = cached_bytes();
+            let c = a.alloc(big);
+            a.dealloc(c, big);
+            assert!(cached_bytes() <= before);
         }
     }
 }

@@ -108,7 +108,8 @@ pub fn fit_plane_robust(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: 
 /// are dropped and the fit repeated, `passes` times.
 pub fn fit_plane_along_rays(points: &[Vector3<f64>], k: f64, floor_mm: f64, passes: usize) -> Option<Plane> {
     let robust = Robust { k, floor_mm, passes };
-    fit_inverse_depth(points, (0.0, 0.0), PLANE, 3, &robust)?.tangent_plane(&Vector3::new(0.0, 0.0, 1.0))
+    let points: Vec<RayPoint> = points.iter().filter_map(RayPoint::new).collect();
+    fit_inverse_depth::<3>(&points, (0.0, 0.0), 3, &robust)?.tangent_plane(&Vector3::new(0.0, 0.0, 1.0))
 }
 
 /// The plane tangent, at the ray `center` (a unit or z = 1 ray), to a smooth
@@ -125,13 +126,14 @@ pub fn fit_tangent_plane_along_rays(
     floor_mm: f64,
     passes: usize,
 ) -> Option<Plane> {
-    fit_quadric_along_rays(points, center, k, floor_mm, passes)?.tangent_plane(center)
+    let points: Vec<RayPoint> = points.iter().filter_map(RayPoint::new).collect();
+    fit_quadric_along_rays(&points, center, k, floor_mm, passes)?.tangent_plane(center)
 }
 
 /// The quadric of [`fit_tangent_plane_along_rays`] itself, whose tangent
 /// plane can be taken at any ray near its centre.
 fn fit_quadric_along_rays(
-    points: &[Vector3<f64>],
+    points: &[RayPoint],
     center: &Vector3<f64>,
     k: f64,
     floor_mm: f64,
@@ -141,32 +143,32 @@ fn fit_quadric_along_rays(
         return None;
     }
     let robust = Robust { k, floor_mm, passes };
-    fit_inverse_depth(points, (center.x / center.z, center.y / center.z), QUADRIC, 10, &robust)
+    fit_inverse_depth::<6>(points, (center.x / center.z, center.y / center.z), 10, &robust)
 }
 
-/// A polynomial basis in image coordinates `(a, b)`: its terms (the fit's
-/// columns, the first three `1, a, b`) and their derivatives in `a` and `b`
-/// (the tangent plane's slopes).
-#[derive(Clone, Copy)]
-struct Basis<const N: usize> {
-    value: fn(f64, f64) -> [f64; N],
-    d_a: fn(f64, f64) -> [f64; N],
-    d_b: fn(f64, f64) -> [f64; N],
+/// The first `N` monomials of [`MONOMIALS`] at `(a, b)` (N is 3, a plane:
+/// `1, a, b`; or 6, a quadric: `1, a, b, a^2, a b, b^2`), dotted with `c`.
+#[inline]
+fn polynomial<const N: usize>(c: &[f64; N], a: f64, b: f64) -> f64 {
+    let linear = c[0] + c[1] * a + c[2] * b;
+    if N < 6 {
+        return linear;
+    }
+    linear + a * (c[3] * a + c[4] * b) + c[5] * b * b
 }
 
-/// The quadric `1, a, b, a^2, a b, b^2`.
-const QUADRIC: Basis<6> = Basis {
-    value: |a, b| [1.0, a, b, a * a, a * b, b * b],
-    d_a: |a, b| [0.0, 1.0, 0.0, 2.0 * a, b, 0.0],
-    d_b: |a, b| [0.0, 0.0, 1.0, 0.0, a, 2.0 * b],
-};
-
-/// The plane `1, a, b`.
-const PLANE: Basis<3> = Basis {
-    value: |a, b| [1.0, a, b],
-    d_a: |_, _| [0.0, 1.0, 0.0],
-    d_b: |_, _| [0.0, 0.0, 1.0],
-};
+/// The derivatives in `a` and in `b` of the first `N` monomials at `(a, b)`
+/// (N 3 or 6, as [`polynomial`]).
+fn polynomial_slopes<const N: usize>(a: f64, b: f64) -> ([f64; N], [f64; N]) {
+    let (mut d_a, mut d_b) = ([0.0; N], [0.0; N]);
+    d_a[1] = 1.0;
+    d_b[2] = 1.0;
+    if N >= 6 {
+        (d_a[3], d_a[4]) = (2.0 * a, b);
+        (d_b[4], d_b[5]) = (a, 2.0 * b);
+    }
+    (d_a, d_b)
+}
 
 /// A symmetric positive definite matrix factored as `L D L^T` (`L` unit lower
 /// triangular): the normal equations' solve, and the quadratic forms of their
@@ -263,7 +265,6 @@ struct InverseDepthFit<const N: usize> {
     normal: Ldl<N>,
     a0: f64,
     b0: f64,
-    basis: Basis<N>,
     rms: f64,
     sigma: f64,
     count: usize,
@@ -276,10 +277,7 @@ impl<const N: usize> InverseDepthFit<N> {
         if u.z <= 0.0 {
             return None;
         }
-        let v = dot(
-            &(self.basis.value)(u.x / u.z - self.a0, u.y / u.z - self.b0),
-            &self.coef,
-        );
+        let v = polynomial(&self.coef, u.x / u.z - self.a0, u.y / u.z - self.b0);
         (v > 0.0).then_some(v)
     }
 
@@ -299,7 +297,7 @@ impl<const N: usize> InverseDepthFit<N> {
         let v = self.inverse_depth(u)?;
         let (a1, b1) = (u.x / u.z, u.y / u.z);
         let (ra, rb) = (a1 - self.a0, b1 - self.b0);
-        let (d_a, d_b) = ((self.basis.d_a)(ra, rb), (self.basis.d_b)(ra, rb));
+        let (d_a, d_b) = polynomial_slopes::<N>(ra, rb);
         let (ga, gb) = (dot(&d_a, &self.coef), dot(&d_b, &self.coef));
         let coef = Vector3::new(ga, gb, v - ga * a1 - gb * b1);
         let norm = coef.norm();
@@ -321,58 +319,175 @@ impl<const N: usize> InverseDepthFit<N> {
     }
 }
 
-/// Weighted least squares of the inverse depth on `terms(a, b)` (whose first
-/// three are `1, a, b`) in image coordinates `(a, b) = (x/z, y/z) - centre`,
-/// with weights `z^4` so residuals are millimetres of z.
+/// A point as the fits along the rays see it: its image coordinates `(x/z,
+/// y/z)`, its depth `z` and its distance from the camera. Made once per
+/// point, not once per window that holds it.
+#[derive(Debug, Clone, Copy)]
+struct RayPoint {
+    a: f64,
+    b: f64,
+    z: f64,
+    distance: f64,
+}
+
+impl RayPoint {
+    /// `None` for a point that is not finite or not in front of the camera.
+    #[inline]
+    fn new(p: &Vector3<f64>) -> Option<Self> {
+        (p.z > 0.0 && p.iter().all(|v| v.is_finite())).then(|| Self {
+            a: p.x / p.z,
+            b: p.y / p.z,
+            z: p.z,
+            distance: p.norm(),
+        })
+    }
+}
+
+/// The masked pixels' points as [`RayPoint`]s (`None` elsewhere).
+fn ray_points(points: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> Vec<Option<RayPoint>> {
+    points
+        .data
+        .iter()
+        .zip(&mask.data)
+        .map(|(p, &m)| if m { RayPoint::new(p) } else { None })
+        .collect()
+}
+
+/// Weighted moments of points over image coordinates: `sum w a^p b^q` for
+/// `p + q <= 4` and `sum (w / z) a^p b^q` for `p + q <= 2`, monomials in
+/// [`MONOMIALS`] order. The normal equations of any basis made of the first
+/// monomials (the plane's three, the quadric's six) are read off them.
+#[derive(Debug, Clone, Copy, Default)]
+struct Moments {
+    w: [f64; 15],
+    rhs: [f64; 6],
+}
+
+/// The monomials `a^p b^q` by degree: `1, a, b, a^2, a b, b^2, a^3, ...`.
+const MONOMIALS: [(u8, u8); 15] = [
+    (0, 0),
+    (1, 0),
+    (0, 1),
+    (2, 0),
+    (1, 1),
+    (0, 2),
+    (3, 0),
+    (2, 1),
+    (1, 2),
+    (0, 3),
+    (4, 0),
+    (3, 1),
+    (2, 2),
+    (1, 3),
+    (0, 4),
+];
+
+/// The index in [`MONOMIALS`] of the product of monomials `i` and `j`.
+const fn product(i: usize, j: usize) -> usize {
+    let (p, q) = (MONOMIALS[i].0 + MONOMIALS[j].0, MONOMIALS[i].1 + MONOMIALS[j].1);
+    let mut k = 0;
+    while k < MONOMIALS.len() {
+        if MONOMIALS[k].0 == p && MONOMIALS[k].1 == q {
+            return k;
+        }
+        k += 1;
+    }
+    panic!("degree above 4")
+}
+
+impl Moments {
+    /// Adds (`sign` 1) or takes out (`sign` -1) a point at `(a, b)` of weight `w`
+    /// and right-hand side `rhs`.
+    #[inline]
+    fn add(&mut self, a: f64, b: f64, w: f64, rhs: f64, sign: f64) {
+        let w = sign * w;
+        let (wa, wb) = (w * a, w * b);
+        let (wa2, wab, wb2) = (wa * a, wa * b, wb * b);
+        let (wa3, wa2b, wab2, wb3) = (wa2 * a, wa2 * b, wab * b, wb2 * b);
+        let terms = [
+            w,
+            wa,
+            wb,
+            wa2,
+            wab,
+            wb2,
+            wa3,
+            wa2b,
+            wab2,
+            wb3,
+            wa3 * a,
+            wa3 * b,
+            wa2b * b,
+            wab2 * b,
+            wb3 * b,
+        ];
+        for (m, t) in self.w.iter_mut().zip(terms) {
+            *m += t;
+        }
+        let r = sign * rhs;
+        let (ra, rb) = (r * a, r * b);
+        for (m, t) in self.rhs.iter_mut().zip([r, ra, rb, ra * a, ra * b, rb * b]) {
+            *m += t;
+        }
+    }
+
+    /// The normal equations `(A^T W A, A^T W y)` of the first `N` monomials
+    /// (the lower triangle of the matrix).
+    fn normal_equations<const N: usize>(&self) -> ([[f64; N]; N], [f64; N]) {
+        let mut m = [[0.0; N]; N];
+        for (i, row) in m.iter_mut().enumerate() {
+            for (j, v) in row.iter_mut().enumerate().take(i + 1) {
+                *v = self.w[product(i, j)];
+            }
+        }
+        let mut r = [0.0; N];
+        r.copy_from_slice(&self.rhs[..N]);
+        (m, r)
+    }
+}
+
+/// Weighted least squares of the inverse depth on the first `N` monomials of
+/// [`MONOMIALS`] (3: `1, a, b`; 6: the quadric's) in
+/// image coordinates `(a, b) = (x/z, y/z) - centre`, with weights `z^4` so
+/// residuals are millimetres of z.
 fn fit_inverse_depth<const N: usize>(
-    points: &[Vector3<f64>],
+    points: &[RayPoint],
     (a0, b0): (f64, f64),
-    basis: Basis<N>,
     min_points: usize,
     robust: &Robust,
 ) -> Option<InverseDepthFit<N>> {
-    // Each point's row, weight and right-hand side once (the passes only drop points).
-    struct Term<const N: usize> {
-        row: [f64; N],
+    // Each point's coordinates, weight and right-hand side once (the passes only drop points).
+    struct Term {
+        a: f64,
+        b: f64,
         z: f64,
         w: f64,
         rhs: f64,
         keep: bool,
         resid: f64,
     }
-    let mut t: Vec<Term<N>> = points
+    let mut t: Vec<Term> = points
         .iter()
         .map(|p| {
             let z2 = p.z * p.z;
             let w = z2 * z2; // d(1/z) = dz / z^2
             Term {
-                row: (basis.value)(p.x / p.z - a0, p.y / p.z - b0),
+                a: p.a - a0,
+                b: p.b - b0,
                 z: p.z,
                 w,
                 rhs: w / p.z,
-                keep: p.z > 0.0 && p.iter().all(|v| v.is_finite()),
+                keep: true,
                 resid: 0.0,
             }
         })
         .collect();
-    // The normal equations, lower triangle only (the matrix is symmetric): built once over
-    // every point, then each pass takes out the points it drops (a downdate) instead of
-    // summing the kept ones again.
-    let mut acc = [[0.0f64; N]; N];
-    let mut atb = [0.0f64; N];
+    // The moments over every point, then each pass takes out the points it drops (a
+    // downdate) instead of summing the kept ones again.
+    let mut moments = Moments::default();
     let mut n = 0;
-    let add = |acc: &mut [[f64; N]; N], atb: &mut [f64; N], p: &Term<N>, sign: f64| {
-        let (w, rhs) = (sign * p.w, sign * p.rhs);
-        for i in 0..N {
-            let rw = p.row[i] * w;
-            for j in 0..=i {
-                acc[i][j] += p.row[j] * rw;
-            }
-            atb[i] += p.row[i] * rhs;
-        }
-    };
     for p in t.iter().filter(|p| p.keep) {
-        add(&mut acc, &mut atb, p, 1.0);
+        moments.add(p.a, p.b, p.w, p.rhs, 1.0);
         n += 1;
     }
     let mut fit = None;
@@ -380,14 +495,15 @@ fn fit_inverse_depth<const N: usize>(
         if n < min_points {
             return fit;
         }
-        let normal = Ldl::new(&acc)?;
+        let (ata, atb) = moments.normal_equations::<N>();
+        let normal = Ldl::new(&ata)?;
         let c = normal.solve(&atb);
         if !c.iter().all(|v| v.is_finite()) || c[0] <= 0.0 {
             return fit;
         }
         let mut ss = 0.0;
         for p in t.iter_mut().filter(|p| p.keep) {
-            p.resid = (p.z - 1.0 / dot(&p.row, &c)).abs();
+            p.resid = (p.z - 1.0 / polynomial(&c, p.a, p.b)).abs();
             ss += p.resid * p.resid;
         }
         let rms = (ss / n as f64).sqrt();
@@ -396,7 +512,6 @@ fn fit_inverse_depth<const N: usize>(
             normal,
             a0,
             b0,
-            basis,
             rms,
             sigma: (ss / n.saturating_sub(N).max(1) as f64).sqrt(), // residual scale, N terms fitted
             count: n,
@@ -409,7 +524,7 @@ fn fit_inverse_depth<const N: usize>(
         for p in t.iter_mut() {
             if p.keep && p.resid > cut {
                 p.keep = false;
-                add(&mut acc, &mut atb, p, -1.0);
+                moments.add(p.a, p.b, p.w, p.rhs, -1.0);
                 n -= 1;
                 changed = true;
             }
@@ -447,10 +562,11 @@ pub fn local_planes_adaptive(
     };
     let blocks = Blocks::new(&with_point, stride);
     let all: Vec<usize> = (0..blocks.centres.len()).collect();
+    let ray_pts = ray_points(points, mask);
     let fits = blocks.fit(&all, |centre| {
         let mut out = None;
         for (k, &r) in radii.iter().enumerate() {
-            if let Some(fit) = window_fit(points, rays, mask, centre, r, min_points) {
+            if let Some(fit) = window_fit(&ray_pts, points.width, rays, centre, r, min_points) {
                 let sigma = fit.tangent_plane(&rays.data[centre]).map(|p| p.normal_sigma_rad);
                 let done = k + 1 == radii.len() || sigma.is_some_and(|s| s <= max_normal_sigma_rad);
                 out = Some(fit);
@@ -461,7 +577,12 @@ pub fn local_planes_adaptive(
         }
         out
     });
-    LocalSurfaces { blocks, fits }.planes(rays, &with_point)
+    LocalSurfaces {
+        blocks,
+        fits,
+        points: ray_pts,
+    }
+    .planes(rays, &with_point)
 }
 
 /// The windows of [`local_planes`]: `(2 radius + 1)^2` pixels, fitted when
@@ -501,6 +622,8 @@ pub fn local_planes(
 pub struct LocalSurfaces {
     blocks: Blocks,
     fits: Vec<Option<WindowFit>>,
+    /// The points fitted.
+    points: Vec<Option<RayPoint>>,
 }
 
 impl LocalSurfaces {
@@ -513,10 +636,15 @@ impl LocalSurfaces {
     ) -> Self {
         let blocks = Blocks::new(mask, windows.stride);
         let all: Vec<usize> = (0..blocks.centres.len()).collect();
+        let ray_pts = ray_points(points, mask);
         let fits = blocks.fit(&all, |c| {
-            window_fit(points, rays, mask, c, windows.radius, windows.min_points)
+            window_fit(&ray_pts, points.width, rays, c, windows.radius, windows.min_points)
         });
-        Self { blocks, fits }
+        Self {
+            blocks,
+            fits,
+            points: ray_pts,
+        }
     }
 
     /// Refits, after the points at `changed` moved, exactly the windows that
@@ -548,8 +676,16 @@ impl LocalSurfaces {
             })
             .map(|(b, _)| b)
             .collect();
+        for &i in changed {
+            self.points[i] = if mask.data[i] {
+                RayPoint::new(&points.data[i])
+            } else {
+                None
+            };
+        }
+        let ray_pts = &self.points;
         let fits = self.blocks.fit(&redo, |c| {
-            window_fit(points, rays, mask, c, windows.radius, windows.min_points)
+            window_fit(ray_pts, points.width, rays, c, windows.radius, windows.min_points)
         });
         for (b, f) in redo.into_iter().zip(fits) {
             self.fits[b] = f;
@@ -663,30 +799,26 @@ impl Blocks {
 
 /// Keeps the points whose distance from the camera lies within `k` robust
 /// standard deviations (1.4826 MAD, at least `floor_mm`) of the median.
-fn keep_near_median(points: &mut Vec<Vector3<f64>>, k: f64, floor_mm: f64) {
+fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
     if points.len() < 3 {
         return;
     }
-    let norms: Vec<f64> = points.iter().map(|p| p.norm()).collect();
     // Every point within the floor of the median is kept whatever the spread: no need
     // to measure it (the common case on a smooth layer). Within the floor of each other,
     // they are within it of the median too.
-    let (lo, hi) = norms
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let (lo, hi) = points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+        (a.min(p.distance), b.max(p.distance))
+    });
     if hi - lo <= floor_mm {
         return;
     }
-    let med = median_select(&mut norms.clone());
+    let mut norms: Vec<f64> = points.iter().map(|p| p.distance).collect();
+    let med = median_select(&mut norms);
     if med - lo <= floor_mm && hi - med <= floor_mm {
         return;
     }
     let cut = (k * sigma_about(&norms, med)).max(floor_mm);
-    let mut i = 0;
-    points.retain(|_| {
-        i += 1;
-        (norms[i - 1] - med).abs() <= cut
-    });
+    points.retain(|p| (p.distance - med).abs() <= cut);
 }
 
 /// A window's fitted surface: the quadric, or a plane where the quadric failed.
@@ -715,23 +847,19 @@ impl WindowFit {
 
 /// The surface through the masked, finite points in the window around pixel `i`.
 fn window_fit(
-    points: &ImageBuf<Vector3<f64>>,
+    points: &[Option<RayPoint>],
+    width: usize,
     rays: &ImageBuf<Vector3<f64>>,
-    mask: &ImageBuf<bool>,
     i: usize,
     radius: usize,
     min_points: usize,
 ) -> Option<WindowFit> {
-    let (w, h) = (points.width, points.height);
-    let (col, row) = (i % w, i / w);
+    let h = points.len() / width.max(1);
+    let (col, row) = (i % width, i / width);
     let mut window = Vec::with_capacity((2 * radius + 1).pow(2));
     for r in row.saturating_sub(radius)..(row + radius + 1).min(h) {
-        for c in col.saturating_sub(radius)..(col + radius + 1).min(w) {
-            let j = r * w + c;
-            if mask.data[j] && points.data[j].x.is_finite() {
-                window.push(points.data[j]);
-            }
-        }
+        let cols = col.saturating_sub(radius)..(col + radius + 1).min(width);
+        window.extend(points[r * width + cols.start..r * width + cols.end].iter().flatten());
     }
     // A least-squares start is only as good as its worst points: drop those far from the
     // window's median distance first (pixels of another surface that joined the region).
@@ -745,7 +873,7 @@ fn window_fit(
         return Some(WindowFit::Quadric(q));
     }
     let robust = Robust { k, floor_mm, passes };
-    fit_inverse_depth(&window, (0.0, 0.0), PLANE, 3, &robust).map(WindowFit::Plane)
+    fit_inverse_depth::<3>(&window, (0.0, 0.0), 3, &robust).map(WindowFit::Plane)
 }
 
 #[cfg(test)]
