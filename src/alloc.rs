@@ -37,10 +37,10 @@ pub fn mapped_bytes() -> usize {
 }
 
 /// Most freed mappings kept for reuse.
-pub const CACHE_SLOTS: usize = 16;
+pub const CACHE_SLOTS: usize = 32;
 
 /// Most bytes kept in freed mappings for reuse; a larger mapping is handed back at once.
-pub const CACHE_BYTES: usize = 32 << 20;
+pub const CACHE_BYTES: usize = 64 << 20;
 
 /// Bytes in freed mappings kept for reuse.
 static CACHED: AtomicUsize = AtomicUsize::new(0);

@@ -18,7 +18,7 @@ use crate::physics::stats::median_and_sigma;
 use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
-    foreground_distance, reading_sensitivity_to_ir, ForwardModel, ImageBuf, Intrinsics, InversionBounds, LayerEstimate,
+    foreground_distance, reading_sensitivity_to_ir, ForwardModel, ImageBuf, Intrinsics, InversionBounds,
     PixelObservation, Sensor, XiEstimate, XiMethod,
 };
 
@@ -558,7 +558,7 @@ impl Pipeline {
         let bg = self.background.as_ref();
         // Each pixel on its own (in parallel over the current rayon pool), then the counts in
         // pixel order.
-        let per_pixel: Vec<Option<(LayerEstimate, f64)>> = (0..n)
+        let per_pixel: Vec<Option<PixelSolve>> = (0..n)
             .into_par_iter()
             .with_min_len(256)
             .map(|i| {
@@ -587,22 +587,28 @@ impl Pipeline {
                     est.reading_per_ir
                 };
                 let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
-                Some((est, (d_sigma * d_sigma + ir_term * ir_term).sqrt() / est.slope.abs()))
+                Some(PixelSolve {
+                    foreground_distance_mm: est.foreground_distance_mm,
+                    residual_mm: est.residual_mm,
+                    layer_sigma_mm: (d_sigma * d_sigma + ir_term * ir_term).sqrt() / est.slope.abs(),
+                    several_roots: est.roots > 1,
+                    pinned: est.pinned,
+                })
             })
             .collect();
         for i in 0..n {
             if obs.observations.data[i].is_none() {
                 continue;
             }
-            if let Some((est, layer_sigma)) = per_pixel[i] {
+            if let Some(est) = per_pixel[i] {
                 res2 += est.residual_mm * est.residual_mm;
                 fitted += 1;
-                if est.roots > 1 {
+                if est.several_roots {
                     several_roots.push(i);
                 }
                 if est.pinned {
                     pinned += 1;
-                } else if !(layer_sigma <= self.config.max_layer_sigma_mm) {
+                } else if !(est.layer_sigma_mm <= self.config.max_layer_sigma_mm) {
                     unresolved += 1;
                 } else {
                     df[i] = est.foreground_distance_mm;
@@ -758,6 +764,18 @@ impl Pipeline {
             .collect();
         Some((est.profile, translucency::eq12_flat_range(&r, est.pixels)))
     }
+}
+
+/// What recovery keeps of a pixel's inversion ([`crate::physics::LayerEstimate`]'s fields it
+/// reads, and the layer's noise).
+#[derive(Debug, Clone, Copy)]
+struct PixelSolve {
+    foreground_distance_mm: f64,
+    residual_mm: f64,
+    /// The layer's standard deviation from the reading and IR noise, mm.
+    layer_sigma_mm: f64,
+    several_roots: bool,
+    pinned: bool,
 }
 
 /// Finds where the scene changes: the first frame whose readings (ray

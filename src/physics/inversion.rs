@@ -524,6 +524,12 @@ impl FastPixel {
         if re == 0.0 && im == 0.0 {
             return f64::NAN;
         }
+        // Near a root the angle is tiny: atan t = t - t^3/3 + t^5/5 - ..., whose third
+        // term is below the rounding of the first for |t| <= 1e-4.
+        if re > 0.0 && im.abs() <= 1e-4 * re {
+            let t = im / re;
+            return t * (1.0 - t * t / 3.0) / self.k;
+        }
         im.atan2(re) / self.k
     }
 
