@@ -476,7 +476,7 @@ fn fit_inverse_depth<const N: usize>(
                 b: p.b - b0,
                 z: p.z,
                 w,
-                rhs: w / p.z,
+                rhs: z2 * p.z, // w / z
                 keep: true,
                 resid: 0.0,
             }
