@@ -350,19 +350,23 @@ pub fn organized_cloud(
     translucent: &ImageBuf<bool>,
 ) -> PointCloud2 {
     let step = CLOUD_POINT_STEP as usize;
-    let mut data = Vec::with_capacity(xyz_m.len() * step);
-    for (i, p) in xyz_m.data.iter().enumerate() {
-        let same = |w: usize, h: usize| w == xyz_m.width && h == xyz_m.height;
-        let inten = if same(intensity.width, intensity.height) {
+    let same = |w: usize, h: usize| w == xyz_m.width && h == xyz_m.height;
+    let (inten_ok, flag_ok) = (
+        same(intensity.width, intensity.height),
+        same(translucent.width, translucent.height),
+    );
+    let mut data = vec![0u8; xyz_m.len() * step];
+    for (i, (p, out)) in xyz_m.data.iter().zip(data.chunks_exact_mut(step)).enumerate() {
+        let inten = if inten_ok {
             intensity.data.get(i).copied().unwrap_or(f32::NAN)
         } else {
             f32::NAN
         };
-        let flag = same(translucent.width, translucent.height) && translucent.data.get(i).copied().unwrap_or(false);
-        for v in [p[0], p[1], p[2], inten] {
-            data.extend_from_slice(&v.to_le_bytes());
+        let flag = flag_ok && translucent.data.get(i).copied().unwrap_or(false);
+        for (k, v) in [p[0], p[1], p[2], inten].into_iter().enumerate() {
+            out[4 * k..4 * k + 4].copy_from_slice(&v.to_le_bytes());
         }
-        data.extend_from_slice(&[u8::from(flag), 0, 0, 0]);
+        out[16] = u8::from(flag);
     }
     let dims = u32::try_from(xyz_m.width).ok().zip(u32::try_from(xyz_m.height).ok());
     let (width, height) = match dims {

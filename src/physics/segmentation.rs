@@ -9,7 +9,12 @@ pub const DEFAULT_THRESHOLD_MM: f64 = 30.0;
 /// `a - b` as a phase difference in distance units, in `[-R/2, R/2)`: readings
 /// of a CW ToF camera are known modulo its unambiguous range `R`.
 pub fn wrapped_difference(a: f64, b: f64, range_mm: f64) -> f64 {
-    (a - b + range_mm / 2.0).rem_euclid(range_mm) - range_mm / 2.0
+    let (d, half) = (a - b, range_mm / 2.0);
+    // Already within the range (the common case): no division.
+    if d >= -half && d < half {
+        return d;
+    }
+    (d + half).rem_euclid(range_mm) - half
 }
 
 /// How many standard deviations of a pixel's own noise a change must exceed.

@@ -44,6 +44,10 @@ impl Waveform {
 
 /// Wraps a phase into `(-pi, pi]`.
 pub fn wrap_phase(phi: f64) -> f64 {
+    // Already wrapped (the common case): no division.
+    if phi > -PI && phi <= PI {
+        return phi;
+    }
     let mut p = phi.rem_euclid(TAU);
     if p > PI {
         p -= TAU;
