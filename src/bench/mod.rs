@@ -160,6 +160,9 @@ pub enum Case {
     /// `Pipeline::recover` of one frame at a fixed ξ (per-pixel inversion,
     /// noise gate, smooth-surface prior), segmentation excluded.
     Recover,
+    /// [`Case::Recover`] without the smooth-surface prior (`prior_radius_px`
+    /// 0): the per-pixel inversion and the noise gate alone.
+    RecoverPerPixel,
     /// Segmentation (`Pipeline::observe`) of one frame.
     Observe,
     /// ξ estimation by shape on one frame: its profile over the ξ grid and the
@@ -175,6 +178,7 @@ impl Case {
     pub fn name(&self) -> &'static str {
         match self {
             Case::Recover => "recover",
+            Case::RecoverPerPixel => "recover_per_pixel",
             Case::Observe => "observe",
             Case::XiEstimate => "xi_estimate",
             Case::Replay => "replay",
@@ -284,6 +288,13 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
         Case::Recover => time_ms(samples, budget, || {
             std::hint::black_box(scene.pipeline.recover(frame, &obs, &xi));
         }),
+        Case::RecoverPerPixel => {
+            let mut per_pixel = scene.pipeline.clone();
+            per_pixel.config.prior_radius_px = 0;
+            time_ms(samples, budget, || {
+                std::hint::black_box(per_pixel.recover(frame, &obs, &xi));
+            })
+        }
         Case::Observe => time_ms(samples, budget, || {
             std::hint::black_box(scene.observe(frame));
         }),

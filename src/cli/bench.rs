@@ -24,9 +24,13 @@ pub struct BenchArgs {
     /// Image sizes, comma-separated WIDTHxHEIGHT.
     #[arg(long, value_delimiter = ',', default_value = "176x144,640x480")]
     pub sizes: Vec<String>,
-    /// Cases to run, comma-separated: recover, observe, xi_estimate, replay, node_latency
+    /// Cases to run, comma-separated: recover, recover_per_pixel (recover without the smooth-surface prior), observe, xi_estimate, replay, node_latency
     /// (the node over DDS on loopback against a bare publish/subscribe of the same messages).
-    #[arg(long, value_delimiter = ',', default_value = "recover,observe,xi_estimate,replay")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "recover,recover_per_pixel,observe,xi_estimate,replay"
+    )]
     pub cases: Vec<String>,
     /// node_latency: object frames published (cycling the bag's).
     #[arg(long, default_value_t = 200)]
@@ -60,10 +64,13 @@ fn parse_size(s: &str) -> Result<(usize, usize)> {
 fn parse_case(s: &str) -> Result<Case> {
     Ok(match s.trim() {
         "recover" => Case::Recover,
+        "recover_per_pixel" => Case::RecoverPerPixel,
         "observe" => Case::Observe,
         "xi_estimate" | "xi" => Case::XiEstimate,
         "replay" => Case::Replay,
-        other => bail!("--cases {other:?}: expected recover, observe, xi_estimate, replay or node_latency"),
+        other => bail!(
+            "--cases {other:?}: expected recover, recover_per_pixel, observe, xi_estimate, replay or node_latency"
+        ),
     })
 }
 
