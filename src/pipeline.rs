@@ -18,8 +18,8 @@ use crate::physics::stats::median_and_sigma;
 use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
-    foreground_distance, reading_sensitivity_to_ir, ForwardModel, ImageBuf, Intrinsics, InversionBounds,
-    PixelObservation, Sensor, XiEstimate, XiMethod,
+    foreground_distance, foreground_distance_without_slopes, reading_sensitivity_to_ir, ForwardModel, ImageBuf,
+    Intrinsics, InversionBounds, PixelObservation, Sensor, XiEstimate, XiMethod,
 };
 
 /// Why a frame or a latch could not be processed.
@@ -632,7 +632,13 @@ impl Pipeline {
                 .map(|&i| {
                     let o = obs.observations.data[i]?;
                     let t = surfaces.ray_distance(i, &self.rays, &obs.mask)?;
-                    let est = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, Some(t))?;
+                    let est = foreground_distance_without_slopes(
+                        &self.config.model,
+                        &o,
+                        xi.xi,
+                        &self.config.bounds,
+                        Some(t),
+                    )?;
                     (!est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5)
                         .then_some(est.foreground_distance_mm)
                 })

@@ -264,10 +264,16 @@ fn estimate_at(
     s: Sample,
     roots: u8,
     pinned: bool,
+    slopes: bool,
     eval: impl Fn(f64) -> Option<Sample>,
 ) -> LayerEstimate {
     let h = 0.5;
-    let slope = match (eval(s.df - h), eval(s.df + h)) {
+    let sides = if slopes {
+        (eval(s.df - h), eval(s.df + h))
+    } else {
+        (None, None)
+    };
+    let slope = match sides {
         (Some(a), Some(b)) => sensor.wrapped_difference_mm(b.residual, a.residual) / (2.0 * h),
         (Some(a), None) => sensor.wrapped_difference_mm(s.residual, a.residual) / h,
         (None, Some(b)) => sensor.wrapped_difference_mm(b.residual, s.residual) / h,
@@ -299,15 +305,50 @@ pub fn foreground_distance(
     bounds: &InversionBounds,
     prefer_mm: Option<f64>,
 ) -> Option<LayerEstimate> {
+    invert(model, obs, xi, bounds, prefer_mm, true)
+}
+
+/// [`foreground_distance`] without the residual's slopes at the estimate
+/// ([`LayerEstimate::slope`] and [`LayerEstimate::reading_per_ir`] NaN): the
+/// same estimate, without the evaluations the slopes take, for callers that
+/// do not gate on the layer's noise (ξ estimation's profile).
+pub fn foreground_distance_without_slopes(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    xi: f64,
+    bounds: &InversionBounds,
+    prefer_mm: Option<f64>,
+) -> Option<LayerEstimate> {
+    invert(model, obs, xi, bounds, prefer_mm, false)
+}
+
+fn invert(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    xi: f64,
+    bounds: &InversionBounds,
+    prefer_mm: Option<f64>,
+    slopes: bool,
+) -> Option<LayerEstimate> {
     let lo = bounds.min_distance_mm;
     let hi = obs.background_distance_mm - bounds.min_separation_mm;
     if !(hi > lo) || !obs.distance_mm.is_finite() || !obs.ir.is_finite() {
         return None;
     }
+    let search = Search { lo, hi, slopes };
     match FastPixel::new(model, obs, xi, bounds.max_albedo_cos) {
-        Some(fast) => foreground_distance_fast(&fast, model, obs, bounds, prefer_mm, lo, hi),
-        None => foreground_distance_generic(model, obs, xi, bounds, prefer_mm, lo, hi),
+        Some(fast) => foreground_distance_fast(&fast, model, obs, bounds, prefer_mm, search),
+        None => foreground_distance_generic(model, obs, xi, bounds, prefer_mm, search),
     }
+}
+
+/// Where an inversion looks for the layer, `df` in `[lo, hi]`, and whether
+/// it finds the residual's slopes at its estimate.
+#[derive(Debug, Clone, Copy)]
+struct Search {
+    lo: f64,
+    hi: f64,
+    slopes: bool,
 }
 
 /// [`foreground_distance`] on any forward model, one model evaluation per sample.
@@ -317,8 +358,7 @@ fn foreground_distance_generic(
     xi: f64,
     bounds: &InversionBounds,
     prefer_mm: Option<f64>,
-    lo: f64,
-    hi: f64,
+    Search { lo, hi, slopes }: Search,
 ) -> Option<LayerEstimate> {
     let sensor = &model.sensor;
     let range = sensor.unambiguous_range_mm();
@@ -404,7 +444,7 @@ fn foreground_distance_generic(
         Some((root, _)) => (root, false),
         None => (best?, true),
     };
-    Some(estimate_at(sensor, s, pick.roots, pinned, eval))
+    Some(estimate_at(sensor, s, pick.roots, pinned, slopes, eval))
 }
 
 /// The inversion's evaluations for the paper's two returns on a sinusoidal
@@ -867,8 +907,7 @@ fn foreground_distance_fast(
     obs: &PixelObservation,
     bounds: &InversionBounds,
     prefer_mm: Option<f64>,
-    lo: f64,
-    hi: f64,
+    Search { lo, hi, slopes }: Search,
 ) -> Option<LayerEstimate> {
     let sensor = &model.sensor;
     let range = sensor.unambiguous_range_mm();
@@ -900,7 +939,11 @@ fn foreground_distance_fast(
             (best?, true)
         }
     };
-    let (slope, reading_per_ir) = fast.derivatives(s.df, s.turn).unwrap_or((f64::NAN, f64::NAN));
+    let (slope, reading_per_ir) = if slopes {
+        fast.derivatives(s.df, s.turn).unwrap_or((f64::NAN, f64::NAN))
+    } else {
+        (f64::NAN, f64::NAN)
+    };
     Some(LayerEstimate {
         foreground_distance_mm: s.df,
         albedo_cos: s.x,
@@ -1087,6 +1130,25 @@ mod tests {
     }
 
     #[test]
+    fn without_slopes_the_estimate_is_the_same() {
+        // On the fast path and the generic one (a third bounce), with and without a preference.
+        let mut generic = ForwardModel::paper(Sensor::sr4000());
+        generic.options.bounces = 3;
+        for m in [ForwardModel::paper(Sensor::sr4000()), generic] {
+            for (df, xi, prefer) in [(600.0, 0.65, None), (1400.0, 0.3, Some(1300.0)), (900.0, 0.94, None)] {
+                let obs = observe(&m, df, 2000.0, xi, 0.6, 1.0);
+                let b = InversionBounds::default();
+                let with = foreground_distance(&m, &obs, xi, &b, prefer).expect("an estimate");
+                let without = foreground_distance_without_slopes(&m, &obs, xi, &b, prefer).expect("an estimate");
+                assert!(with.slope.is_finite() && without.slope.is_nan() && without.reading_per_ir.is_nan());
+                let same =
+                    |e: &LayerEstimate| (e.foreground_distance_mm, e.albedo_cos, e.residual_mm, e.roots, e.pinned);
+                assert_eq!(same(&with), same(&without));
+            }
+        }
+    }
+
+    #[test]
     fn no_admissible_root_is_pinned_or_none() {
         let m = ForwardModel::paper(Sensor::sr4000());
         let mut obs = observe(&m, 1000.0, 2000.0, 0.65, 0.6, 1.0);
@@ -1182,14 +1244,18 @@ mod tests {
                                 obs.ir *= di;
                                 for prefer in [None, Some(0.0)] {
                                     let fast = FastPixel::new(&m, &obs, xi, b.max_albedo_cos).expect("fast path");
-                                    let (lo, hi) = (b.min_distance_mm, db - b.min_separation_mm);
-                                    let f = foreground_distance_fast(&fast, &m, &obs, &b, prefer, lo, hi);
+                                    let search = Search {
+                                        lo: b.min_distance_mm,
+                                        hi: db - b.min_separation_mm,
+                                        slopes: true,
+                                    };
+                                    let f = foreground_distance_fast(&fast, &m, &obs, &b, prefer, search);
                                     // Roots against the fine scan; a pixel without one against the
                                     // same coarse scan for its best sample.
                                     let fine_or_same = if f.is_some_and(|f| f.pinned) { &b } else { &fine };
-                                    let g = foreground_distance_generic(&m, &obs, xi, fine_or_same, prefer, lo, hi);
+                                    let g = foreground_distance_generic(&m, &obs, xi, fine_or_same, prefer, search);
                                     if f.is_some_and(|f| f.pinned) {
-                                        let g = foreground_distance_generic(&m, &obs, xi, &fine, prefer, lo, hi);
+                                        let g = foreground_distance_generic(&m, &obs, xi, &fine, prefer, search);
                                         assert!(g.is_none_or(|g| g.roots == 0), "a root missed: {g:?}");
                                     }
                                     let case = format!("p {power} off {offset} db {db} df {df} xi {xi} x {x} dd {dd} di {di} {prefer:?}");

@@ -15,7 +15,10 @@ pub mod sensor;
 pub use model::{ForwardModel, IrMode, LayerScene, Measurement, ModelOptions, Return};
 pub use sensor::{Sensor, Waveform};
 pub mod inversion;
-pub use inversion::{foreground_distance, reading_sensitivity_to_ir, InversionBounds, LayerEstimate, PixelObservation};
+pub use inversion::{
+    foreground_distance, foreground_distance_without_slopes, reading_sensitivity_to_ir, InversionBounds, LayerEstimate,
+    PixelObservation,
+};
 pub mod camera;
 pub mod emitted_light;
 pub mod segmentation;

@@ -16,7 +16,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::buffer::ImageBuf;
-use super::inversion::{albedo_cos_clamped, foreground_distance, predicted_reading, InversionBounds, PixelObservation};
+use super::inversion::{
+    albedo_cos_clamped, foreground_distance_without_slopes, predicted_reading, InversionBounds, PixelObservation,
+};
 use super::model::ForwardModel;
 use super::stats::median_and_sigma;
 use super::surface::local_planes_adaptive;
@@ -314,7 +316,7 @@ pub fn frame_profile(
             if usage == ProfileUse::Calibration {
                 continue;
             }
-            match foreground_distance(model, &o, xi, bounds, None) {
+            match foreground_distance_without_slopes(model, &o, xi, bounds, None) {
                 Some(est) => {
                     eq12 += est.residual_mm * est.residual_mm;
                     if est.pinned {
