@@ -311,7 +311,8 @@ pub fn foreground_distance(
 /// [`foreground_distance`] without the residual's slopes at the estimate
 /// ([`LayerEstimate::slope`] and [`LayerEstimate::reading_per_ir`] NaN): the
 /// same estimate, without the evaluations the slopes take, for callers that
-/// do not gate on the layer's noise (ξ estimation's profile).
+/// do not gate on the layer's noise (ξ estimation's profile, recovery's
+/// re-picks).
 pub fn foreground_distance_without_slopes(
     model: &ForwardModel,
     obs: &PixelObservation,
@@ -322,6 +323,8 @@ pub fn foreground_distance_without_slopes(
     invert(model, obs, xi, bounds, prefer_mm, false)
 }
 
+/// Both of them: the search range from the bounds, then the sinusoid's fast
+/// path where the model allows it, else the generic scan.
 fn invert(
     model: &ForwardModel,
     obs: &PixelObservation,
