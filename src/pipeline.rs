@@ -18,8 +18,8 @@ use crate::physics::stats::median_and_sigma;
 use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
-    foreground_distance, foreground_distance_without_slopes, reading_sensitivity_to_ir, ForwardModel, ImageBuf,
-    Intrinsics, InversionBounds, PixelObservation, Sensor, XiEstimate, XiMethod,
+    foreground_distance, foreground_distance_without_slopes, ForwardModel, ImageBuf, Intrinsics, InversionBounds,
+    PixelObservation, Sensor, XiEstimate, XiMethod,
 };
 
 /// Why a frame or a latch could not be processed.
@@ -574,18 +574,7 @@ impl Pipeline {
                     .unwrap_or(self.config.threshold_mm / 3.0)
                     / light.sqrt();
                 let ir_sigma = bg.map(|b| b.ir_noise.data[i]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
-                let dfdi = if est.reading_per_ir.is_nan() && ir_sigma > 0.0 {
-                    // The generic path leaves it to us.
-                    reading_sensitivity_to_ir(
-                        &self.config.model,
-                        &o,
-                        est.foreground_distance_mm,
-                        xi.xi,
-                        self.config.bounds.max_albedo_cos,
-                    )
-                } else {
-                    est.reading_per_ir
-                };
+                let dfdi = est.reading_per_ir;
                 let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
                 Some(PixelSolve {
                     foreground_distance_mm: est.foreground_distance_mm,

@@ -87,9 +87,9 @@ pub struct LayerEstimate {
     pub slope: f64,
     /// `d f / d I` at the estimate, the layer held: how far the predicted reading
     /// moves per count of IR ([`reading_sensitivity_to_ir`]). IR noise `s`
-    /// becomes a layer noise `s |reading_per_ir| / |slope|`. Filled in closed
-    /// form on the sinusoid's fast path; NaN on the generic path, which leaves
-    /// it to callers that need it (it costs two more model evaluations there).
+    /// becomes a layer noise `s |reading_per_ir| / |slope|`. In closed form on
+    /// the sinusoid's fast path, by finite differences on the generic one.
+    /// Like `slope`, NaN from [`foreground_distance_without_slopes`].
     pub reading_per_ir: f64,
 }
 
@@ -256,9 +256,9 @@ impl RootPick {
     }
 }
 
-/// The estimate at the chosen sample `s`, with the residual's slope there:
-/// a central difference where both sides are admissible, else one-sided
-/// (shared by the generic scan and the fast sinusoid path).
+/// The generic path's estimate at the chosen sample `s`, with the residual's
+/// slope there when `slopes`: a central difference where both sides are
+/// admissible, else one-sided.
 fn estimate_at(
     sensor: &crate::physics::Sensor,
     s: Sample,
@@ -447,7 +447,15 @@ fn foreground_distance_generic(
         Some((root, _)) => (root, false),
         None => (best?, true),
     };
-    Some(estimate_at(sensor, s, pick.roots, pinned, slopes, eval))
+    let reading_per_ir = if slopes {
+        reading_sensitivity_to_ir(model, obs, s.df, xi, bounds.max_albedo_cos)
+    } else {
+        f64::NAN
+    };
+    Some(LayerEstimate {
+        reading_per_ir,
+        ..estimate_at(sensor, s, pick.roots, pinned, slopes, eval)
+    })
 }
 
 /// The inversion's evaluations for the paper's two returns on a sinusoidal
@@ -1143,7 +1151,8 @@ mod tests {
                 let b = InversionBounds::default();
                 let with = foreground_distance(&m, &obs, xi, &b, prefer).expect("an estimate");
                 let without = foreground_distance_without_slopes(&m, &obs, xi, &b, prefer).expect("an estimate");
-                assert!(with.slope.is_finite() && without.slope.is_nan() && without.reading_per_ir.is_nan());
+                assert!(with.slope.is_finite() && with.reading_per_ir.is_finite());
+                assert!(without.slope.is_nan() && without.reading_per_ir.is_nan());
                 let same =
                     |e: &LayerEstimate| (e.foreground_distance_mm, e.albedo_cos, e.residual_mm, e.roots, e.pinned);
                 assert_eq!(same(&with), same(&without));

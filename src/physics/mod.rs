@@ -16,8 +16,7 @@ pub use model::{ForwardModel, IrMode, LayerScene, Measurement, ModelOptions, Ret
 pub use sensor::{Sensor, Waveform};
 pub mod inversion;
 pub use inversion::{
-    foreground_distance, foreground_distance_without_slopes, reading_sensitivity_to_ir, InversionBounds, LayerEstimate,
-    PixelObservation,
+    foreground_distance, foreground_distance_without_slopes, InversionBounds, LayerEstimate, PixelObservation,
 };
 pub mod camera;
 pub mod emitted_light;
