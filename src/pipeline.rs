@@ -620,7 +620,7 @@ impl Pipeline {
                 .par_iter()
                 .map(|&i| {
                     let o = obs.observations.data[i]?;
-                    let t = surfaces.ray_distance(i, &self.rays, &obs.mask)?;
+                    let t = surfaces.ray_distance(i, &self.rays)?;
                     let est = foreground_distance_without_slopes(
                         &self.config.model,
                         &o,
@@ -641,15 +641,15 @@ impl Pipeline {
                 }
             }
             // The windows those pixels are in, refitted (the same surfaces as refitting all).
-            surfaces.update(&points, &self.rays, &obs.mask, &windows, &repicked);
+            surfaces.update(&points, &self.rays, &windows, &repicked);
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
             for i in 0..n {
                 let Some(o) = obs.observations.data[i] else {
                     continue;
                 };
-                let t = surfaces.ray_distance(i, &self.rays, &obs.mask).or_else(|| {
+                let t = surfaces.ray_distance(i, &self.rays).or_else(|| {
                     surfaces
-                        .nearest_plane(i, self.config.prior_radius_px, &self.rays, &obs.mask)
+                        .nearest_plane(i, self.config.prior_radius_px, &self.rays)
                         .and_then(|p| p.ray_distance(&self.rays.data[i]))
                 });
                 if let Some(t) = t {

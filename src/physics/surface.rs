@@ -581,8 +581,9 @@ pub fn local_planes_adaptive(
         blocks,
         fits,
         points: ray_pts,
+        members: with_point,
     }
-    .planes(rays, &with_point)
+    .planes(rays)
 }
 
 /// The windows of [`local_planes`]: `(2 radius + 1)^2` pixels, fitted when
@@ -609,7 +610,7 @@ pub fn local_planes(
     mask: &ImageBuf<bool>,
     windows: &Windows,
 ) -> ImageBuf<Option<Plane>> {
-    LocalSurfaces::new(points, rays, mask, windows).planes(rays, mask)
+    LocalSurfaces::new(points, rays, mask, windows).planes(rays)
 }
 
 /// The smooth-surface prior's fitted windows, one per block: with `stride`
@@ -624,6 +625,8 @@ pub struct LocalSurfaces {
     fits: Vec<Option<WindowFit>>,
     /// The points fitted.
     points: Vec<Option<RayPoint>>,
+    /// The pixels that take a plane.
+    members: ImageBuf<bool>,
 }
 
 impl LocalSurfaces {
@@ -644,18 +647,18 @@ impl LocalSurfaces {
             blocks,
             fits,
             points: ray_pts,
+            members: mask.clone(),
         }
     }
 
     /// Refits, after the points at `changed` moved, exactly the windows that
     /// hold one of them (the others are unchanged): the same surfaces as a
-    /// full recomputation, at the cost of the windows touched. `mask` and
-    /// `windows` must be those the surfaces were made with.
+    /// full recomputation, at the cost of the windows touched. `windows` must
+    /// be those the surfaces were made with.
     pub fn update(
         &mut self,
         points: &ImageBuf<Vector3<f64>>,
         rays: &ImageBuf<Vector3<f64>>,
-        mask: &ImageBuf<bool>,
         windows: &Windows,
         changed: &[usize],
     ) {
@@ -677,7 +680,7 @@ impl LocalSurfaces {
             .map(|(b, _)| b)
             .collect();
         for &i in changed {
-            self.points[i] = if mask.data[i] {
+            self.points[i] = if self.members.data[i] {
                 RayPoint::new(&points.data[i])
             } else {
                 None
@@ -692,36 +695,30 @@ impl LocalSurfaces {
         }
     }
 
-    /// The fitted surface of pixel `i`'s block, for a pixel of `mask`.
+    /// The fitted surface of pixel `i`'s block, for a member pixel.
     #[inline]
-    fn fit_of(&self, i: usize, mask: &ImageBuf<bool>) -> Option<&WindowFit> {
-        if !mask.data[i] {
+    fn fit_of(&self, i: usize) -> Option<&WindowFit> {
+        if !self.members.data[i] {
             return None;
         }
         let s = self.blocks.stride;
-        let (c, r) = (i % mask.width, i / mask.width);
+        let (c, r) = (i % self.members.width, i / self.members.width);
         self.fits[(r / s) * self.blocks.across + c / s].as_ref()
     }
 
-    /// The tangent plane at pixel `i`'s ray (`None` off `mask` or without a fit).
-    pub fn plane(&self, i: usize, rays: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> Option<Plane> {
-        self.fit_of(i, mask)?.tangent_plane(&rays.data[i])
+    /// The tangent plane at pixel `i`'s ray (`None` off the mask or without a fit).
+    pub fn plane(&self, i: usize, rays: &ImageBuf<Vector3<f64>>) -> Option<Plane> {
+        self.fit_of(i)?.tangent_plane(&rays.data[i])
     }
 
     /// `plane(i).ray_distance(rays[i])`, up to rounding, without making the plane.
-    pub fn ray_distance(&self, i: usize, rays: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> Option<f64> {
-        self.fit_of(i, mask)?.ray_distance(&rays.data[i])
+    pub fn ray_distance(&self, i: usize, rays: &ImageBuf<Vector3<f64>>) -> Option<f64> {
+        self.fit_of(i)?.ray_distance(&rays.data[i])
     }
 
     /// The plane of the pixel nearest `i` (within `radius`, in image distance) that has one.
-    pub fn nearest_plane(
-        &self,
-        i: usize,
-        radius: usize,
-        rays: &ImageBuf<Vector3<f64>>,
-        mask: &ImageBuf<bool>,
-    ) -> Option<Plane> {
-        let (w, h) = (mask.width, mask.height);
+    pub fn nearest_plane(&self, i: usize, radius: usize, rays: &ImageBuf<Vector3<f64>>) -> Option<Plane> {
+        let (w, h) = (self.members.width, self.members.height);
         let (c, r) = ((i % w) as isize, (i / w) as isize);
         let rad = radius as isize;
         let mut best: Option<(isize, Plane)> = None;
@@ -735,7 +732,7 @@ impl LocalSurfaces {
                 if best.is_some_and(|(b, _)| d2 >= b) {
                     continue;
                 }
-                if let Some(p) = self.plane(rr as usize * w + cc as usize, rays, mask) {
+                if let Some(p) = self.plane(rr as usize * w + cc as usize, rays) {
                     best = Some((d2, p));
                 }
             }
@@ -744,11 +741,12 @@ impl LocalSurfaces {
     }
 
     /// Every pixel's plane ([`Self::plane`]).
-    pub fn planes(&self, rays: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> ImageBuf<Option<Plane>> {
+    pub fn planes(&self, rays: &ImageBuf<Vector3<f64>>) -> ImageBuf<Option<Plane>> {
+        let m = &self.members;
         ImageBuf {
-            width: mask.width,
-            height: mask.height,
-            data: (0..mask.data.len()).map(|i| self.plane(i, rays, mask)).collect(),
+            width: m.width,
+            height: m.height,
+            data: (0..m.data.len()).map(|i| self.plane(i, rays)).collect(),
         }
     }
 }
@@ -976,8 +974,8 @@ mod tests {
                 stride,
             };
             let mut surfaces = LocalSurfaces::new(&before_move, &rays, &mask, &windows);
-            surfaces.update(&points, &rays, &mask, &windows, &moved);
-            let planes = surfaces.planes(&rays, &mask);
+            surfaces.update(&points, &rays, &windows, &moved);
+            let planes = surfaces.planes(&rays);
             let full = local_planes(&points, &rays, &mask, &windows);
             assert_eq!(planes.data, full.data, "stride {stride}");
             // The update did refit: the planes before the move differ somewhere.
