@@ -382,6 +382,9 @@ pub struct Pipeline {
     /// `ray distance / z` per pixel.
     scale: ImageBuf<f64>,
     background: Option<Background>,
+    /// The noise of `d - db` per pixel, mm: the pixel's own (measured over the latch) and
+    /// the latched mean's. `None` without a background or with fewer than 3 frames latched.
+    change_noise: Option<ImageBuf<f64>>,
     profiles: Vec<FrameProfile>,
     estimate: Option<XiEstimate>,
 }
@@ -397,6 +400,7 @@ impl Pipeline {
             rays,
             scale,
             background: None,
+            change_noise: None,
             profiles: vec![],
             estimate: None,
         }
@@ -404,6 +408,16 @@ impl Pipeline {
 
     /// Sets the latched background (and forgets ξ evidence tied to the old one).
     pub fn set_background(&mut self, bg: Background) {
+        self.change_noise = (bg.frames >= 3).then(|| ImageBuf {
+            width: bg.noise_mm.width,
+            height: bg.noise_mm.height,
+            data: bg
+                .noise_mm
+                .data
+                .iter()
+                .map(|s| s * (1.0 + 1.0 / bg.frames as f64).sqrt())
+                .collect(),
+        });
         self.background = Some(bg);
         self.profiles.clear();
         self.estimate = None;
@@ -412,6 +426,7 @@ impl Pipeline {
     /// Forgets the background.
     pub fn clear_background(&mut self) {
         self.background = None;
+        self.change_noise = None;
         self.profiles.clear();
         self.estimate = None;
     }
@@ -432,24 +447,13 @@ impl Pipeline {
         let bg = self.background.as_ref().ok_or(PipelineError::NoBackground)?;
         let k = &self.intrinsics;
         let d = z_to_ray_distance(&frame.z_mm, &self.scale);
-        // The noise of d - db: the pixel's own (measured over the latch) and the latched mean's.
-        let change_noise = (bg.frames >= 3).then(|| ImageBuf {
-            width: k.width,
-            height: k.height,
-            data: bg
-                .noise_mm
-                .data
-                .iter()
-                .map(|s| s * (1.0 + 1.0 / bg.frames as f64).sqrt())
-                .collect(),
-        });
         let range = self.config.model.sensor.unambiguous_range_mm();
         let raw = changed_pixels(
             &d,
             &bg.distance_mm,
             self.config.threshold_mm,
             range,
-            change_noise.as_ref(),
+            self.change_noise.as_ref(),
         );
         let (mask, _) = remove_small_regions(&raw, self.config.min_region_pixels);
         let observations = ImageBuf {
@@ -457,6 +461,9 @@ impl Pipeline {
             height: k.height,
             data: (0..k.width * k.height)
                 .map(|i| {
+                    if !mask.data[i] {
+                        return None;
+                    }
                     let ir = frame.ir.data[i] as f64;
                     // The background behind the layer (displaced when the model refracts).
                     let (db, ib) = if self.config.model.options.refracts() {
@@ -481,8 +488,7 @@ impl Pipeline {
                         background_ir: ib,
                         emitted_light: bg.emitted_light.data[i],
                     };
-                    let ok = mask.data[i]
-                        && ir.is_finite()
+                    let ok = ir.is_finite()
                         && ir > 0.0
                         && o.background_ir > 0.0
                         && o.emitted_light.is_finite()
@@ -556,13 +562,20 @@ impl Pipeline {
         let mut several_roots = vec![];
         let mut unresolved = 0;
         let bg = self.background.as_ref();
-        // Each pixel on its own (in parallel over the current rayon pool), then the counts in
-        // pixel order.
-        let per_pixel: Vec<Option<PixelSolve>> = (0..n)
-            .into_par_iter()
-            .with_min_len(256)
-            .map(|i| {
-                let o = obs.observations.data[i]?;
+        // The pixels with an observation, in pixel order: each on its own (in parallel over the
+        // current rayon pool), then the counts in pixel order. Only they are visited: the
+        // translucent region is often a small part of the image.
+        let observed: Vec<(usize, PixelObservation)> = obs
+            .observations
+            .data
+            .iter()
+            .enumerate()
+            .filter_map(|(i, o)| o.map(|o| (i, o)))
+            .collect();
+        let per_pixel: Vec<Option<PixelSolve>> = observed
+            .par_iter()
+            .with_min_len(64)
+            .map(|&(i, o)| {
                 let est = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None)?;
                 // Reading and IR noise: the background's, measured over the latch, scaled to
                 // this pixel's light as shot noise; the layer's follows through the model's
@@ -585,11 +598,8 @@ impl Pipeline {
                 })
             })
             .collect();
-        for i in 0..n {
-            if obs.observations.data[i].is_none() {
-                continue;
-            }
-            if let Some(est) = per_pixel[i] {
+        for (&(i, _), solve) in observed.iter().zip(&per_pixel) {
+            if let Some(est) = *solve {
                 res2 += est.residual_mm * est.residual_mm;
                 fitted += 1;
                 if est.several_roots {
@@ -643,10 +653,7 @@ impl Pipeline {
             // The windows those pixels are in, refitted (the same surfaces as refitting all).
             surfaces.update(&points, &self.rays, &windows, &repicked);
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
-            for i in 0..n {
-                let Some(o) = obs.observations.data[i] else {
-                    continue;
-                };
+            for &(i, o) in &observed {
                 let t = surfaces.ray_distance(i, &self.rays).or_else(|| {
                     surfaces
                         .nearest_plane(i, self.config.prior_radius_px, &self.rays)
