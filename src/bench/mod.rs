@@ -5,7 +5,7 @@
 
 pub mod reference;
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
@@ -197,6 +197,8 @@ pub struct Row {
     pub threads: usize,
     /// Timed repetitions.
     pub samples: usize,
+    /// Idle time before each of them, ms.
+    pub pause_ms: f64,
     /// Median time per frame, ms.
     pub median_ms: f64,
     /// 95th percentile per frame, ms.
@@ -217,11 +219,15 @@ pub struct Row {
 
 /// Median and 95th percentile, ms, and the runs timed: up to `samples` runs of `f`
 /// after one warm-up run, stopping early (after at least 3) once `budget_s` seconds are spent.
-pub fn time_ms(samples: usize, budget_s: f64, mut f: impl FnMut()) -> (f64, f64, usize) {
+/// `pause`: idle time before each timed run (not timed), as between a camera's frames.
+pub fn time_ms(samples: usize, budget_s: f64, pause: Duration, mut f: impl FnMut()) -> (f64, f64, usize) {
     f();
     let started = Instant::now();
     let mut t: Vec<f64> = vec![];
     while t.len() < samples.max(1) && (t.len() < 3 || started.elapsed().as_secs_f64() < budget_s) {
+        if !pause.is_zero() {
+            std::thread::sleep(pause);
+        }
         let start = Instant::now();
         f();
         t.push(start.elapsed().as_secs_f64() * 1e3);
@@ -261,6 +267,9 @@ pub struct RunSettings {
     pub threads: usize,
     /// Time the plain reference too, and compare depths.
     pub reference: bool,
+    /// Idle time before each timed repetition (0: back to back). A camera's
+    /// frame period shows what a node pays when its cores idle between frames.
+    pub pause: Duration,
 }
 
 /// The target for a case at a size, ms, where it sets one.
@@ -283,26 +292,26 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
     let frame = scene.near_frame();
     let obs = scene.observe(frame);
     let xi = XiEstimate::fixed(BENCH_XI);
-    let (samples, budget) = (settings.samples, settings.budget_s);
+    let (samples, budget, pause) = (settings.samples, settings.budget_s, settings.pause);
     let (median_ms, p95_ms, samples) = pool.install(|| match case {
-        Case::Recover => time_ms(samples, budget, || {
+        Case::Recover => time_ms(samples, budget, pause, || {
             std::hint::black_box(scene.pipeline.recover(frame, &obs, &xi));
         }),
         Case::RecoverPerPixel => {
             let mut per_pixel = scene.pipeline.clone();
             per_pixel.config.prior_radius_px = 0;
-            time_ms(samples, budget, || {
+            time_ms(samples, budget, pause, || {
                 std::hint::black_box(per_pixel.recover(frame, &obs, &xi));
             })
         }
-        Case::Observe => time_ms(samples, budget, || {
+        Case::Observe => time_ms(samples, budget, pause, || {
             std::hint::black_box(scene.observe(frame));
         }),
-        Case::XiEstimate => time_ms(samples, budget, || {
+        Case::XiEstimate => time_ms(samples, budget, pause, || {
             std::hint::black_box(scene.xi_by_shape(&obs));
         }),
         Case::Replay => {
-            let (m, p, k) = time_ms(samples, budget, || {
+            let (m, p, k) = time_ms(samples, budget, pause, || {
                 std::hint::black_box(scene.replay());
             });
             let n = scene.frames.len() as f64;
@@ -333,6 +342,7 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
         size: format!("{}x{}", scene.width, scene.height),
         threads: settings.threads.max(1),
         samples,
+        pause_ms: pause.as_secs_f64() * 1e3,
         median_ms,
         p95_ms,
         reference_ms,

@@ -47,6 +47,10 @@ pub struct BenchArgs {
     /// Skip the plain 1 mm grid-search reference (it takes seconds per frame).
     #[arg(long)]
     pub no_reference: bool,
+    /// Idle time before each timed repetition, ms (0: back to back). A camera's frame period
+    /// (33 at 30 Hz) shows what a node pays when its cores idle between frames.
+    #[arg(long, default_value_t = 0.0)]
+    pub pause_ms: f64,
     #[command(flatten)]
     pub output: OutputArgs,
 }
@@ -94,6 +98,9 @@ pub fn run(a: BenchArgs) -> Result<()> {
     if a.frames == 0 {
         bail!("--frames must be at least 1");
     }
+    if !(a.pause_ms.is_finite() && (0.0..=10_000.0).contains(&a.pause_ms)) {
+        bail!("--pause-ms {}: expected 0 to 10000 ms", a.pause_ms);
+    }
     let total = (sizes.len() * cases.len() * a.threads.len()) as u64;
     let pb = a.output.progress(total, "bench");
     let mut rows = vec![];
@@ -109,6 +116,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     threads,
                     // The reference is single-threaded: once per case and size.
                     reference: !a.no_reference && k == 0,
+                    pause: std::time::Duration::from_secs_f64(a.pause_ms / 1e3),
                 };
                 rows.push(run_case(&scene, case, &settings));
                 pb.inc(1);
@@ -122,14 +130,23 @@ pub fn run(a: BenchArgs) -> Result<()> {
         None
     };
     let mut text = format!(
-        "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case)\n",
-        STAGES_MM[0], STAGES_MM, a.frames, a.max_seconds
+        "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case){}\n",
+        STAGES_MM[0],
+        STAGES_MM,
+        a.frames,
+        a.max_seconds,
+        if a.pause_ms > 0.0 {
+            format!(", each after {} ms idle", a.pause_ms)
+        } else {
+            String::new()
+        }
     );
     text.push_str(&format!(
-        "{:<12} {:>8} {:>7} {:>10} {:>10} {:>10} {:>13} {:>9} {:>9} {}\n",
+        "{:<17} {:>8} {:>7} {:>5} {:>10} {:>10} {:>10} {:>13} {:>9} {:>9} {}\n",
         "case",
         "size",
         "threads",
+        "runs",
         "median ms",
         "p95 ms",
         "target ms",
@@ -146,7 +163,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             )
         });
         text.push_str(&format!(
-            "{:<12} {:>8} {:>7} {:>5} {:>10.3} {:>10.3} {:>10} {:>13} {:>9} {:>8.0}% {}\n",
+            "{:<17} {:>8} {:>7} {:>5} {:>10.3} {:>10.3} {:>10} {:>13} {:>9} {:>8.0}% {}\n",
             r.name,
             r.size,
             r.threads,
