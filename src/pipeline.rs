@@ -565,17 +565,12 @@ impl Pipeline {
         // The pixels with an observation, in pixel order: each on its own (in parallel over the
         // current rayon pool), then the counts in pixel order. Only they are visited: the
         // translucent region is often a small part of the image.
-        let observed: Vec<(usize, PixelObservation)> = obs
-            .observations
-            .data
-            .iter()
-            .enumerate()
-            .filter_map(|(i, o)| o.map(|o| (i, o)))
-            .collect();
+        let observed: Vec<usize> = (0..n).filter(|&i| obs.observations.data[i].is_some()).collect();
         let per_pixel: Vec<Option<PixelSolve>> = observed
             .par_iter()
-            .with_min_len(64)
-            .map(|&(i, o)| {
+            .with_min_len(256)
+            .map(|&i| {
+                let o = obs.observations.data[i]?;
                 let est = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None)?;
                 // Reading and IR noise: the background's, measured over the latch, scaled to
                 // this pixel's light as shot noise; the layer's follows through the model's
@@ -598,7 +593,7 @@ impl Pipeline {
                 })
             })
             .collect();
-        for (&(i, _), solve) in observed.iter().zip(&per_pixel) {
+        for (&i, solve) in observed.iter().zip(&per_pixel) {
             if let Some(est) = *solve {
                 res2 += est.residual_mm * est.residual_mm;
                 fitted += 1;
@@ -653,7 +648,10 @@ impl Pipeline {
             // The windows those pixels are in, refitted (the same surfaces as refitting all).
             surfaces.update(&points, &self.rays, &windows, &repicked);
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
-            for &(i, o) in &observed {
+            for &i in &observed {
+                let Some(o) = obs.observations.data[i] else {
+                    continue;
+                };
                 let t = surfaces.ray_distance(i, &self.rays).or_else(|| {
                     surfaces
                         .nearest_plane(i, self.config.prior_radius_px, &self.rays)

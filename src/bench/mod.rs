@@ -199,6 +199,8 @@ pub struct Row {
     pub samples: usize,
     /// Idle time before each of them, ms.
     pub pause_ms: f64,
+    /// Distance of the layer in the frame timed, mm (`replay`: the first of all it runs).
+    pub stage_mm: f64,
     /// Median time per frame, ms.
     pub median_ms: f64,
     /// 95th percentile per frame, ms.
@@ -270,6 +272,8 @@ pub struct RunSettings {
     /// Idle time before each timed repetition (0: back to back). A camera's
     /// frame period shows what a node pays when its cores idle between frames.
     pub pause: Duration,
+    /// The frame timed (but by `replay`): an index into [`STAGES_MM`].
+    pub stage: usize,
 }
 
 /// The target for a case at a size, ms, where it sets one.
@@ -282,14 +286,14 @@ pub fn target_ms(case: Case, width: usize, height: usize, threads: usize) -> Opt
     }
 }
 
-/// Runs one case on the scene's nearest frame (all frames for `replay`) in a
-/// pool of `settings.threads` threads.
+/// Runs one case on the frame of `settings.stage` (all frames for `replay`)
+/// in a pool of `settings.threads` threads.
 pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(settings.threads.max(1))
         .build()
         .expect("a thread pool");
-    let frame = scene.near_frame();
+    let frame = &scene.frames[settings.stage.min(scene.frames.len() - 1)];
     let obs = scene.observe(frame);
     let xi = XiEstimate::fixed(BENCH_XI);
     let (samples, budget, pause) = (settings.samples, settings.budget_s, settings.pause);
@@ -343,6 +347,7 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
         threads: settings.threads.max(1),
         samples,
         pause_ms: pause.as_secs_f64() * 1e3,
+        stage_mm: STAGES_MM[settings.stage.min(STAGES_MM.len() - 1)],
         median_ms,
         p95_ms,
         reference_ms,
