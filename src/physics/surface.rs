@@ -664,20 +664,14 @@ impl LocalSurfaces {
     ) {
         let w = points.width;
         let r = windows.radius as isize;
-        let redo: Vec<usize> = self
-            .blocks
-            .centres
-            .iter()
-            .enumerate()
-            .filter(|(_, c)| {
-                c.is_some_and(|c| {
-                    let (cc, cr) = ((c % w) as isize, (c / w) as isize);
-                    changed
-                        .iter()
-                        .any(|&i| ((i % w) as isize - cc).abs() <= r && ((i / w) as isize - cr).abs() <= r)
-                })
+        let redo: Vec<usize> = (0..self.blocks.centres.len())
+            .filter(|&k| {
+                let c = self.blocks.centres[k];
+                let (cc, cr) = ((c % w) as isize, (c / w) as isize);
+                changed
+                    .iter()
+                    .any(|&i| ((i % w) as isize - cc).abs() <= r && ((i / w) as isize - cr).abs() <= r)
             })
-            .map(|(b, _)| b)
             .collect();
         for &i in changed {
             self.points[i] = if self.members.data[i] {
@@ -690,8 +684,8 @@ impl LocalSurfaces {
         let fits = self.blocks.fit(&redo, |c| {
             window_fit(ray_pts, points.width, rays, c, windows.radius, windows.min_points)
         });
-        for (b, f) in redo.into_iter().zip(fits) {
-            self.fits[b] = f;
+        for (k, f) in redo.into_iter().zip(fits) {
+            self.fits[k] = f;
         }
     }
 
@@ -703,7 +697,8 @@ impl LocalSurfaces {
         }
         let s = self.blocks.stride;
         let (c, r) = (i % self.members.width, i / self.members.width);
-        self.fits[(r / s) * self.blocks.across + c / s].as_ref()
+        let slot = self.blocks.slot[(r / s) * self.blocks.across + c / s];
+        self.fits.get(slot)?.as_ref()
     }
 
     /// The tangent plane at pixel `i`'s ray (`None` off the mask or without a fit).
@@ -752,11 +747,15 @@ impl LocalSurfaces {
 }
 
 /// The blocks of a strided [`LocalSurfaces`]: each block's window centre (its
-/// masked pixel nearest the block's middle), `None` for a block without one.
+/// masked pixel nearest the block's middle). Only blocks with a masked
+/// pixel have a window: a small object in a large image has few.
 struct Blocks {
     stride: usize,
     across: usize,
-    centres: Vec<Option<usize>>,
+    /// Per block, its window's index in `centres` (`usize::MAX` for none).
+    slot: Vec<usize>,
+    /// The windows' centres (pixel indices), in block order.
+    centres: Vec<usize>,
 }
 
 impl Blocks {
@@ -764,8 +763,10 @@ impl Blocks {
         let s = stride.max(1);
         let (w, h) = (mask.width, mask.height);
         let (across, down) = (w.div_ceil(s), h.div_ceil(s));
-        let centres = (0..across * down)
-            .map(|b| {
+        let mut slot = vec![usize::MAX; across * down];
+        let mut centres = vec![];
+        for (b, slot) in slot.iter_mut().enumerate() {
+            let centre = {
                 let (c0, r0) = ((b % across) * s, (b / across) * s);
                 let (c1, r1) = ((c0 + s).min(w), (r0 + s).min(h));
                 // Twice the offset from the block's middle, so odd and even strides stay exact.
@@ -775,22 +776,27 @@ impl Blocks {
                     .filter(|&(r, c)| mask.data[r * w + c])
                     .min_by_key(|&(r, c)| (2 * r as isize - mr).pow(2) + (2 * c as isize - mc).pow(2))
                     .map(|(r, c)| r * w + c)
-            })
-            .collect();
+            };
+            if let Some(c) = centre {
+                *slot = centres.len();
+                centres.push(c);
+            }
+        }
         Self {
             stride: s,
             across,
+            slot,
             centres,
         }
     }
 
-    /// Fits the windows of `blocks` with `fit` (given the centre; in parallel over
-    /// the current rayon pool).
-    fn fit(&self, blocks: &[usize], fit: impl Fn(usize) -> Option<WindowFit> + Sync) -> Vec<Option<WindowFit>> {
-        blocks
+    /// Fits the windows `windows` (indices into `centres`) with `fit` (given the
+    /// centre; in parallel over the current rayon pool).
+    fn fit(&self, windows: &[usize], fit: impl Fn(usize) -> Option<WindowFit> + Sync) -> Vec<Option<WindowFit>> {
+        windows
             .par_iter()
             .with_min_len(8)
-            .map(|&b| fit(self.centres[b]?))
+            .map(|&k| fit(self.centres[k]))
             .collect()
     }
 }
