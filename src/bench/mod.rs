@@ -293,7 +293,8 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
         .num_threads(settings.threads.max(1))
         .build()
         .expect("a thread pool");
-    let frame = &scene.frames[settings.stage.min(scene.frames.len() - 1)];
+    let stage = settings.stage.min(scene.frames.len() - 1);
+    let frame = &scene.frames[stage];
     let obs = scene.observe(frame);
     let xi = XiEstimate::fixed(BENCH_XI);
     let (samples, budget, pause) = (settings.samples, settings.budget_s, settings.pause);
@@ -347,7 +348,7 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
         threads: settings.threads.max(1),
         samples,
         pause_ms: pause.as_secs_f64() * 1e3,
-        stage_mm: STAGES_MM[settings.stage.min(STAGES_MM.len() - 1)],
+        stage_mm: STAGES_MM[stage],
         median_ms,
         p95_ms,
         reference_ms,
