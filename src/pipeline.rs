@@ -408,15 +408,12 @@ impl Pipeline {
 
     /// Sets the latched background (and forgets ξ evidence tied to the old one).
     pub fn set_background(&mut self, bg: Background) {
+        // The pixel's own noise, and the latched mean's (its noise over the frames averaged).
+        let with_mean = (1.0 + 1.0 / bg.frames as f64).sqrt();
         self.change_noise = (bg.frames >= 3).then(|| ImageBuf {
             width: bg.noise_mm.width,
             height: bg.noise_mm.height,
-            data: bg
-                .noise_mm
-                .data
-                .iter()
-                .map(|s| s * (1.0 + 1.0 / bg.frames as f64).sqrt())
-                .collect(),
+            data: bg.noise_mm.data.iter().map(|s| s * with_mean).collect(),
         });
         self.background = Some(bg);
         self.profiles.clear();
