@@ -19,7 +19,7 @@ use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
     foreground_distance, foreground_distance_without_slopes, ForwardModel, ImageBuf, Intrinsics, InversionBounds,
-    PixelObservation, Sensor, XiEstimate, XiMethod,
+    PixelObservation, Region, Sensor, XiEstimate, XiMethod,
 };
 
 /// Why a frame or a latch could not be processed.
@@ -548,10 +548,27 @@ impl Pipeline {
 
     /// Per-pixel inversion at `xi`, then the smooth-surface prior.
     pub fn recover(&self, frame: &DepthFrame, obs: &Observed, xi: &XiEstimate) -> FrameOutput {
-        let k = &self.intrinsics;
-        let n = k.width * k.height;
+        let mut out = FrameOutput {
+            stamp_ns: frame.stamp_ns,
+            mask: obs.mask.clone(),
+            corrected_z_mm: frame.z_mm.clone(),
+            xi: xi.clone(),
+            translucent_pixels: obs.translucent_pixels,
+            recovered_pixels: 0,
+            pinned_pixels: 0,
+            unresolved_pixels: 0,
+            fit_residual_mm: f64::NAN,
+        };
+        // The work is done on the rectangle around the translucent pixels (on the prior's
+        // block grid, so its windows are those of the whole image): often a small part of it.
+        let Some(region) = Region::around(&obs.mask, self.config.prior_stride_px) else {
+            return out;
+        };
+        let n = region.len();
+        let rays = region.crop(&self.rays);
+        let mask = region.crop(&obs.mask);
         let nan = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
-        let mut points = ImageBuf::filled(k.width, k.height, nan);
+        let mut points = ImageBuf::filled(region.width, region.height, nan);
         let mut df = vec![f64::NAN; n];
         let mut pinned = 0;
         let mut res2 = 0.0;
@@ -559,26 +576,30 @@ impl Pipeline {
         let mut several_roots = vec![];
         let mut unresolved = 0;
         let bg = self.background.as_ref();
-        // The pixels with an observation, in pixel order: each on its own (in parallel over the
-        // current rayon pool), then the counts in pixel order. Only they are visited: the
-        // translucent region is often a small part of the image.
-        let observed: Vec<usize> = (0..n).filter(|&i| obs.observations.data[i].is_some()).collect();
+        // The translucent pixels with an observation, as the rectangle's indices in pixel
+        // order: each on its own (in parallel over the current rayon pool), then the counts
+        // in pixel order.
+        // Pairs of the rectangle's index and the image's.
+        let observed: Vec<(usize, usize)> = region
+            .pixels()
+            .filter(|&(i, fi)| mask.data[i] && obs.observations.data[fi].is_some())
+            .collect();
         let per_pixel: Vec<Option<PixelSolve>> = observed
             .par_iter()
             .with_min_len(256)
-            .map(|&i| {
-                let o = obs.observations.data[i]?;
+            .map(|&(_, fi)| {
+                let o = obs.observations.data[fi]?;
                 let est = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None)?;
                 // Reading and IR noise: the background's, measured over the latch, scaled to
                 // this pixel's light as shot noise; the layer's follows through the model's
                 // slopes (implicit function: d df = -(dF/dI dI - dd) / (dF/d df)).
                 let light = (o.ir / o.background_ir).max(1e-9);
                 let d_sigma = bg
-                    .map(|b| b.noise_mm.data[i])
+                    .map(|b| b.noise_mm.data[fi])
                     .filter(|v| v.is_finite())
                     .unwrap_or(self.config.threshold_mm / 3.0)
                     / light.sqrt();
-                let ir_sigma = bg.map(|b| b.ir_noise.data[i]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
+                let ir_sigma = bg.map(|b| b.ir_noise.data[fi]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
                 let dfdi = est.reading_per_ir;
                 let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
                 Some(PixelSolve {
@@ -590,12 +611,12 @@ impl Pipeline {
                 })
             })
             .collect();
-        for (&i, solve) in observed.iter().zip(&per_pixel) {
+        for (&(i, fi), solve) in observed.iter().zip(&per_pixel) {
             if let Some(est) = *solve {
                 res2 += est.residual_mm * est.residual_mm;
                 fitted += 1;
                 if est.several_roots {
-                    several_roots.push(i);
+                    several_roots.push((i, fi));
                 }
                 if est.pinned {
                     pinned += 1;
@@ -603,7 +624,7 @@ impl Pipeline {
                     unresolved += 1;
                 } else {
                     df[i] = est.foreground_distance_mm;
-                    points.data[i] = self.rays.data[i] * est.foreground_distance_mm;
+                    points.data[i] = rays.data[i] * est.foreground_distance_mm;
                 }
             } else {
                 pinned += 1;
@@ -615,14 +636,14 @@ impl Pipeline {
                 min_points: 12,
                 stride: self.config.prior_stride_px,
             };
-            let mut surfaces = LocalSurfaces::new(&points, &self.rays, &obs.mask, &windows);
+            let mut surfaces = LocalSurfaces::new(&points, &rays, &mask, &windows);
             // Where a pixel fits several layers, the one its neighbourhood's surface is nearest
             // (the first pass took the one nearest the reading); then the surface again.
             let repicks: Vec<Option<f64>> = several_roots
                 .par_iter()
-                .map(|&i| {
-                    let o = obs.observations.data[i]?;
-                    let t = surfaces.ray_distance(i, &self.rays)?;
+                .map(|&(i, fi)| {
+                    let o = obs.observations.data[fi]?;
+                    let t = surfaces.ray_distance(i, &rays)?;
                     let est = foreground_distance_without_slopes(
                         &self.config.model,
                         &o,
@@ -635,24 +656,24 @@ impl Pipeline {
                 })
                 .collect();
             let mut repicked = vec![];
-            for (&i, d) in several_roots.iter().zip(repicks) {
+            for (&(i, _), d) in several_roots.iter().zip(repicks) {
                 if let Some(d) = d {
                     df[i] = d;
-                    points.data[i] = self.rays.data[i] * d;
+                    points.data[i] = rays.data[i] * d;
                     repicked.push(i);
                 }
             }
             // The windows those pixels are in, refitted (the same surfaces as refitting all).
-            surfaces.update(&points, &self.rays, &windows, &repicked);
+            surfaces.update(&points, &rays, &windows, &repicked);
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
-            for &i in &observed {
-                let Some(o) = obs.observations.data[i] else {
+            for &(i, fi) in &observed {
+                let Some(o) = obs.observations.data[fi] else {
                     continue;
                 };
-                let t = surfaces.ray_distance(i, &self.rays).or_else(|| {
+                let t = surfaces.ray_distance(i, &rays).or_else(|| {
                     surfaces
-                        .nearest_plane(i, self.config.prior_radius_px, &self.rays)
-                        .and_then(|p| p.ray_distance(&self.rays.data[i]))
+                        .nearest_plane(i, self.config.prior_radius_px, &rays)
+                        .and_then(|p| p.ray_distance(&rays.data[i]))
                 });
                 if let Some(t) = t {
                     if t > self.config.bounds.min_distance_mm && t < o.background_distance_mm {
@@ -661,33 +682,20 @@ impl Pipeline {
                 }
             }
         }
-        let mut corrected = frame.z_mm.clone();
-        let mut recovered = 0;
-        for i in 0..n {
-            if obs.mask.data[i] {
-                corrected.data[i] = if df[i].is_finite() {
-                    recovered += 1;
-                    (df[i] / self.scale.data[i]) as f32
-                } else {
-                    f32::NAN
-                };
-            }
-        }
-        FrameOutput {
-            stamp_ns: frame.stamp_ns,
-            mask: obs.mask.clone(),
-            corrected_z_mm: corrected,
-            xi: xi.clone(),
-            translucent_pixels: obs.translucent_pixels,
-            recovered_pixels: recovered,
-            pinned_pixels: pinned,
-            unresolved_pixels: unresolved,
-            fit_residual_mm: if fitted > 0 {
-                (res2 / fitted as f64).sqrt()
+        for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
+            out.corrected_z_mm.data[fi] = if df[i].is_finite() {
+                out.recovered_pixels += 1;
+                (df[i] / self.scale.data[fi]) as f32
             } else {
-                f64::NAN
-            },
+                f32::NAN
+            };
         }
+        out.pinned_pixels = pinned;
+        out.unresolved_pixels = unresolved;
+        if fitted > 0 {
+            out.fit_residual_mm = (res2 / fitted as f64).sqrt();
+        }
+        out
     }
 
     /// Online processing (the node): observe, add ξ evidence, recover with the pooled ξ.

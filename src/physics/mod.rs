@@ -8,7 +8,7 @@
 
 pub mod buffer;
 
-pub use buffer::ImageBuf;
+pub use buffer::{ImageBuf, Region};
 pub mod model;
 pub mod sensor;
 
