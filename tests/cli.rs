@@ -599,6 +599,54 @@ fn help_lists_subcommands() {
     }
 }
 
+/// `bench` on a small image at two layer distances: one row per case and
+/// distance, the farther layer covering less of the image and taking less
+/// time to recover (the work follows the translucent pixels), `replay` once;
+/// a distance the bench has no frame for is refused.
+#[test]
+fn bench_rows_per_layer_distance() {
+    let dir = temp();
+    let args = [
+        "bench",
+        "--cases",
+        "recover,replay",
+        "--sizes",
+        "96x80",
+        "--threads",
+        "1",
+        "--no-reference",
+        "--frames",
+        "5",
+        "--stage-mm",
+        "500,1750",
+        "--json",
+        "-",
+    ];
+    let out = run(dir.path(), &args);
+    assert_ok(&out);
+    let report: Value =
+        serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("not JSON ({e}): {}", describe(&out)));
+    let rows = report["rows"].as_array().expect("rows");
+    let row = |name: &str, mm: f64| {
+        rows.iter()
+            .find(|r| r["name"] == name && r["stage_mm"].as_f64() == Some(mm))
+            .unwrap_or_else(|| panic!("no {name} row at {mm} mm: {rows:?}"))
+    };
+    let (near, far) = (row("recover", 500.0), row("recover", 1750.0));
+    assert!(
+        num(near, "translucent_fraction") > 5.0 * num(far, "translucent_fraction"),
+        "{near} {far}"
+    );
+    assert!(
+        num(far, "median_ms") > 0.0 && num(far, "median_ms") < num(near, "median_ms"),
+        "{near} {far}"
+    );
+    assert_eq!(rows.iter().filter(|r| r["name"] == "replay").count(), 1, "{rows:?}");
+    let bad = run(dir.path(), &["bench", "--stage-mm", "600", "--no-reference"]);
+    assert!(!bad.status.success(), "{}", describe(&bad));
+    assert!(text(&bad.stderr).contains("--stage-mm 600"), "{}", describe(&bad));
+}
+
 // -------------------------------------------------------------- bad input
 
 /// B1

@@ -51,10 +51,11 @@ pub struct BenchArgs {
     /// (33 at 30 Hz) shows what a node pays when its cores idle between frames.
     #[arg(long, default_value_t = 0.0)]
     pub pause_ms: f64,
-    /// The layer's distance in the frame recover, recover_per_pixel, observe and xi_estimate
-    /// time, mm: 500 (57 % of the image translucent), 750, 1000 or 1750 (5 %).
-    #[arg(long, default_value_t = 500.0)]
-    pub stage_mm: f64,
+    /// The layer's distance in the frames recover, recover_per_pixel, observe and xi_estimate
+    /// time, mm, comma-separated: 500 (57 % of the image translucent), 750, 1000 or 1750 (5 %).
+    /// `replay` runs over all of them once.
+    #[arg(long, value_delimiter = ',', default_value = "500")]
+    pub stage_mm: Vec<f64>,
     #[command(flatten)]
     pub output: OutputArgs,
 }
@@ -105,18 +106,37 @@ pub fn run(a: BenchArgs) -> Result<()> {
     if !(a.pause_ms.is_finite() && (0.0..=10_000.0).contains(&a.pause_ms)) {
         bail!("--pause-ms {}: expected 0 to 10000 ms", a.pause_ms);
     }
-    let Some(stage) = STAGES_MM.iter().position(|&s| s == a.stage_mm) else {
-        bail!("--stage-mm {}: expected one of {STAGES_MM:?}", a.stage_mm);
-    };
-    let total = (sizes.len() * cases.len() * a.threads.len()) as u64;
+    let mut stages = vec![];
+    for &mm in &a.stage_mm {
+        let Some(stage) = STAGES_MM.iter().position(|&s| s == mm) else {
+            bail!("--stage-mm {mm}: expected one or more of {STAGES_MM:?}");
+        };
+        stages.push(stage);
+    }
+    if stages.is_empty() {
+        bail!("--stage-mm: expected one or more of {STAGES_MM:?}");
+    }
+    // `replay` takes every frame, from the first: once, not once per stage.
+    let runs: Vec<(Case, usize)> = cases
+        .iter()
+        .flat_map(|&case| {
+            let per_stage = if case == Case::Replay { vec![0] } else { stages.clone() };
+            per_stage.into_iter().map(move |stage| (case, stage))
+        })
+        .collect();
+    let total = (sizes.len() * runs.len() * a.threads.len()) as u64;
     let pb = a.output.progress(total, "bench");
     let mut rows = vec![];
     for &(w, h) in &sizes {
         pb.set_message(format!("rendering {w}x{h}"));
         let scene = BenchScene::new(w, h);
-        for &case in &cases {
+        for &(case, stage) in &runs {
             for (k, &threads) in a.threads.iter().enumerate() {
-                pb.set_message(format!("{} {w}x{h} {threads} thread(s)", case.name()));
+                pb.set_message(format!(
+                    "{} {w}x{h} at {} mm, {threads} thread(s)",
+                    case.name(),
+                    STAGES_MM[stage]
+                ));
                 let settings = RunSettings {
                     samples: a.frames,
                     budget_s: a.max_seconds,
@@ -138,7 +158,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         None
     };
     let mut text = format!(
-        "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case){}\n",
+        "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {:?} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case){}\n",
         a.stage_mm,
         STAGES_MM,
         a.frames,
@@ -150,9 +170,10 @@ pub fn run(a: BenchArgs) -> Result<()> {
         }
     );
     text.push_str(&format!(
-        "{:<17} {:>8} {:>7} {:>5} {:>10} {:>10} {:>10} {:>13} {:>9} {:>9} {}\n",
+        "{:<17} {:>8} {:>6} {:>7} {:>5} {:>10} {:>10} {:>10} {:>13} {:>9} {:>9} {}\n",
         "case",
         "size",
+        "mm",
         "threads",
         "runs",
         "median ms",
@@ -171,9 +192,10 @@ pub fn run(a: BenchArgs) -> Result<()> {
             )
         });
         text.push_str(&format!(
-            "{:<17} {:>8} {:>7} {:>5} {:>10.3} {:>10.3} {:>10} {:>13} {:>9} {:>8.0}% {}\n",
+            "{:<17} {:>8} {:>6} {:>7} {:>5} {:>10.3} {:>10.3} {:>10} {:>13} {:>9} {:>8.0}% {}\n",
             r.name,
             r.size,
+            r.stage_mm,
             r.threads,
             r.samples,
             r.median_ms,
