@@ -576,10 +576,9 @@ impl Pipeline {
         let mut several_roots = vec![];
         let mut unresolved = 0;
         let bg = self.background.as_ref();
-        // The translucent pixels with an observation, as the rectangle's indices in pixel
-        // order: each on its own (in parallel over the current rayon pool), then the counts
-        // in pixel order.
-        // Pairs of the rectangle's index and the image's.
+        // The translucent pixels with an observation, in pixel order, each as its index in the
+        // rectangle and in the image: each on its own (in parallel over the current rayon
+        // pool), then the counts in pixel order.
         let observed: Vec<(usize, usize)> = region
             .pixels()
             .filter(|&(i, fi)| mask.data[i] && obs.observations.data[fi].is_some())
