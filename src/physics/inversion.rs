@@ -204,7 +204,7 @@ pub fn predicted_reading(model: &ForwardModel, obs: &PixelObservation, df: f64, 
 /// `s |dF/dI| / |slope|`. NaN where the albedo is not admissible.
 pub fn reading_sensitivity_to_ir(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> f64 {
     if let Some(fast) = FastPixel::new(model, obs, xi, x_max) {
-        return fast.derivatives(df, None).map_or(f64::NAN, |(_, per_ir)| per_ir);
+        return fast.derivatives(df).map_or(f64::NAN, |(_, per_ir)| per_ir);
     }
     let h = (obs.ir.abs() * 1e-3).max(1e-9);
     let at = |ir: f64| {
@@ -223,9 +223,6 @@ struct Sample {
     df: f64,
     residual: f64,
     x: f64,
-    /// The fast path's `(sin, cos)` of the layer's rotated phase at `df`, for
-    /// the derivatives there, when computed.
-    turn: Option<(f64, f64)>,
 }
 
 /// The roots a scan has found, and the one the root rule picks: the nearest
@@ -378,7 +375,6 @@ fn foreground_distance_generic(
             df,
             residual: sensor.wrapped_difference_mm(pred, obs.distance_mm),
             x,
-            turn: None,
         })
     };
     let n = ((hi - lo) / bounds.scan_step_mm).ceil().max(2.0) as usize;
@@ -411,7 +407,6 @@ fn foreground_distance_generic(
                         df: f64::NAN,
                         residual: f64::NAN,
                         x: f64::NAN,
-                        turn: None,
                     });
                 }
             }
@@ -481,6 +476,8 @@ struct FastPixel {
     x_max: f64,
     /// `2 pi / R`, radians per mm.
     k: f64,
+    /// `R / (2 pi)`, mm per radian.
+    mm_per_rad: f64,
     /// The reading's phase less the subsurface delay's, radians.
     phi_d: f64,
     /// The background's phasor rotated by minus the reading's phase.
@@ -508,17 +505,18 @@ impl FastPixel {
         }
         let k = std::f64::consts::TAU / model.sensor.unambiguous_range_mm();
         let db = obs.background_distance_mm;
-        let xb = obs.background_albedo_cos(o.ambient_offset);
         let phi_d = k * obs.distance_mm;
         let (s, c) = (k * db - phi_d).sin_cos();
         Some(Self {
             ir: obs.ir - o.ambient_offset,
             a: xi * xi * (obs.background_ir - o.ambient_offset).max(0.0),
             l1: (1.0 - xi) * obs.emitted_light,
-            l2: xb * xi * xi * obs.emitted_light / (db * db),
+            // Xb xi^2 Lin / db^2 with Xb = (Ib - offset) db^2 / Lin: the IR equation's `a`.
+            l2: xi * xi * (obs.background_ir - o.ambient_offset).max(0.0),
             p: o.transmission_albedo_power,
             x_max,
             k,
+            mm_per_rad: model.sensor.unambiguous_range_mm() / std::f64::consts::TAU,
             phi_d: phi_d - k * o.subsurface_delay_mm,
             bg: (c, s),
         })
@@ -542,6 +540,25 @@ impl FastPixel {
         (x.is_finite() && x > 0.0 && x <= self.x_max).then_some(x)
     }
 
+    /// `X` at `df` with L1 and L2 there: [`Self::albedo`] and [`Self::strengths`]
+    /// with one division and one square root for the transmission power 2.
+    #[inline]
+    fn albedo_strengths(&self, df: f64) -> Option<(f64, f64, f64)> {
+        if self.p != 2.0 {
+            let x = self.albedo(df)?;
+            let (l1, l2) = self.strengths(df, x);
+            return Some((x, l1, l2));
+        }
+        if self.ir <= 0.0 {
+            return None;
+        }
+        // With u = df^2: X = 2 I u / (l1 + sqrt(l1^2 + 4 a I u^2)), L1 = l1 X / u.
+        let u = df * df;
+        let r = 2.0 * self.ir / (self.l1 + (self.l1 * self.l1 + 4.0 * self.a * self.ir * u * u).sqrt());
+        let x = r * u;
+        (x.is_finite() && x > 0.0 && x <= self.x_max).then_some((x, self.l1 * r, self.l2 * x * x))
+    }
+
     /// L1 and L2 at `(df, X)`.
     #[inline]
     fn strengths(&self, df: f64, x: f64) -> (f64, f64) {
@@ -558,15 +575,9 @@ impl FastPixel {
     /// The mixed phasor, rotated by minus the reading's phase.
     #[inline]
     fn phasor(&self, df: f64, x: f64) -> (f64, f64) {
-        self.phasor_turned(df, x).0
-    }
-
-    /// [`Self::phasor`], with the layer's `(sin, cos)` it turned by.
-    #[inline]
-    fn phasor_turned(&self, df: f64, x: f64) -> ((f64, f64), (f64, f64)) {
         let (l1, l2) = self.strengths(df, x);
         let (s, c) = (self.k * df - self.phi_d).sin_cos();
-        ((l1 * c + l2 * self.bg.0, l1 * s + l2 * self.bg.1), (s, c))
+        (l1 * c + l2 * self.bg.0, l1 * s + l2 * self.bg.1)
     }
 
     /// The wrapped residual, mm, of a rotated phasor (NaN when it is zero: nothing decodes).
@@ -579,9 +590,9 @@ impl FastPixel {
         // term is below the rounding of the first for |t| <= 1e-4.
         if re > 0.0 && im.abs() <= 1e-4 * re {
             let t = im / re;
-            return t * (1.0 - t * t / 3.0) / self.k;
+            return t * (1.0 - t * t / 3.0) * self.mm_per_rad;
         }
-        im.atan2(re) / self.k
+        im.atan2(re) * self.mm_per_rad
     }
 
     /// The residual's derivatives at `df`, mm per mm of layer and mm per count
@@ -589,13 +600,13 @@ impl FastPixel {
     /// (Re dIm - Im dRe) / (Re^2 + Im^2)`, its parts through `L1 = l1 X / df^2`,
     /// `L2 = a X^p` and the IR equation's `dX` (implicit: `dX/dI = 1 / (b + a p
     /// X^(p-1))`, `dX/d df = 2 b X / df / (b + a p X^(p-1))`). `None` where `X`
-    /// is not admissible. `turn`: the layer's `(sin, cos)` at `df`, if known.
-    fn derivatives(&self, df: f64, turn: Option<(f64, f64)>) -> Option<(f64, f64)> {
-        let x = self.albedo(df)?;
-        let (l1, l2) = self.strengths(df, x);
-        let (sn, cs) = turn.unwrap_or_else(|| (self.k * df - self.phi_d).sin_cos());
+    /// is not admissible.
+    fn derivatives(&self, df: f64) -> Option<(f64, f64)> {
+        let (x, l1, l2) = self.albedo_strengths(df)?;
+        let (sn, cs) = (self.k * df - self.phi_d).sin_cos();
         let (re, im) = (l1 * cs + l2 * self.bg.0, l1 * sn + l2 * self.bg.1);
-        let b = self.l1 / (df * df);
+        let per_df = 1.0 / df;
+        let b = self.l1 * per_df * per_df;
         // d L2 / d X.
         let dl2_dx = if self.p == 2.0 {
             2.0 * self.a * x
@@ -605,10 +616,11 @@ impl FastPixel {
             self.a
         };
         let dx_di = 1.0 / (b + dl2_dx);
-        let dx_ddf = 2.0 * b * x / df * dx_di;
-        let angle_rate = |dre: f64, dim: f64| (re * dim - im * dre) / (re * re + im * im) / self.k;
+        let dx_ddf = 2.0 * b * x * per_df * dx_di;
+        let rate = self.mm_per_rad / (re * re + im * im);
+        let angle_rate = |dre: f64, dim: f64| (re * dim - im * dre) * rate;
         // Along df: L1 changes through X and 1/df^2, and turns with the phase.
-        let dl1 = b * dx_ddf - 2.0 * l1 / df;
+        let dl1 = b * dx_ddf - 2.0 * l1 * per_df;
         let dl2 = dl2_dx * dx_ddf;
         let slope = angle_rate(
             dl1 * cs - l1 * self.k * sn + dl2 * self.bg.0,
@@ -623,15 +635,11 @@ impl FastPixel {
     /// One full sample at `df`.
     #[inline]
     fn eval(&self, df: f64) -> Option<Sample> {
-        let x = self.albedo(df)?;
-        let ((re, im), turn) = self.phasor_turned(df, x);
+        let (x, l1, l2) = self.albedo_strengths(df)?;
+        let turn = (self.k * df - self.phi_d).sin_cos();
+        let (re, im) = (l1 * turn.1 + l2 * self.bg.0, l1 * turn.0 + l2 * self.bg.1);
         let residual = self.residual_mm(re, im);
-        residual.is_finite().then_some(Sample {
-            df,
-            residual,
-            x,
-            turn: Some(turn),
-        })
+        residual.is_finite().then_some(Sample { df, residual, x })
     }
 }
 
@@ -658,7 +666,6 @@ impl ScanSample {
             df: self.df,
             residual: fast.residual_mm(self.re, self.im),
             x: self.x,
-            turn: None,
         }
     }
 }
@@ -689,8 +696,7 @@ fn scan_fast(fast: &FastPixel, lo: f64, hi: f64, step_mm: f64, mut visit: impl F
                 (rs, rc) = (rs * sc + rc * ss, rc * sc - rs * ss);
             }
         }
-        let cur = fast.albedo(df).and_then(|x| {
-            let (l1, l2) = fast.strengths(df, x);
+        let cur = fast.albedo_strengths(df).and_then(|(x, l1, l2)| {
             let (re, im) = (l1 * rc + l2 * fast.bg.0, l1 * rs + l2 * fast.bg.1);
             (re != 0.0 || im != 0.0).then_some(ScanSample { df, x, re, im })
         });
@@ -951,7 +957,7 @@ fn foreground_distance_fast(
         }
     };
     let (slope, reading_per_ir) = if slopes {
-        fast.derivatives(s.df, s.turn).unwrap_or((f64::NAN, f64::NAN))
+        fast.derivatives(s.df).unwrap_or((f64::NAN, f64::NAN))
     } else {
         (f64::NAN, f64::NAN)
     };

@@ -177,7 +177,8 @@ fn polynomial_slopes<const N: usize>(a: f64, b: f64) -> ([f64; N], [f64; N]) {
 struct Ldl<const N: usize> {
     /// `l[i][j]`, `j < i`.
     l: [[f64; N]; N],
-    d: [f64; N],
+    /// `1 / D`.
+    d_inv: [f64; N],
 }
 
 impl<const N: usize> Ldl<N> {
@@ -187,6 +188,7 @@ impl<const N: usize> Ldl<N> {
     fn new(a: &[[f64; N]; N]) -> Option<Self> {
         let mut l = [[0.0; N]; N];
         let mut d = [0.0; N];
+        let mut d_inv = [0.0; N];
         for j in 0..N {
             let mut dj = a[j][j];
             for k in 0..j {
@@ -196,15 +198,16 @@ impl<const N: usize> Ldl<N> {
                 return None;
             }
             d[j] = dj;
+            d_inv[j] = 1.0 / dj;
             for i in j + 1..N {
                 let mut v = a[i][j];
                 for k in 0..j {
                     v -= l[i][k] * l[j][k] * d[k];
                 }
-                l[i][j] = v / dj;
+                l[i][j] = v * d_inv[j];
             }
         }
-        Some(Self { l, d })
+        Some(Self { l, d_inv })
     }
 
     /// `L y = v`.
@@ -223,7 +226,7 @@ impl<const N: usize> Ldl<N> {
     fn solve(&self, b: &[f64; N]) -> [f64; N] {
         let mut x = self.forward(b);
         for i in 0..N {
-            x[i] /= self.d[i];
+            x[i] *= self.d_inv[i];
         }
         for i in (0..N).rev() {
             for k in i + 1..N {
@@ -236,7 +239,7 @@ impl<const N: usize> Ldl<N> {
     /// `v^T A^-1 v`.
     fn inverse_form(&self, v: &[f64; N]) -> f64 {
         let y = self.forward(v);
-        (0..N).map(|i| y[i] * y[i] / self.d[i]).sum()
+        (0..N).map(|i| y[i] * y[i] * self.d_inv[i]).sum()
     }
 }
 
@@ -814,6 +817,19 @@ fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
         (a.min(p.distance), b.max(p.distance))
     });
     if hi - lo <= floor_mm {
+        return;
+    }
+    // The same when the median lies within the floor of both ends, which counts can show
+    // without finding it: fewer than half the points more than the floor above the lowest
+    // (and below the highest) put the middle one, or both middle ones, within it.
+    let half = (points.len() - 1) / 2;
+    let (far_above, far_below) = points.iter().fold((0, 0), |(a, b), p| {
+        (
+            a + usize::from(p.distance - lo > floor_mm),
+            b + usize::from(hi - p.distance > floor_mm),
+        )
+    });
+    if far_above <= half && far_below <= half {
         return;
     }
     let mut norms: Vec<f64> = points.iter().map(|p| p.distance).collect();
