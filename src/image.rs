@@ -91,12 +91,13 @@ impl Sample {
     }
 }
 
-/// Checks the layout and yields each pixel's bytes, row-major.
-fn samples<'a>(
-    img: &'a Image,
+/// Checks the layout and decodes each pixel's bytes with `decode`, row-major.
+fn samples(
+    img: &Image,
     sample: Sample,
     role: &'static str,
-) -> Result<impl Iterator<Item = &'a [u8]> + 'a, ImageError> {
+    decode: impl Fn(&[u8]) -> f32,
+) -> Result<Vec<f32>, ImageError> {
     let size = sample.size();
     let width = img.width as usize;
     let height = img.height as usize;
@@ -119,11 +120,13 @@ fn samples<'a>(
             found: img.data.len(),
         });
     }
-    Ok(img
-        .data
-        .chunks_exact(step.max(1))
-        .take(height)
-        .flat_map(move |row| row.get(..min).unwrap_or_default().chunks_exact(size)))
+    // Row by row into a buffer of the image's size (one allocation; each row's pixels
+    // an exact-size iterator).
+    let mut out = Vec::with_capacity(width.saturating_mul(height));
+    for row in img.data.chunks_exact(step.max(1)).take(height) {
+        out.extend(row.get(..min).unwrap_or_default().chunks_exact(size).map(&decode));
+    }
+    Ok(out)
 }
 
 fn read_u16(b: &[u8], big: bool) -> f32 {
@@ -164,26 +167,22 @@ pub fn depth_mm(img: &Image) -> Result<ImageBuf<f32>, ImageError> {
     const ROLE: &str = "depth";
     let big = img.is_bigendian != 0;
     let data: Vec<f32> = match img.encoding.as_str() {
-        "16UC1" | "mono16" => samples(img, Sample::U16, ROLE)?
-            .map(|b| {
-                let mm = read_u16(b, big);
-                if mm == 0.0 {
-                    f32::NAN
-                } else {
-                    mm
-                }
-            })
-            .collect(),
-        "32FC1" => samples(img, Sample::F32, ROLE)?
-            .map(|b| {
-                let m = read_f32(b, big);
-                if m.is_finite() && m > 0.0 {
-                    m * 1000.0
-                } else {
-                    f32::NAN
-                }
-            })
-            .collect(),
+        "16UC1" | "mono16" => samples(img, Sample::U16, ROLE, |b| {
+            let mm = read_u16(b, big);
+            if mm == 0.0 {
+                f32::NAN
+            } else {
+                mm
+            }
+        })?,
+        "32FC1" => samples(img, Sample::F32, ROLE, |b| {
+            let m = read_f32(b, big);
+            if m.is_finite() && m > 0.0 {
+                m * 1000.0
+            } else {
+                f32::NAN
+            }
+        })?,
         other => {
             return Err(ImageError::UnsupportedEncoding {
                 encoding: other.to_string(),
@@ -201,9 +200,9 @@ pub fn ir_counts(img: &Image) -> Result<ImageBuf<f32>, ImageError> {
     const ROLE: &str = "IR";
     let big = img.is_bigendian != 0;
     let data: Vec<f32> = match img.encoding.as_str() {
-        "16UC1" | "mono16" => samples(img, Sample::U16, ROLE)?.map(|b| read_u16(b, big)).collect(),
-        "mono8" => samples(img, Sample::U8, ROLE)?.map(|b| f32::from(b[0])).collect(),
-        "32FC1" => samples(img, Sample::F32, ROLE)?.map(|b| read_f32(b, big)).collect(),
+        "16UC1" | "mono16" => samples(img, Sample::U16, ROLE, |b| read_u16(b, big))?,
+        "mono8" => samples(img, Sample::U8, ROLE, |b| f32::from(b[0]))?,
+        "32FC1" => samples(img, Sample::F32, ROLE, |b| read_f32(b, big))?,
         other => {
             return Err(ImageError::UnsupportedEncoding {
                 encoding: other.to_string(),
@@ -238,12 +237,22 @@ fn image_msg(
     })
 }
 
+// The encoders fill a buffer of the message's size (collecting a `flat_map` would grow
+// it by doubling: its length is not known ahead).
 fn u16_bytes(values: &[f32], map: impl Fn(f32) -> u16) -> Vec<u8> {
-    values.iter().flat_map(|&v| map(v).to_le_bytes()).collect()
+    let mut out = Vec::with_capacity(2 * values.len());
+    for &v in values {
+        out.extend_from_slice(&map(v).to_le_bytes());
+    }
+    out
 }
 
 fn f32_bytes(values: &[f32], map: impl Fn(f32) -> f32) -> Vec<u8> {
-    values.iter().flat_map(|&v| map(v).to_le_bytes()).collect()
+    let mut out = Vec::with_capacity(4 * values.len());
+    for &v in values {
+        out.extend_from_slice(&map(v).to_le_bytes());
+    }
+    out
 }
 
 /// Encodes millimetre z-depth: `16UC1` (rounded mm; NaN, <= 0 or above
