@@ -5,12 +5,12 @@
 //! Buffers in, buffers out: no ROS, no files.
 
 use nalgebra::Vector3;
-use rayon::prelude::*;
 use serde::Serialize;
 use thiserror::Error;
 
 use crate::physics::camera::z_to_ray_distance;
 use crate::physics::emitted_light::{emitted_light_from_plane, EmittedLightError};
+use crate::physics::parallel::map_ordered;
 use crate::physics::segmentation::{
     changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
@@ -66,6 +66,10 @@ pub enum PipelineError {
         want_h: usize,
     },
 }
+
+/// Fewest pixels whose inversions are spread over the rayon pool: about half a
+/// millisecond of one core's work (see [`map_ordered`]).
+const MIN_PARALLEL_PIXELS: usize = 2048;
 
 /// How ξ is chosen.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -578,15 +582,13 @@ impl Pipeline {
         let bg = self.background.as_ref();
         // The translucent pixels with an observation, in pixel order, each as its index in the
         // rectangle and in the image: each on its own (in parallel over the current rayon
-        // pool), then the counts in pixel order.
+        // pool when there are enough of them), then the counts in pixel order.
         let observed: Vec<(usize, usize)> = region
             .pixels()
             .filter(|&(i, fi)| mask.data[i] && obs.observations.data[fi].is_some())
             .collect();
-        let per_pixel: Vec<Option<PixelSolve>> = observed
-            .par_iter()
-            .with_min_len(256)
-            .map(|&(_, fi)| {
+        let per_pixel: Vec<Option<PixelSolve>> =
+            map_ordered(&observed, MIN_PARALLEL_PIXELS, 256, |&(_, fi): &(usize, usize)| {
                 let o = obs.observations.data[fi]?;
                 let est = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None)?;
                 // Reading and IR noise: the background's, measured over the latch, scaled to
@@ -608,8 +610,7 @@ impl Pipeline {
                     several_roots: est.roots > 1,
                     pinned: est.pinned,
                 })
-            })
-            .collect();
+            });
         for (&(i, fi), solve) in observed.iter().zip(&per_pixel) {
             if let Some(est) = *solve {
                 res2 += est.residual_mm * est.residual_mm;
@@ -638,9 +639,8 @@ impl Pipeline {
             let mut surfaces = LocalSurfaces::new(&points, &rays, &mask, &windows);
             // Where a pixel fits several layers, the one its neighbourhood's surface is nearest
             // (the first pass took the one nearest the reading); then the surface again.
-            let repicks: Vec<Option<f64>> = several_roots
-                .par_iter()
-                .map(|&(i, fi)| {
+            let repicks: Vec<Option<f64>> =
+                map_ordered(&several_roots, MIN_PARALLEL_PIXELS, 64, |&(i, fi): &(usize, usize)| {
                     let o = obs.observations.data[fi]?;
                     let t = surfaces.ray_distance(i, &rays)?;
                     let est = foreground_distance_without_slopes(
@@ -652,8 +652,7 @@ impl Pipeline {
                     )?;
                     (!est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5)
                         .then_some(est.foreground_distance_mm)
-                })
-                .collect();
+                });
             let mut repicked = vec![];
             for (&(i, _), d) in several_roots.iter().zip(repicks) {
                 if let Some(d) = d {

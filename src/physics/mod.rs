@@ -28,3 +28,4 @@ pub mod translucency;
 pub use translucency::{XiEstimate, XiMethod};
 pub mod audit;
 pub mod noise;
+pub mod parallel;

@@ -2,9 +2,9 @@
 //! smooth-surface prior on a recovered layer (local planes over a window).
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
-use rayon::prelude::*;
 
 use super::buffer::ImageBuf;
+use super::parallel::map_ordered;
 use super::stats::{median_select, sigma_about};
 
 /// A plane `normal . p = offset`, with the fit's spread.
@@ -794,15 +794,15 @@ impl Blocks {
     }
 
     /// Fits the windows `windows` (indices into `centres`) with `fit` (given the
-    /// centre; in parallel over the current rayon pool).
-    fn fit(&self, windows: &[usize], fit: impl Fn(usize) -> Option<WindowFit> + Sync) -> Vec<Option<WindowFit>> {
-        windows
-            .par_iter()
-            .with_min_len(8)
-            .map(|&k| fit(self.centres[k]))
-            .collect()
+    /// centre; in parallel over the current rayon pool when there are enough of them).
+    fn fit(&self, windows: &[usize], fit: impl Fn(usize) -> Option<WindowFit> + Sync + Send) -> Vec<Option<WindowFit>> {
+        map_ordered(windows, MIN_PARALLEL_WINDOWS, 8, |&k| fit(self.centres[k]))
     }
 }
+
+/// Fewest windows whose fits are spread over the rayon pool: about half a
+/// millisecond of one core's work (see [`map_ordered`]).
+const MIN_PARALLEL_WINDOWS: usize = 256;
 
 /// Keeps the points whose distance from the camera lies within `k` robust
 /// standard deviations (1.4826 MAD, at least `floor_mm`) of the median.
