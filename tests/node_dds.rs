@@ -326,3 +326,48 @@ fn overload_drops_the_oldest_frames_and_memory_stays_bounded() {
     );
     assert!(published + queue_full <= st["pairs"].as_u64().unwrap());
 }
+
+#[test]
+fn latency_bench_times_every_frame_of_the_bag_through_echo_and_node() {
+    if !isolated("latency_bench_times_every_frame_of_the_bag_through_echo_and_node") {
+        return;
+    }
+    let out = Command::new(exe())
+        .args([
+            "bench",
+            "--cases",
+            "node_latency",
+            "--node-frames",
+            "24",
+            "--node-rate-hz",
+            "20",
+            "--json",
+            "-",
+        ])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "bench failed: {stderr}");
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).expect("bench --json - prints JSON");
+    let n = &r["node_latency"];
+    eprintln!("{}", serde_json::to_string_pretty(n).unwrap());
+    for side in ["bare", "node"] {
+        assert_eq!(n[side]["sent"].as_u64(), Some(24), "{side}");
+        assert!(n[side]["received"].as_u64().unwrap() >= 22, "{side}: {}", n[side]);
+    }
+    // The bundled document holder: two frames at each of 500, 750, 1000 and 1750 mm, so
+    // the translucent share falls frame by frame pair, and 24 frames time each of them.
+    let frames = n["frames"].as_array().expect("per-frame latencies");
+    assert_eq!(frames.len(), 8);
+    let shares: Vec<f64> = frames.iter().map(|f| f["translucent_fraction"].as_f64().unwrap()).collect();
+    assert!(shares[0] > 0.4 && shares[7] < 0.1, "{shares:?}");
+    assert!(shares.windows(3).step_by(2).all(|w| w[2] < w[0]), "{shares:?}");
+    for f in frames {
+        let (b, t, a) = (
+            f["bare_median_ms"].as_f64().unwrap(),
+            f["node_median_ms"].as_f64().unwrap(),
+            f["added_median_ms"].as_f64().unwrap(),
+        );
+        assert!(b > 0.0 && t > 0.0 && (t - b - a).abs() < 1e-9, "{f}");
+    }
+}

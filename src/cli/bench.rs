@@ -226,6 +226,22 @@ pub fn run(a: BenchArgs) -> Result<()> {
             per_minute_peaks_mb(&n.node_stats["rss_kb"]),
             per_minute_peaks_mb(&n.node_stats["heap_in_use_kb"]),
         ));
+        let per_frame: Vec<String> = n
+            .frames
+            .iter()
+            .map(|f| {
+                format!(
+                    "frame {} ({:.0} % translucent) {:.2} ms",
+                    f.frame,
+                    100.0 * f.translucent_fraction,
+                    f.added_median_ms
+                )
+            })
+            .collect();
+        text.push_str(&format!(
+            "node_latency added, median per frame of the bag: {}\n",
+            per_frame.join("; ")
+        ));
     }
     a.output.summary(text.trim_end());
     a.output.write_json(&json!({

@@ -43,6 +43,25 @@ pub struct LatencyRun {
     pub received: usize,
     /// Publication to output arrival, ms: median, 95th percentile, max.
     pub latency_ms: [f64; 3],
+    /// The median per object frame of the bag, in the bag's order (NaN for a frame
+    /// none of whose outputs came back).
+    pub frame_median_ms: Vec<f64>,
+}
+
+/// One object frame of the bag, through both.
+#[derive(Debug, Clone, Serialize)]
+pub struct FrameLatency {
+    /// Its place among the bag's object frames.
+    pub frame: usize,
+    /// Share of the image the node's segmentation marks translucent (a pipeline
+    /// with default settings, latched on the bag's background frames).
+    pub translucent_fraction: f64,
+    /// Median through the bare echo, ms.
+    pub bare_median_ms: f64,
+    /// Median through the node, ms.
+    pub node_median_ms: f64,
+    /// Their difference, ms.
+    pub added_median_ms: f64,
 }
 
 /// The comparison.
@@ -56,6 +75,9 @@ pub struct LatencyReport {
     pub added_median_ms: f64,
     /// Node 95th percentile minus bare 95th percentile, ms.
     pub added_p95_ms: f64,
+    /// The same per object frame of the bag: how the added time grows with the
+    /// translucent share, as recovery's does.
+    pub frames: Vec<FrameLatency>,
     /// The node's own counters and timings (`--stats-json`).
     pub node_stats: serde_json::Value,
 }
@@ -114,8 +136,9 @@ async fn drive(cfg: &LatencyConfig, info: &CameraInfo, pairs: &[(Image, Image)],
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     // Warm-up: the first frames (page faults, first allocations) are not timed.
     let warmup = 5.min(cfg.frames);
-    let mut sent: BTreeMap<u64, Instant> = BTreeMap::new();
+    let mut sent: BTreeMap<u64, (Instant, usize)> = BTreeMap::new();
     let mut lat: Vec<f64> = Vec::with_capacity(cfg.frames);
+    let mut by_frame: Vec<Vec<f64>> = vec![vec![]; objects.len()];
     let mut last = 0;
     {
         let arrivals = peer.corrected_arrivals();
@@ -130,7 +153,7 @@ async fn drive(cfg: &LatencyConfig, info: &CameraInfo, pairs: &[(Image, Image)],
                     let t0 = Instant::now();
                     peer.publish(info, &restamp(d, stamp), &restamp(i, stamp))?;
                     if j >= warmup {
-                        sent.insert(stamp, t0);
+                        sent.insert(stamp, (t0, j % objects.len()));
                     }
                     last = stamp;
                     j += 1;
@@ -139,8 +162,10 @@ async fn drive(cfg: &LatencyConfig, info: &CameraInfo, pairs: &[(Image, Image)],
                     }
                 }
                 Some((s, t1)) = arrivals.next() => {
-                    if let Some(t0) = sent.remove(&s) {
-                        lat.push(t1.duration_since(t0).as_secs_f64() * 1e3);
+                    if let Some((t0, k)) = sent.remove(&s) {
+                        let ms = t1.duration_since(t0).as_secs_f64() * 1e3;
+                        lat.push(ms);
+                        by_frame[k].push(ms);
                     }
                     if s == last && j == cfg.frames + warmup {
                         break;
@@ -155,7 +180,37 @@ async fn drive(cfg: &LatencyConfig, info: &CameraInfo, pairs: &[(Image, Image)],
         sent: cfg.frames,
         received,
         latency_ms: super::percentiles(&mut lat),
+        frame_median_ms: by_frame.iter_mut().map(|v| super::percentiles(v)[0]).collect(),
     })
+}
+
+/// Each object frame's share of pixels the node's segmentation marks translucent,
+/// against a background latched from the first `background` pairs, as the driver
+/// latches it.
+fn translucent_shares(info: &CameraInfo, pairs: &[(Image, Image)], background: usize) -> Result<Vec<f64>> {
+    use crate::image::{depth_mm, ir_counts};
+    use crate::pipeline::{BackgroundLatch, DepthFrame, Pipeline, PipelineConfig};
+    let k = crate::physics::Intrinsics::from_k(info.width as usize, info.height as usize, &info.k)
+        .context("the bag's camera_info has no usable K")?;
+    let config = PipelineConfig::default();
+    let frame = |(d, i): &(Image, Image)| -> Result<DepthFrame> {
+        Ok(DepthFrame {
+            stamp_ns: d.header.stamp.as_log_time_ns(),
+            z_mm: depth_mm(d)?,
+            ir: ir_counts(i)?,
+        })
+    };
+    let bg = background.max(1).min(pairs.len());
+    let mut latch = BackgroundLatch::new(k.width, k.height, config.model.sensor.unambiguous_range_mm());
+    for p in &pairs[..bg] {
+        latch.push(&frame(p)?, &k)?;
+    }
+    let mut pipe = Pipeline::new(config.clone(), k);
+    pipe.set_background(latch.finish(&k, &config)?);
+    pairs[bg..]
+        .iter()
+        .map(|p| Ok(pipe.observe(&frame(p)?)?.translucent_pixels as f64 / (k.width * k.height) as f64))
+        .collect()
 }
 
 /// Runs the bare echo, then the node, on the same frames; compares.
@@ -201,7 +256,23 @@ pub fn measure(cfg: &LatencyConfig) -> Result<LatencyReport> {
         .and_then(|t| serde_json::from_str(&t).ok())
         .unwrap_or(serde_json::Value::Null);
     let _ = std::fs::remove_dir_all(&dir);
+    let shares = translucent_shares(&info, &pairs, cfg.background)?;
+    let frames = shares
+        .iter()
+        .enumerate()
+        .map(|(k, &share)| {
+            let (b, n) = (bare.frame_median_ms[k], through.frame_median_ms[k]);
+            FrameLatency {
+                frame: k,
+                translucent_fraction: share,
+                bare_median_ms: b,
+                node_median_ms: n,
+                added_median_ms: n - b,
+            }
+        })
+        .collect();
     Ok(LatencyReport {
+        frames,
         added_median_ms: through.latency_ms[0] - bare.latency_ms[0],
         added_p95_ms: through.latency_ms[1] - bare.latency_ms[1],
         bare,
