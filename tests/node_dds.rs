@@ -359,7 +359,10 @@ fn latency_bench_times_every_frame_of_the_bag_through_echo_and_node() {
     // the translucent share falls frame by frame pair, and 24 frames time each of them.
     let frames = n["frames"].as_array().expect("per-frame latencies");
     assert_eq!(frames.len(), 8);
-    let shares: Vec<f64> = frames.iter().map(|f| f["translucent_fraction"].as_f64().unwrap()).collect();
+    let shares: Vec<f64> = frames
+        .iter()
+        .map(|f| f["translucent_fraction"].as_f64().unwrap())
+        .collect();
     assert!(shares[0] > 0.4 && shares[7] < 0.1, "{shares:?}");
     assert!(shares.windows(3).step_by(2).all(|w| w[2] < w[0]), "{shares:?}");
     for f in frames {

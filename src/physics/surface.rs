@@ -297,6 +297,11 @@ impl<const N: usize> InverseDepthFit<N> {
     /// i.e. `(g_a, g_b, v - g_a a1 - g_b b1) . p = 1`, its normal toward the
     /// camera; the normal's standard error from the coefficients' covariance.
     fn tangent_plane(&self, u: &Vector3<f64>) -> Option<Plane> {
+        self.tangent_plane_with(u, true)
+    }
+
+    /// [`Self::tangent_plane`], its normal's standard error NaN unless `sigma`.
+    fn tangent_plane_with(&self, u: &Vector3<f64>, sigma: bool) -> Option<Plane> {
         let v = self.inverse_depth(u)?;
         let (a1, b1) = (u.x / u.z, u.y / u.z);
         let (ra, rb) = (a1 - self.a0, b1 - self.b0);
@@ -311,13 +316,18 @@ impl<const N: usize> InverseDepthFit<N> {
         };
         // Residuals are in z units under the z^4 weights, so Cov(c) = sigma^2 (A^T W A)^-1;
         // the normal turns by d(g_a, g_b) / v.
-        let var = self.normal.inverse_form(&d_a) + self.normal.inverse_form(&d_b);
+        let normal_sigma_rad = if sigma {
+            let var = self.normal.inverse_form(&d_a) + self.normal.inverse_form(&d_b);
+            self.sigma * var.max(0.0).sqrt() / v
+        } else {
+            f64::NAN
+        };
         Some(Plane {
             normal,
             offset,
             rms_mm: self.rms,
             count: self.count,
-            normal_sigma_rad: self.sigma * var.max(0.0).sqrt() / v,
+            normal_sigma_rad,
         })
     }
 }
@@ -544,6 +554,8 @@ fn fit_inverse_depth<const N: usize>(
 /// for each masked pixel with a finite point the first of `radii` (ascending)
 /// that reaches it, else the widest. With `stride` above 1, one window per
 /// block as in [`local_planes`], its radius chosen at the block's centre.
+/// The planes carry no normal standard error (`normal_sigma_rad` NaN): it
+/// chose the window and is not taken again at every pixel.
 pub fn local_planes_adaptive(
     points: &ImageBuf<Vector3<f64>>,
     rays: &ImageBuf<Vector3<f64>>,
@@ -586,7 +598,7 @@ pub fn local_planes_adaptive(
         points: ray_pts,
         members: with_point,
     }
-    .planes(rays)
+    .planes_with(rays, false)
 }
 
 /// The windows of [`local_planes`]: `(2 radius + 1)^2` pixels, fitted when
@@ -740,11 +752,18 @@ impl LocalSurfaces {
 
     /// Every pixel's plane ([`Self::plane`]).
     pub fn planes(&self, rays: &ImageBuf<Vector3<f64>>) -> ImageBuf<Option<Plane>> {
+        self.planes_with(rays, true)
+    }
+
+    /// Every pixel's plane, its normal's standard error NaN unless `sigma`.
+    fn planes_with(&self, rays: &ImageBuf<Vector3<f64>>, sigma: bool) -> ImageBuf<Option<Plane>> {
         let m = &self.members;
         ImageBuf {
             width: m.width,
             height: m.height,
-            data: (0..m.data.len()).map(|i| self.plane(i, rays)).collect(),
+            data: (0..m.data.len())
+                .map(|i| self.fit_of(i)?.tangent_plane_with(&rays.data[i], sigma))
+                .collect(),
         }
     }
 }
@@ -850,9 +869,13 @@ enum WindowFit {
 
 impl WindowFit {
     fn tangent_plane(&self, u: &Vector3<f64>) -> Option<Plane> {
+        self.tangent_plane_with(u, true)
+    }
+
+    fn tangent_plane_with(&self, u: &Vector3<f64>, sigma: bool) -> Option<Plane> {
         match self {
-            WindowFit::Quadric(f) => f.tangent_plane(u),
-            WindowFit::Plane(f) => f.tangent_plane(u),
+            WindowFit::Quadric(f) => f.tangent_plane_with(u, sigma),
+            WindowFit::Plane(f) => f.tangent_plane_with(u, sigma),
         }
     }
 
