@@ -464,12 +464,11 @@ fn foreground_distance_generic(
 struct FastPixel {
     /// IR less the offset.
     ir: f64,
-    /// `xi^2 (Ib - offset)`: the IR equation's `a`.
+    /// `xi^2 (Ib - offset)`: the IR equation's `a`, and L2 per `X^p` (`Xb xi^2
+    /// Lin / db^2` with `Xb = (Ib - offset) db^2 / Lin`).
     a: f64,
     /// `(1 - xi) Lin`: the IR equation's `b` times `df^2`, and L1's scale.
     l1: f64,
-    /// L2 per `X^p`: `Xb xi^2 Lin / db^2`.
-    l2: f64,
     /// Transmission power `p` (0, 1 or 2).
     p: f64,
     /// Largest admissible `X`.
@@ -511,8 +510,6 @@ impl FastPixel {
             ir: obs.ir - o.ambient_offset,
             a: xi * xi * (obs.background_ir - o.ambient_offset).max(0.0),
             l1: (1.0 - xi) * obs.emitted_light,
-            // Xb xi^2 Lin / db^2 with Xb = (Ib - offset) db^2 / Lin: the IR equation's `a`.
-            l2: xi * xi * (obs.background_ir - o.ambient_offset).max(0.0),
             p: o.transmission_albedo_power,
             x_max,
             k,
@@ -556,7 +553,7 @@ impl FastPixel {
         let u = df * df;
         let r = 2.0 * self.ir / (self.l1 + (self.l1 * self.l1 + 4.0 * self.a * self.ir * u * u).sqrt());
         let x = r * u;
-        (x.is_finite() && x > 0.0 && x <= self.x_max).then_some((x, self.l1 * r, self.l2 * x * x))
+        (x.is_finite() && x > 0.0 && x <= self.x_max).then_some((x, self.l1 * r, self.a * x * x))
     }
 
     /// L1 and L2 at `(df, X)`.
@@ -569,7 +566,7 @@ impl FastPixel {
         } else {
             x
         };
-        (self.l1 * x / (df * df), self.l2 * xp)
+        (self.l1 * x / (df * df), self.a * xp)
     }
 
     /// The mixed phasor, rotated by minus the reading's phase.
