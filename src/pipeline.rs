@@ -410,6 +410,24 @@ impl Pipeline {
         }
     }
 
+    /// A pipeline for a camera with the frames `background` averaged as its
+    /// background (the latch).
+    pub fn latched(
+        config: PipelineConfig,
+        intrinsics: Intrinsics,
+        background: &[DepthFrame],
+    ) -> Result<Self, PipelineError> {
+        let k = intrinsics;
+        let mut latch = BackgroundLatch::new(k.width, k.height, config.model.sensor.unambiguous_range_mm());
+        for f in background {
+            latch.push(f, &k)?;
+        }
+        let bg = latch.finish(&k, &config)?;
+        let mut pipe = Self::new(config, k);
+        pipe.set_background(bg);
+        Ok(pipe)
+    }
+
     /// Sets the latched background (and forgets ξ evidence tied to the old one).
     pub fn set_background(&mut self, bg: Background) {
         // The pixel's own noise, and the latched mean's (its noise over the frames averaged).

@@ -11,7 +11,7 @@ use serde::Serialize;
 
 use crate::physics::translucency::{self, FrameSample, ProfileUse};
 use crate::physics::{ImageBuf, XiEstimate, XiMethod};
-use crate::pipeline::{BackgroundLatch, DepthFrame, Observed, Pipeline, PipelineConfig, XiChoice};
+use crate::pipeline::{DepthFrame, Observed, Pipeline, PipelineConfig, XiChoice};
 use crate::sim::render::{render_all, scene_intrinsics};
 use crate::sim::scene::{BackgroundSpec, CameraSpec, ObjectSpec, Scene, StageSpec};
 
@@ -91,17 +91,14 @@ impl BenchScene {
             xi: XiChoice::Fixed(BENCH_XI),
             ..PipelineConfig::default()
         };
-        let mut latch = BackgroundLatch::new(k.width, k.height, config.model.sensor.unambiguous_range_mm());
         let as_frame = |f: &crate::sim::SimFrame| DepthFrame {
             stamp_ns: f.stamp_ns,
             z_mm: f.depth_z_mm.clone(),
             ir: f.ir.clone(),
         };
-        for f in frames.iter().filter(|f| f.background_only) {
-            latch.push(&as_frame(f), &k).expect("bench frames match the camera");
-        }
-        let mut pipeline = Pipeline::new(config.clone(), k);
-        pipeline.set_background(latch.finish(&k, &config).expect("the bench wall is a plane"));
+        let background: Vec<DepthFrame> = frames.iter().filter(|f| f.background_only).map(as_frame).collect();
+        let pipeline = Pipeline::latched(config, k, &background)
+            .expect("the bench wall latches: its frames match the camera and it is a plane");
         let objects: Vec<_> = frames.iter().filter(|f| !f.background_only).collect();
         Self {
             width,

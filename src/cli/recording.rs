@@ -10,7 +10,7 @@ use crate::bag::{select_topics, BagReader, SelectedTopics};
 use crate::image::{depth_mm, ir_counts};
 use crate::msgs::{CameraInfo, Header, Image};
 use crate::physics::{ImageBuf, Intrinsics};
-use crate::pipeline::{detect_scene_change, BackgroundLatch, DepthFrame, Pipeline, PipelineConfig};
+use crate::pipeline::{detect_scene_change, DepthFrame, Pipeline, PipelineConfig};
 
 use super::common::TopicArgs;
 
@@ -144,15 +144,7 @@ pub struct BackgroundChoice {
 impl Recording {
     /// A pipeline with the first `background` frames latched as the background.
     pub fn latched_pipeline(&self, config: PipelineConfig, background: usize) -> Result<Pipeline> {
-        let k = self.intrinsics;
-        let mut latch = BackgroundLatch::new(k.width, k.height, config.model.sensor.unambiguous_range_mm());
-        for f in &self.frames[..background] {
-            latch.push(f, &k)?;
-        }
-        let bg = latch.finish(&k, &config).context("latching the background")?;
-        let mut pipe = Pipeline::new(config, k);
-        pipe.set_background(bg);
-        Ok(pipe)
+        Pipeline::latched(config, self.intrinsics, &self.frames[..background]).context("latching the background")
     }
 
     /// `--background-frames N`, else the first frame where the scene changes.

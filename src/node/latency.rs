@@ -189,10 +189,9 @@ async fn drive(cfg: &LatencyConfig, info: &CameraInfo, pairs: &[(Image, Image)],
 /// latches it.
 fn translucent_shares(info: &CameraInfo, pairs: &[(Image, Image)], background: usize) -> Result<Vec<f64>> {
     use crate::image::{depth_mm, ir_counts};
-    use crate::pipeline::{BackgroundLatch, DepthFrame, Pipeline, PipelineConfig};
+    use crate::pipeline::{DepthFrame, Pipeline, PipelineConfig};
     let k = crate::physics::Intrinsics::from_k(info.width as usize, info.height as usize, &info.k)
         .context("the bag's camera_info has no usable K")?;
-    let config = PipelineConfig::default();
     let frame = |(d, i): &(Image, Image)| -> Result<DepthFrame> {
         Ok(DepthFrame {
             stamp_ns: d.header.stamp.as_log_time_ns(),
@@ -201,12 +200,8 @@ fn translucent_shares(info: &CameraInfo, pairs: &[(Image, Image)], background: u
         })
     };
     let bg = background.max(1).min(pairs.len());
-    let mut latch = BackgroundLatch::new(k.width, k.height, config.model.sensor.unambiguous_range_mm());
-    for p in &pairs[..bg] {
-        latch.push(&frame(p)?, &k)?;
-    }
-    let mut pipe = Pipeline::new(config.clone(), k);
-    pipe.set_background(latch.finish(&k, &config)?);
+    let latch: Vec<DepthFrame> = pairs[..bg].iter().map(frame).collect::<Result<_>>()?;
+    let pipe = Pipeline::latched(PipelineConfig::default(), k, &latch)?;
     pairs[bg..]
         .iter()
         .map(|p| Ok(pipe.observe(&frame(p)?)?.translucent_pixels as f64 / (k.width * k.height) as f64))
