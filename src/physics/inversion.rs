@@ -573,7 +573,13 @@ impl FastPixel {
     #[inline]
     fn phasor(&self, df: f64, x: f64) -> (f64, f64) {
         let (l1, l2) = self.strengths(df, x);
-        let (s, c) = (self.k * df - self.phi_d).sin_cos();
+        self.mix(l1, l2, (self.k * df - self.phi_d).sin_cos())
+    }
+
+    /// The rotated phasor of returns `L1` and `L2`, the layer's turned by its
+    /// `(sin, cos)`, the background's by [`Self::bg`](FastPixel::bg).
+    #[inline]
+    fn mix(&self, l1: f64, l2: f64, (s, c): (f64, f64)) -> (f64, f64) {
         (l1 * c + l2 * self.bg.0, l1 * s + l2 * self.bg.1)
     }
 
@@ -601,7 +607,7 @@ impl FastPixel {
     fn derivatives(&self, df: f64) -> Option<(f64, f64)> {
         let (x, l1, l2) = self.albedo_strengths(df)?;
         let (sn, cs) = (self.k * df - self.phi_d).sin_cos();
-        let (re, im) = (l1 * cs + l2 * self.bg.0, l1 * sn + l2 * self.bg.1);
+        let (re, im) = self.mix(l1, l2, (sn, cs));
         let per_df = 1.0 / df;
         let b = self.l1 * per_df * per_df;
         // d L2 / d X.
@@ -633,8 +639,7 @@ impl FastPixel {
     #[inline]
     fn eval(&self, df: f64) -> Option<Sample> {
         let (x, l1, l2) = self.albedo_strengths(df)?;
-        let turn = (self.k * df - self.phi_d).sin_cos();
-        let (re, im) = (l1 * turn.1 + l2 * self.bg.0, l1 * turn.0 + l2 * self.bg.1);
+        let (re, im) = self.mix(l1, l2, (self.k * df - self.phi_d).sin_cos());
         let residual = self.residual_mm(re, im);
         residual.is_finite().then_some(Sample { df, residual, x })
     }
@@ -694,7 +699,7 @@ fn scan_fast(fast: &FastPixel, lo: f64, hi: f64, step_mm: f64, mut visit: impl F
             }
         }
         let cur = fast.albedo_strengths(df).and_then(|(x, l1, l2)| {
-            let (re, im) = (l1 * rc + l2 * fast.bg.0, l1 * rs + l2 * fast.bg.1);
+            let (re, im) = fast.mix(l1, l2, (rs, rc));
             (re != 0.0 || im != 0.0).then_some(ScanSample { df, x, re, im })
         });
         if let Some((pdf, pok)) = prev {
