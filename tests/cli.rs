@@ -642,6 +642,11 @@ fn bench_rows_per_layer_distance() {
         "{near} {far}"
     );
     assert_eq!(rows.iter().filter(|r| r["name"] == "replay").count(), 1, "{rows:?}");
+    // The machine the figures were measured on goes with them.
+    let machine = &report["machine"];
+    assert!(machine["cpu"].as_str().is_some_and(|c| !c.is_empty()), "{machine}");
+    assert!(machine["cores"].as_u64().is_some_and(|c| c >= 1), "{machine}");
+    assert!(machine["features"].is_array(), "{machine}");
     let bad = run(dir.path(), &["bench", "--stage-mm", "600", "--no-reference"]);
     assert!(!bad.status.success(), "{}", describe(&bad));
     assert!(text(&bad.stderr).contains("--stage-mm 600"), "{}", describe(&bad));

@@ -216,6 +216,83 @@ pub struct Row {
     pub agreement: Option<reference::Agreement>,
 }
 
+/// The machine a benchmark ran on: timings mean little without it (the same
+/// commit has timed 20-25 % apart on two machines of the same kind).
+#[derive(Debug, Clone, Serialize)]
+pub struct Machine {
+    /// The processor's model name with its family, model, stepping and clock
+    /// (`/proc/cpuinfo`), or `unknown`.
+    pub cpu: String,
+    /// Logical cores this process may use.
+    pub cores: usize,
+    /// The vector instruction sets the processor offers, of those that matter
+    /// to the numerics (the build itself targets baseline x86-64).
+    pub features: Vec<&'static str>,
+}
+
+impl Machine {
+    /// Reads the processor's description; never fails (fields say `unknown`).
+    pub fn this() -> Self {
+        // The first processor's fields; a virtual machine often names only a family, so
+        // the model numbers and clock go with it.
+        let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+        let field = |key: &str| {
+            info.lines()
+                .take_while(|l| !l.trim().is_empty())
+                .filter_map(|l| l.split_once(':'))
+                .find(|(k, _)| k.trim() == key)
+                .map(|(_, v)| v.trim().to_string())
+        };
+        let cpu = match field("model name") {
+            Some(name) => {
+                let ids: Vec<String> = ["cpu family", "model", "stepping", "cpu MHz"]
+                    .iter()
+                    .filter_map(|&k| field(k).map(|v| format!("{} {v}", k.trim_start_matches("cpu "))))
+                    .collect();
+                if ids.is_empty() {
+                    name
+                } else {
+                    format!("{name} ({})", ids.join(", "))
+                }
+            }
+            None => "unknown".into(),
+        };
+        #[allow(unused_mut)]
+        let mut features = vec![];
+        #[cfg(target_arch = "x86_64")]
+        {
+            for (name, has) in [
+                ("avx2", std::arch::is_x86_feature_detected!("avx2")),
+                ("fma", std::arch::is_x86_feature_detected!("fma")),
+                ("avx512f", std::arch::is_x86_feature_detected!("avx512f")),
+            ] {
+                if has {
+                    features.push(name);
+                }
+            }
+        }
+        Self {
+            cpu,
+            cores: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+            features,
+        }
+    }
+
+    /// One line for a table's header.
+    pub fn describe(&self) -> String {
+        format!(
+            "{}, {} cores, {}",
+            self.cpu,
+            self.cores,
+            if self.features.is_empty() {
+                "no AVX2/FMA".into()
+            } else {
+                self.features.join("+")
+            }
+        )
+    }
+}
+
 /// Median and 95th percentile, ms, and the runs timed: up to `samples` runs of `f`
 /// after one warm-up run, stopping early (after at least 3) once `budget_s` seconds are spent.
 /// `pause`: idle time before each timed run (not timed), as between a camera's frames.

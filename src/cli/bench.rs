@@ -157,7 +157,9 @@ pub fn run(a: BenchArgs) -> Result<()> {
     } else {
         None
     };
-    let mut text = format!(
+    let machine = crate::bench::Machine::this();
+    let mut text = format!("machine: {}\n", machine.describe());
+    text.push_str(&format!(
         "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {:?} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case){}\n",
         a.stage_mm,
         STAGES_MM,
@@ -168,7 +170,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         } else {
             String::new()
         }
-    );
+    ));
     text.push_str(&format!(
         "{:<17} {:>8} {:>6} {:>7} {:>5} {:>10} {:>10} {:>10} {:>13} {:>9} {:>9} {}\n",
         "case",
@@ -252,7 +254,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
         },
         "frames": a.frames,
         "max_seconds": a.max_seconds,
-        "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+        "cores": machine.cores,
+        "machine": machine,
         "rows": rows,
         "node_latency": node,
     }))?;
