@@ -31,10 +31,44 @@ pub fn output_messages(
     depth_encoding: &str,
     frames_pooled: usize,
 ) -> Result<OutputMessages, ImageError> {
-    let enc = if depth_encoding == "32FC1" { "32FC1" } else { "16UC1" };
-    let xyz = points_m(intrinsics, &out.corrected_z_mm);
+    let corrected = corrected_message(header, out, depth_encoding)?;
+    let Companions { mask, points, estimate } = companion_messages(header, intrinsics, out, ir, frames_pooled);
     Ok(OutputMessages {
-        corrected: depth_image(header, &out.corrected_z_mm, enc)?,
+        corrected,
+        mask,
+        points,
+        estimate,
+    })
+}
+
+/// `~/depth/corrected` of [`output_messages`] alone: what most consumers wait
+/// for, so the node publishes it before it builds the rest.
+pub fn corrected_message(header: &Header, out: &FrameOutput, depth_encoding: &str) -> Result<Image, ImageError> {
+    let enc = if depth_encoding == "32FC1" { "32FC1" } else { "16UC1" };
+    depth_image(header, &out.corrected_z_mm, enc)
+}
+
+/// The outputs that follow the corrected depth.
+#[derive(Debug, Clone)]
+pub struct Companions {
+    /// `~/translucent_mask`.
+    pub mask: Image,
+    /// `~/points`.
+    pub points: PointCloud2,
+    /// `~/translucency`.
+    pub estimate: TranslucencyEstimate,
+}
+
+/// The mask, cloud and estimate of [`output_messages`].
+pub fn companion_messages(
+    header: &Header,
+    intrinsics: &Intrinsics,
+    out: &FrameOutput,
+    ir: &ImageBuf<f32>,
+    frames_pooled: usize,
+) -> Companions {
+    let xyz = points_m(intrinsics, &out.corrected_z_mm);
+    Companions {
         mask: mask_image(header, &out.mask),
         points: organized_cloud(header, &xyz, ir, &out.mask),
         estimate: TranslucencyEstimate {
@@ -47,7 +81,7 @@ pub fn output_messages(
             fit_residual_mm: out.fit_residual_mm,
             frames_pooled: u32::try_from(frames_pooled).unwrap_or(u32::MAX),
         },
-    })
+    }
 }
 
 /// Points in the optical frame (REP 103: x right, y down, z forward), metres,

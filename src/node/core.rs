@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 
 use crate::image::{depth_mm, ir_counts};
 use crate::msgs::{CameraInfo, Image, TriggerResponse};
-use crate::outputs::{output_messages, OutputMessages};
+use crate::outputs::{companion_messages, corrected_message, Companions};
 use crate::physics::Intrinsics;
 use crate::pipeline::{Background, BackgroundLatch, DepthFrame, FrameOutput, Pipeline, PipelineConfig};
 
@@ -88,11 +88,38 @@ struct LatchInProgress<T> {
     started: std::time::Instant,
 }
 
+/// A recovered frame's outputs: the corrected depth made, the rest made when
+/// asked ([`NodeOutputs::companions`]), after the corrected depth is out.
+#[derive(Debug)]
+pub struct NodeOutputs {
+    /// `~/depth/corrected`.
+    pub corrected: Image,
+    /// The recovery it was made from.
+    pub frame: FrameOutput,
+    header: crate::msgs::Header,
+    intrinsics: Intrinsics,
+    ir: crate::physics::ImageBuf<f32>,
+    frames_pooled: usize,
+}
+
+impl NodeOutputs {
+    /// The mask, cloud and estimate (the same as `replay` writes).
+    pub fn companions(&self) -> Companions {
+        companion_messages(
+            &self.header,
+            &self.intrinsics,
+            &self.frame,
+            &self.ir,
+            self.frames_pooled,
+        )
+    }
+}
+
 /// What a frame produced.
 #[derive(Debug, Default)]
 pub struct FrameResult<T> {
-    /// The messages to publish (none when the frame was dropped or latched).
-    pub outputs: Option<(OutputMessages, FrameOutput)>,
+    /// What to publish (none when the frame was dropped or latched).
+    pub outputs: Option<NodeOutputs>,
     /// A frame dropped, why, and a message when it is the first of its cause.
     pub dropped: Option<(DropCause, Option<String>)>,
     /// Service replies now due (a latch that completed or failed).
@@ -341,10 +368,17 @@ impl<T> NodeCore<T> {
             ));
         };
         let out = pipe.recover(&frame, &obs, &xi);
-        let msgs = output_messages(&depth.header, &k, &out, &frame.ir, &depth.encoding, pipe.xi_frames())
+        let corrected = corrected_message(&depth.header, &out, &depth.encoding)
             .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns: {e}")))?;
         self.processed += 1;
-        result.outputs = Some((msgs, out));
+        result.outputs = Some(NodeOutputs {
+            corrected,
+            frame: out,
+            header: depth.header.clone(),
+            intrinsics: k,
+            ir: frame.ir,
+            frames_pooled: pipe.xi_frames(),
+        });
         Ok(())
     }
 

@@ -572,13 +572,17 @@ fn worker(
                 } else if res.outputs.is_none() && latching {
                     stats.latched_frames += 1;
                 }
-                if let Some((msgs, fo)) = res.outputs {
-                    let est = msgs.estimate.clone();
+                if let Some(mut o) = res.outputs {
+                    // The corrected depth first (most consumers wait for it alone), then the
+                    // rest is made and published.
+                    let first = out.corrected.publish(std::mem::take(&mut o.corrected)).err();
+                    let c = o.companions();
+                    let est = c.estimate.clone();
                     let results = [
-                        out.corrected.publish(msgs.corrected).err().map(|e| format!("{e:?}")),
-                        out.mask.publish(msgs.mask).err().map(|e| format!("{e:?}")),
-                        out.points.publish(msgs.points).err().map(|e| format!("{e:?}")),
-                        out.estimate.publish(msgs.estimate).err().map(|e| format!("{e:?}")),
+                        first.map(|e| format!("{e:?}")),
+                        out.mask.publish(c.mask).err().map(|e| format!("{e:?}")),
+                        out.points.publish(c.points).err().map(|e| format!("{e:?}")),
+                        out.estimate.publish(c.estimate).err().map(|e| format!("{e:?}")),
                     ];
                     if let Some(e) = results.into_iter().flatten().next() {
                         error!("publishing: {e}");
@@ -593,13 +597,13 @@ fn worker(
                         let raw = crate::image::depth_mm(&depth).ok();
                         if let Some(raw) = raw {
                             v.log(FrameViz {
-                                stamp_ns: fo.stamp_ns,
+                                stamp_ns: o.frame.stamp_ns,
                                 frame: stats.published,
                                 intrinsics: k,
                                 raw_z_mm: raw,
-                                recovered_z_mm: fo.corrected_z_mm,
-                                mask: fo.mask,
-                                xi: Some((fo.xi.xi, fo.xi.interval)),
+                                recovered_z_mm: o.frame.corrected_z_mm,
+                                mask: o.frame.mask,
+                                xi: Some((o.frame.xi.xi, o.frame.xi.interval)),
                             });
                         }
                     }
