@@ -19,6 +19,7 @@
 // meant: it rejects NaN too.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod affinity;
 pub mod alloc;
 pub mod audit;
 pub mod bag;

@@ -619,6 +619,7 @@ fn bench_rows_per_layer_distance() {
         "5",
         "--stage-mm",
         "500,1750",
+        "--pin-threads",
         "--json",
         "-",
     ];
@@ -642,6 +643,7 @@ fn bench_rows_per_layer_distance() {
         "{near} {far}"
     );
     assert_eq!(rows.iter().filter(|r| r["name"] == "replay").count(), 1, "{rows:?}");
+    assert!(rows.iter().all(|r| r["pinned"] == true), "{rows:?}");
     // The machine the figures were measured on goes with them.
     let machine = &report["machine"];
     assert!(machine["cpu"].as_str().is_some_and(|c| !c.is_empty()), "{machine}");
@@ -650,6 +652,15 @@ fn bench_rows_per_layer_distance() {
     let bad = run(dir.path(), &["bench", "--stage-mm", "600", "--no-reference"]);
     assert!(!bad.status.success(), "{}", describe(&bad));
     assert!(text(&bad.stderr).contains("--stage-mm 600"), "{}", describe(&bad));
+}
+
+/// The node's `pin_threads` takes a boolean; anything else is refused before
+/// the node joins DDS.
+#[test]
+fn node_pin_threads_wants_a_boolean() {
+    let dir = temp();
+    let out = run(dir.path(), &["node", "--ros-args", "-p", "pin_threads:=2"]);
+    assert_clean_failure(&out, &["pin_threads", "true or false"], dir.path(), &[]);
 }
 
 // -------------------------------------------------------------- bad input

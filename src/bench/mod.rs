@@ -196,6 +196,8 @@ pub struct Row {
     pub samples: usize,
     /// Idle time before each of them, ms.
     pub pause_ms: f64,
+    /// Workers pinned one per CPU.
+    pub pinned: bool,
     /// Distance of the layer in the frame timed, mm (`replay`: the first of all it runs).
     pub stage_mm: f64,
     /// Median time per frame, ms.
@@ -348,6 +350,8 @@ pub struct RunSettings {
     pub pause: Duration,
     /// The frame timed (but by `replay`): an index into [`STAGES_MM`].
     pub stage: usize,
+    /// Pin the pool's workers one per CPU ([`crate::affinity`]).
+    pub pin: bool,
 }
 
 /// The target for a case at a size, ms, where it sets one.
@@ -363,10 +367,7 @@ pub fn target_ms(case: Case, width: usize, height: usize, threads: usize) -> Opt
 /// Runs one case on the frame of `settings.stage` (all frames for `replay`)
 /// in a pool of `settings.threads` threads.
 pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(settings.threads.max(1))
-        .build()
-        .expect("a thread pool");
+    let pool = crate::affinity::thread_pool(settings.threads.max(1), settings.pin).expect("a thread pool");
     let stage = settings.stage.min(scene.frames.len() - 1);
     let frame = &scene.frames[stage];
     let obs = scene.observe(frame);
@@ -422,6 +423,7 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
         threads: settings.threads.max(1),
         samples,
         pause_ms: pause.as_secs_f64() * 1e3,
+        pinned: settings.pin,
         stage_mm: STAGES_MM[stage],
         median_ms,
         p95_ms,

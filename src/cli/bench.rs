@@ -51,6 +51,11 @@ pub struct BenchArgs {
     /// (33 at 30 Hz) shows what a node pays when its cores idle between frames.
     #[arg(long, default_value_t = 0.0)]
     pub pause_ms: f64,
+    /// Pin the pool's workers one per CPU of the process's affinity mask (the node's
+    /// `pin_threads`): after idling, a scheduler that packs idle CPUs can leave two workers
+    /// sharing one core.
+    #[arg(long)]
+    pub pin_threads: bool,
     /// The layer's distance in the frames recover, recover_per_pixel, observe and xi_estimate
     /// time, mm, comma-separated: 500 (57 % of the image translucent), 750, 1000 or 1750 (5 %).
     /// `replay` runs over all of them once.
@@ -145,6 +150,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     reference: !a.no_reference && k == 0,
                     pause: std::time::Duration::from_secs_f64(a.pause_ms / 1e3),
                     stage,
+                    pin: a.pin_threads,
                 };
                 rows.push(run_case(&scene, case, &settings));
                 pb.inc(1);
@@ -160,7 +166,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
     let machine = crate::bench::Machine::this();
     let mut text = format!("machine: {}\n", machine.describe());
     text.push_str(&format!(
-        "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {:?} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case){}\n",
+        "document holder (xi {BENCH_XI}, 240x310 mm) before a wall at 2000 mm; recover, observe and xi_estimate on the frame at {:?} mm, replay over the frames at {:?} mm; up to {} timed runs each (at most {} s a case){}{}\n",
         a.stage_mm,
         STAGES_MM,
         a.frames,
@@ -169,7 +175,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
             format!(", each after {} ms idle", a.pause_ms)
         } else {
             String::new()
-        }
+        },
+        if a.pin_threads { ", workers pinned one per CPU" } else { "" }
     ));
     text.push_str(&format!(
         "{:<17} {:>8} {:>6} {:>7} {:>5} {:>10} {:>10} {:>10} {:>13} {:>9} {:>9} {}\n",
@@ -277,6 +284,9 @@ fn per_minute_peaks_mb(series_kb: &serde_json::Value) -> String {
 
 fn node_latency_run(a: &BenchArgs) -> Result<crate::node::latency::LatencyReport> {
     let mut params = vec!["queue_depth:=2".to_string()];
+    if a.pin_threads {
+        params.push("pin_threads:=true".to_string());
+    }
     match a.node_xi.as_str() {
         "estimate" => {}
         x => {

@@ -59,6 +59,10 @@ pub const PARAMETERS: &[(&str, &str)] = &[
         "a latch that has not got its frames by then fails (10)",
     ),
     ("prior_radius_px", "smooth-surface prior radius, px (4; 0 = off)"),
+    (
+        "pin_threads",
+        "pin the processing pool's workers one per CPU of the process's mask (false)",
+    ),
 ];
 
 fn number(params: &std::collections::BTreeMap<String, ParamValue>, name: &str) -> Result<Option<f64>> {
@@ -134,6 +138,11 @@ pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
         Some("basic") => ros2_client::ServiceMapping::Basic,
         Some(other) => bail!("parameter service_mapping {other:?}: expected enhanced, cyclone or basic"),
     };
+    let pin_threads = match p.get("pin_threads") {
+        None => false,
+        Some(ParamValue::Bool(b)) => *b,
+        Some(v) => bail!("parameter pin_threads: expected true or false, got {:?}", v.as_text()),
+    };
     let latch_timeout_s = number(p, "latch_timeout_s")?.unwrap_or(10.0);
     if !(latch_timeout_s > 0.0 && latch_timeout_s < 1e6) {
         bail!("parameter latch_timeout_s must be positive, got {latch_timeout_s}");
@@ -157,6 +166,7 @@ pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
         background_frames,
         latch_timeout: Duration::from_secs_f64(latch_timeout_s),
         queue_depth: count(p, "queue_depth", 2)?.max(1),
+        pin_threads,
         service_mapping,
         names,
         domain_id,

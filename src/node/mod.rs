@@ -74,6 +74,8 @@ pub struct NodeSettings {
     pub latch_timeout: Duration,
     /// Paired frames waiting for processing; more and the oldest is dropped.
     pub queue_depth: usize,
+    /// The processing pool's workers pinned one per CPU ([`crate::affinity`]).
+    pub pin_threads: bool,
     /// Request/reply mapping of the services.
     pub service_mapping: ServiceMapping,
     /// Node name, namespace, remaps.
@@ -251,6 +253,13 @@ fn release_free_heap() {
 /// Runs the node until SIGINT / SIGTERM (or `max_frames`).
 pub fn run(s: NodeSettings) -> anyhow::Result<NodeStats> {
     fix_mmap_threshold();
+    if s.pin_threads {
+        // The pool recovery spreads a large frame over (rayon's global pool), built before
+        // anything uses it.
+        if let Err(e) = crate::affinity::global_pool(0, true) {
+            warn!("pin_threads: the processing pool was already built, its workers are not pinned ({e})");
+        }
+    }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()

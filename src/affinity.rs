@@ -1,0 +1,87 @@
+//! Worker threads pinned one per CPU.
+//!
+//! A frame's recovery is spread over a rayon pool. Between frames the pool
+//! idles, and on a scheduler that gathers lightly loaded threads onto one CPU
+//! (this project's 2-core virtual machines pack idle vCPUs) the woken workers
+//! can share one core for the whole of the next frame: two workers then take
+//! the one-worker time. Pinning worker `i` to the `i`-th CPU of the process's
+//! affinity mask keeps them apart. The mask is respected, so `taskset` or a
+//! cpuset given to the process still decides which CPUs it has.
+
+use std::io;
+
+/// The CPUs the calling thread may run on (the process's mask, as inherited), ascending.
+pub fn allowed_cpus() -> io::Result<Vec<usize>> {
+    // SAFETY: cpu_set_t is plain data; sched_getaffinity writes at most its size.
+    let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
+    let rc = unsafe { libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) };
+    if rc != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    let max = 8 * std::mem::size_of::<libc::cpu_set_t>();
+    // SAFETY: CPU_ISSET reads the set within its size (cpu < max).
+    Ok((0..max).filter(|&cpu| unsafe { libc::CPU_ISSET(cpu, &set) }).collect())
+}
+
+/// Pins the calling thread to one CPU.
+pub fn pin_current_thread(cpu: usize) -> io::Result<()> {
+    if cpu >= 8 * std::mem::size_of::<libc::cpu_set_t>() {
+        return Err(io::Error::new(io::ErrorKind::InvalidInput, format!("no CPU {cpu}")));
+    }
+    // SAFETY: as in allowed_cpus; CPU_SET writes within the set (checked above).
+    let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
+    unsafe { libc::CPU_SET(cpu, &mut set) };
+    let rc = unsafe { libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) };
+    if rc != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    Ok(())
+}
+
+/// A rayon pool of `threads` workers (0: one per allowed CPU), each pinned to
+/// the next CPU of the mask in turn when `pin` is set. A worker that cannot be
+/// pinned runs unpinned: pinning changes speed, never results.
+pub fn thread_pool(threads: usize, pin: bool) -> Result<rayon::ThreadPool, rayon::ThreadPoolBuildError> {
+    builder(threads, pin).build()
+}
+
+/// [`thread_pool`] as rayon's global pool (the node's); an error if the
+/// global pool was already built.
+pub fn global_pool(threads: usize, pin: bool) -> Result<(), rayon::ThreadPoolBuildError> {
+    builder(threads, pin).build_global()
+}
+
+fn builder(threads: usize, pin: bool) -> rayon::ThreadPoolBuilder {
+    let cpus = if pin {
+        allowed_cpus().unwrap_or_default()
+    } else {
+        vec![]
+    };
+    let b = rayon::ThreadPoolBuilder::new().num_threads(threads);
+    if cpus.is_empty() {
+        return b;
+    }
+    b.start_handler(move |i| {
+        let _ = pin_current_thread(cpus[i % cpus.len()]);
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pinned_workers_each_run_on_their_cpu() {
+        let cpus = allowed_cpus().expect("the affinity mask");
+        assert!(!cpus.is_empty());
+        let pool = thread_pool(cpus.len().min(4), true).expect("a pool");
+        let seen: Vec<(usize, Vec<usize>)> = pool.broadcast(|ctx| (ctx.index(), allowed_cpus().expect("a mask")));
+        for (i, mask) in seen {
+            assert_eq!(mask, vec![cpus[i % cpus.len()]], "worker {i}");
+        }
+        // Unpinned workers keep the whole mask.
+        let free = thread_pool(1, false).expect("a pool");
+        assert_eq!(free.install(|| allowed_cpus().expect("a mask")), cpus);
+        assert!(pin_current_thread(1 << 20).is_err());
+    }
+}
