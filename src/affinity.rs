@@ -42,16 +42,29 @@ pub fn pin_current_thread(cpu: usize) -> io::Result<()> {
 /// the next CPU of the mask in turn when `pin` is set. A worker that cannot be
 /// pinned runs unpinned: pinning changes speed, never results.
 pub fn thread_pool(threads: usize, pin: bool) -> Result<rayon::ThreadPool, rayon::ThreadPoolBuildError> {
-    builder(threads, pin).build()
+    builder(threads, pin).0.build()
 }
 
-/// [`thread_pool`] as rayon's global pool (the node's); an error if the
+/// [`thread_pool`] as rayon's global pool (the node's), with the CPUs its
+/// workers are pinned to in worker order (empty: unpinned); an error if the
 /// global pool was already built.
-pub fn global_pool(threads: usize, pin: bool) -> Result<(), rayon::ThreadPoolBuildError> {
-    builder(threads, pin).build_global()
+pub fn global_pool(threads: usize, pin: bool) -> Result<Vec<usize>, rayon::ThreadPoolBuildError> {
+    let (b, cpus) = builder(threads, pin);
+    b.build_global()?;
+    // Outside any pool, the global pool's size.
+    Ok(worker_cpus(&cpus, rayon::current_num_threads()))
 }
 
-fn builder(threads: usize, pin: bool) -> rayon::ThreadPoolBuilder {
+/// The CPU of each of `n` workers over `cpus` in turn (empty when `cpus` is).
+fn worker_cpus(cpus: &[usize], n: usize) -> Vec<usize> {
+    if cpus.is_empty() {
+        return vec![];
+    }
+    (0..n).map(|i| cpus[i % cpus.len()]).collect()
+}
+
+/// The builder, and the CPUs its workers are pinned to in turn (empty: unpinned).
+fn builder(threads: usize, pin: bool) -> (rayon::ThreadPoolBuilder, Vec<usize>) {
     let cpus = if pin {
         allowed_cpus().unwrap_or_default()
     } else {
@@ -59,11 +72,15 @@ fn builder(threads: usize, pin: bool) -> rayon::ThreadPoolBuilder {
     };
     let b = rayon::ThreadPoolBuilder::new().num_threads(threads);
     if cpus.is_empty() {
-        return b;
+        return (b, cpus);
     }
-    b.start_handler(move |i| {
-        let _ = pin_current_thread(cpus[i % cpus.len()]);
-    })
+    let each = cpus.clone();
+    (
+        b.start_handler(move |i| {
+            let _ = pin_current_thread(each[i % each.len()]);
+        }),
+        cpus,
+    )
 }
 
 #[cfg(test)]
@@ -76,8 +93,9 @@ mod tests {
         assert!(!cpus.is_empty());
         let pool = thread_pool(cpus.len().min(4), true).expect("a pool");
         let seen: Vec<(usize, Vec<usize>)> = pool.broadcast(|ctx| (ctx.index(), allowed_cpus().expect("a mask")));
+        let each = worker_cpus(&cpus, pool.current_num_threads());
         for (i, mask) in seen {
-            assert_eq!(mask, vec![cpus[i % cpus.len()]], "worker {i}");
+            assert_eq!(mask, vec![each[i]], "worker {i}");
         }
         // Unpinned workers keep the whole mask.
         let free = thread_pool(1, false).expect("a pool");

@@ -341,6 +341,8 @@ fn latency_bench_times_every_frame_of_the_bag_through_echo_and_node() {
             "24",
             "--node-rate-hz",
             "20",
+            // The node with its pool pinned (the default, unpinned, runs in the tests above).
+            "--pin-threads",
             "--json",
             "-",
         ])
@@ -355,6 +357,12 @@ fn latency_bench_times_every_frame_of_the_bag_through_echo_and_node() {
         assert_eq!(n[side]["sent"].as_u64(), Some(24), "{side}");
         assert!(n[side]["received"].as_u64().unwrap() >= 22, "{side}: {}", n[side]);
     }
+    let pinned = n["node_stats"]["pinned_cpus"].as_array().expect("pinned_cpus");
+    assert!(
+        !pinned.is_empty(),
+        "pin_threads left the pool unpinned: {}",
+        n["node_stats"]
+    );
     // The bundled document holder: two frames at each of 500, 750, 1000 and 1750 mm, so
     // the translucent share falls frame by frame pair, and 24 frames time each of them.
     let frames = n["frames"].as_array().expect("per-frame latencies");

@@ -128,6 +128,9 @@ pub struct NodeStats {
     pub heap_in_use_kb: Vec<u64>,
     /// ξ last published, with its interval.
     pub xi: Option<[f64; 3]>,
+    /// The CPU each worker of the processing pool is pinned to (`pin_threads`;
+    /// empty: unpinned).
+    pub pinned_cpus: Vec<usize>,
 }
 
 /// Which service a pending request belongs to.
@@ -253,21 +256,26 @@ fn release_free_heap() {
 /// Runs the node until SIGINT / SIGTERM (or `max_frames`).
 pub fn run(s: NodeSettings) -> anyhow::Result<NodeStats> {
     fix_mmap_threshold();
+    let mut pinned_cpus = vec![];
     if s.pin_threads {
         // The pool recovery spreads a large frame over (rayon's global pool), built before
         // anything uses it.
-        if let Err(e) = crate::affinity::global_pool(0, true) {
-            warn!("pin_threads: the processing pool was already built, its workers are not pinned ({e})");
+        match crate::affinity::global_pool(0, true) {
+            Ok(cpus) => {
+                info!("pin_threads: the processing pool's workers pinned to CPUs {cpus:?}");
+                pinned_cpus = cpus;
+            }
+            Err(e) => warn!("pin_threads: the processing pool was already built, its workers are not pinned ({e})"),
         }
     }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
         .build()?;
-    rt.block_on(run_async(s))
+    rt.block_on(run_async(s, pinned_cpus))
 }
 
-async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
+async fn run_async(s: NodeSettings, pinned_cpus: Vec<usize>) -> anyhow::Result<NodeStats> {
     // Rerun first: a bad target is an error before anything appears on DDS.
     let viz = VizSink::start(&s.rerun, "translucent_tof", 2).map_err(|e| anyhow::anyhow!(e))?;
     let ctx = context(s.domain_id, s.localhost_only)?;
@@ -486,6 +494,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
             stats.dropped.get(&DropCause::BadImage).copied().unwrap_or(0) + read_errors,
         );
     }
+    stats.pinned_cpus = pinned_cpus;
     info!("{}", summary(&stats));
     if let Some(p) = &s.stats_json {
         let text = serde_json::to_string_pretty(&stats)?;
