@@ -55,12 +55,17 @@ pub fn global_pool(threads: usize, pin: bool) -> Result<Vec<usize>, rayon::Threa
     Ok(worker_cpus(&cpus, rayon::current_num_threads()))
 }
 
-/// The CPU of each of `n` workers over `cpus` in turn (empty when `cpus` is).
+/// The CPU of worker `i`: the mask's CPUs in turn (`cpus` not empty).
+fn cpu_of(cpus: &[usize], i: usize) -> usize {
+    cpus[i % cpus.len()]
+}
+
+/// The CPU of each of `n` workers (empty when `cpus` is: unpinned).
 fn worker_cpus(cpus: &[usize], n: usize) -> Vec<usize> {
     if cpus.is_empty() {
         return vec![];
     }
-    (0..n).map(|i| cpus[i % cpus.len()]).collect()
+    (0..n).map(|i| cpu_of(cpus, i)).collect()
 }
 
 /// The builder, and the CPUs its workers are pinned to in turn (empty: unpinned).
@@ -77,7 +82,7 @@ fn builder(threads: usize, pin: bool) -> (rayon::ThreadPoolBuilder, Vec<usize>) 
     let each = cpus.clone();
     (
         b.start_handler(move |i| {
-            let _ = pin_current_thread(each[i % each.len()]);
+            let _ = pin_current_thread(cpu_of(&each, i));
         }),
         cpus,
     )

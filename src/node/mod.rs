@@ -265,7 +265,9 @@ pub fn run(s: NodeSettings) -> anyhow::Result<NodeStats> {
                 info!("pin_threads: the processing pool's workers pinned to CPUs {cpus:?}");
                 pinned_cpus = cpus;
             }
-            Err(e) => warn!("pin_threads: the processing pool was already built, its workers are not pinned ({e})"),
+            Err(e) => {
+                warn!("pin_threads: the pinned processing pool could not be built, its workers run unpinned ({e})")
+            }
         }
     }
     let rt = tokio::runtime::Builder::new_multi_thread()
