@@ -1,8 +1,9 @@
 //! The transport baseline of the latency benchmark: a bare DDS
-//! subscriber/publisher under the node's names that answers each depth image
-//! at once with the same messages the node would send (the depth image, a
-//! mask and an organized cloud of the same size, an estimate), with no
-//! pairing, queue or pipeline. The node's added latency is measured against it.
+//! subscriber/publisher under the node's names that answers each frame, as
+//! soon as both its depth and IR images are in (paired by stamp, as the node
+//! pairs them), with the same messages the node would send (the depth image,
+//! a mask and an organized cloud of the same size, an estimate), with no
+//! queue or pipeline. The node's added latency is measured against it.
 
 use std::time::Duration;
 
@@ -10,6 +11,7 @@ use anyhow::{anyhow, Result};
 use futures::StreamExt;
 use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, QosProfile, ServiceMapping, ServiceTypeName};
 
+use super::inbox::StampPairer;
 use crate::image::{mask_image, organized_cloud};
 use crate::msgs::translucent_tof::TranslucencyEstimate;
 use crate::msgs::{Image, PointCloud2, TriggerRequest, TriggerResponse};
@@ -74,8 +76,7 @@ pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
         let sub = node
             .create_subscription::<Image>(&t_in, Some(sensor.clone()))
             .map_err(e)?;
-        // Matched like the node's, so that a peer waiting for the node's inputs proceeds.
-        let _ir = node
+        let ir_sub = node
             .create_subscription::<Image>(&t_ir, Some(sensor.clone()))
             .map_err(e)?;
         let _info = node
@@ -110,7 +111,10 @@ pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
                 sq,
             )
             .map_err(e)?;
-        let mut images = std::pin::pin!(sub.async_stream());
+        let mut depths = std::pin::pin!(sub.async_stream());
+        let mut irs = std::pin::pin!(ir_sub.async_stream());
+        // A frame is in when both of its images are: the node cannot start before that either.
+        let mut pairer = StampPairer::new(4);
         let mut latches = std::pin::pin!(latch.receive_request_stream());
         let mut clears = std::pin::pin!(clear.receive_request_stream());
         let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
@@ -120,30 +124,44 @@ pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
         };
         // Outputs of each size are built once; each frame only restamps them.
         let mut template: Option<(u32, u32, PointCloud2, Image)> = None;
+        let mut answer = |img: Image| {
+            if template.as_ref().is_none_or(|t| (t.0, t.1) != (img.width, img.height)) {
+                let (w, h) = (img.width as usize, img.height as usize);
+                let mask = ImageBuf::filled(w, h, false);
+                let xyz = ImageBuf::filled(w, h, [0.0f32, 0.0, 1.0]);
+                let cloud = organized_cloud(&img.header, &xyz, &ImageBuf::filled(w, h, 0.0f32), &mask);
+                template = Some((img.width, img.height, cloud, mask_image(&img.header, &mask)));
+            }
+            let Some((_, _, cloud, m_img)) = &template else { return };
+            let (mut cloud, mut m_img) = (cloud.clone(), m_img.clone());
+            cloud.header = img.header.clone();
+            m_img.header = img.header.clone();
+            let est = TranslucencyEstimate {
+                header: img.header.clone(),
+                xi: 0.0,
+                xi_lower: 0.0,
+                xi_upper: 0.0,
+                method: "echo".into(),
+                translucent_pixels: 0,
+                fit_residual_mm: 0.0,
+                frames_pooled: 0,
+            };
+            let _ = p_out.publish(img);
+            let _ = p_mask.publish(m_img);
+            let _ = p_pts.publish(cloud);
+            let _ = p_est.publish(est);
+        };
         loop {
             tokio::select! {
-                m = images.next() => {
+                m = depths.next() => {
                     let Some(Ok((img, _))) = m else { continue };
-                    if template.as_ref().is_none_or(|t| (t.0, t.1) != (img.width, img.height)) {
-                        let (w, h) = (img.width as usize, img.height as usize);
-                        let mask = ImageBuf::filled(w, h, false);
-                        let xyz = ImageBuf::filled(w, h, [0.0f32, 0.0, 1.0]);
-                        let cloud = organized_cloud(&img.header, &xyz, &ImageBuf::filled(w, h, 0.0f32), &mask);
-                        template = Some((img.width, img.height, cloud, mask_image(&img.header, &mask)));
-                    }
-                    let Some((_, _, cloud, m_img)) = &template else { continue };
-                    let (mut cloud, mut m_img) = (cloud.clone(), m_img.clone());
-                    cloud.header = img.header.clone();
-                    m_img.header = img.header.clone();
-                    let est = TranslucencyEstimate {
-                        header: img.header.clone(),
-                        xi: 0.0, xi_lower: 0.0, xi_upper: 0.0, method: "echo".into(),
-                        translucent_pixels: 0, fit_residual_mm: 0.0, frames_pooled: 0,
-                    };
-                    let _ = p_out.publish(img);
-                    let _ = p_mask.publish(m_img);
-                    let _ = p_pts.publish(cloud);
-                    let _ = p_est.publish(est);
+                    let Some((img, _)) = pairer.depth(img) else { continue };
+                    answer(img);
+                }
+                m = irs.next() => {
+                    let Some(Ok((ir, _))) = m else { continue };
+                    let Some((img, _)) = pairer.ir(ir) else { continue };
+                    answer(img);
                 }
                 Some(Ok((id, _))) = latches.next() => { let _ = latch.async_send_response(id, ok()).await; }
                 Some(Ok((id, _))) = clears.next() => { let _ = clear.async_send_response(id, ok()).await; }
