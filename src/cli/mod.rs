@@ -42,7 +42,7 @@ enum Command {
     Bench(bench::BenchArgs),
     /// Compare the model with a ground-truthed recording: locate, name and fit the physics it leaves out.
     Audit(audit::AuditArgs),
-    /// The latency benchmark's transport baseline: answers each depth image at once with same-size outputs.
+    /// The latency benchmark's transport baseline: answers each frame with same-size outputs once its depth and IR images are both in.
     #[command(hide = true)]
     DdsEcho(EchoArgs),
 }
