@@ -10,7 +10,7 @@ use thiserror::Error;
 
 use crate::physics::camera::z_to_ray_distance;
 use crate::physics::emitted_light::{emitted_light_from_plane, EmittedLightError};
-use crate::physics::parallel::map_ordered;
+use crate::physics::parallel::{map_chunks_ordered, map_ordered};
 use crate::physics::segmentation::{
     changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
@@ -18,7 +18,7 @@ use crate::physics::stats::median_and_sigma;
 use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
-    foreground_distance, foreground_distance_without_slopes, ForwardModel, ImageBuf, Intrinsics, InversionBounds,
+    foreground_distance_without_slopes, foreground_distances, ForwardModel, ImageBuf, Intrinsics, InversionBounds,
     PixelObservation, Region, Sensor, XiEstimate, XiMethod,
 };
 
@@ -70,6 +70,10 @@ pub enum PipelineError {
 /// Fewest pixels whose inversions are spread over the rayon pool: about half a
 /// millisecond of one core's work (see [`map_ordered`]).
 const MIN_PARALLEL_PIXELS: usize = 2048;
+
+/// Pixels inverted together ([`foreground_distances`]): enough to fill the
+/// vector loops, few enough to stay in cache and to share out over the pool.
+const INVERSION_BATCH: usize = 256;
 
 /// How ξ is chosen.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -599,36 +603,53 @@ impl Pipeline {
         let mut unresolved = 0;
         let bg = self.background.as_ref();
         // The translucent pixels with an observation, in pixel order, each as its index in the
-        // rectangle and in the image: each on its own (in parallel over the current rayon
+        // rectangle and in the image: inverted in batches (in parallel over the current rayon
         // pool when there are enough of them), then the counts in pixel order.
-        let observed: Vec<(usize, usize)> = region
-            .pixels()
-            .filter(|&(i, fi)| mask.data[i] && obs.observations.data[fi].is_some())
-            .collect();
-        let per_pixel: Vec<Option<PixelSolve>> =
-            map_ordered(&observed, MIN_PARALLEL_PIXELS, 256, |&(_, fi): &(usize, usize)| {
-                let o = obs.observations.data[fi]?;
-                let est = foreground_distance(&self.config.model, &o, xi.xi, &self.config.bounds, None)?;
-                // Reading and IR noise: the background's, measured over the latch, scaled to
-                // this pixel's light as shot noise; the layer's follows through the model's
-                // slopes (implicit function: d df = -(dF/dI dI - dd) / (dF/d df)).
-                let light = (o.ir / o.background_ir).max(1e-9);
-                let d_sigma = bg
-                    .map(|b| b.noise_mm.data[fi])
-                    .filter(|v| v.is_finite())
-                    .unwrap_or(self.config.threshold_mm / 3.0)
-                    / light.sqrt();
-                let ir_sigma = bg.map(|b| b.ir_noise.data[fi]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
-                let dfdi = est.reading_per_ir;
-                let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
-                Some(PixelSolve {
-                    foreground_distance_mm: est.foreground_distance_mm,
-                    residual_mm: est.residual_mm,
-                    layer_sigma_mm: (d_sigma * d_sigma + ir_term * ir_term).sqrt() / est.slope.abs(),
-                    several_roots: est.roots > 1,
-                    pinned: est.pinned,
-                })
-            });
+        let mut observed: Vec<(usize, usize)> = Vec::with_capacity(obs.translucent_pixels);
+        observed.extend(
+            region
+                .pixels()
+                .filter(|&(i, fi)| mask.data[i] && obs.observations.data[fi].is_some()),
+        );
+        let per_pixel: Vec<Option<PixelSolve>> = map_chunks_ordered(
+            &observed,
+            INVERSION_BATCH,
+            MIN_PARALLEL_PIXELS,
+            |batch: &[(usize, usize)]| {
+                // `observed` holds only pixels with an observation: one estimate each.
+                let observations: Vec<PixelObservation> =
+                    batch.iter().filter_map(|&(_, fi)| obs.observations.data[fi]).collect();
+                let estimates =
+                    foreground_distances(&self.config.model, &observations, xi.xi, &self.config.bounds, true);
+                batch
+                    .iter()
+                    .zip(observations.iter().zip(estimates))
+                    .map(|(&(_, fi), (o, est))| {
+                        let est = est?;
+                        // Reading and IR noise: the background's, measured over the latch, scaled
+                        // to this pixel's light as shot noise; the layer's follows through the
+                        // model's slopes (implicit function: d df = -(dF/dI dI - dd) / (dF/d df)).
+                        let light = (o.ir / o.background_ir).max(1e-9);
+                        let d_sigma = bg
+                            .map(|b| b.noise_mm.data[fi])
+                            .filter(|v| v.is_finite())
+                            .unwrap_or(self.config.threshold_mm / 3.0)
+                            / light.sqrt();
+                        let ir_sigma =
+                            bg.map(|b| b.ir_noise.data[fi]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
+                        let dfdi = est.reading_per_ir;
+                        let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
+                        Some(PixelSolve {
+                            foreground_distance_mm: est.foreground_distance_mm,
+                            residual_mm: est.residual_mm,
+                            layer_sigma_mm: (d_sigma * d_sigma + ir_term * ir_term).sqrt() / est.slope.abs(),
+                            several_roots: est.roots > 1,
+                            pinned: est.pinned,
+                        })
+                    })
+                    .collect()
+            },
+        );
         for (&(i, fi), solve) in observed.iter().zip(&per_pixel) {
             if let Some(est) = *solve {
                 res2 += est.residual_mm * est.residual_mm;

@@ -6,6 +6,10 @@ use serde::{Deserialize, Serialize};
 
 use super::model::{ForwardModel, IrMode, LayerScene, ModelOptions};
 use super::sensor::Waveform;
+use super::trig::sin_cos;
+
+mod lanes;
+pub use lanes::foreground_distances;
 
 /// What is known at one translucent pixel (physics.md §3).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -483,8 +487,30 @@ struct FastPixel {
     bg: (f64, f64),
 }
 
-impl FastPixel {
-    fn new(model: &ForwardModel, obs: &PixelObservation, xi: f64, x_max: f64) -> Option<Self> {
+/// The constants of the fast path that one model and one ξ share over every
+/// pixel, with the model's options checked once ([`FastPixel`]'s).
+#[derive(Debug, Clone, Copy)]
+struct FastModel {
+    xi: f64,
+    /// The IR offset (ambient), counts.
+    offset: f64,
+    /// The subsurface delay, mm.
+    delay_mm: f64,
+    /// Transmission power `p` (0, 1 or 2).
+    p: f64,
+    /// Largest admissible `X`.
+    x_max: f64,
+    /// `2 pi / R`, radians per mm.
+    k: f64,
+    /// `R / (2 pi)`, mm per radian.
+    mm_per_rad: f64,
+    /// `R`, the unambiguous range, mm.
+    range_mm: f64,
+}
+
+impl FastModel {
+    /// `None` for a model the fast path does not know (the generic path runs).
+    fn new(model: &ForwardModel, xi: f64, x_max: f64) -> Option<Self> {
         let o = &model.options;
         // Only the options handled here may differ from the paper's; any other (an effect
         // added later) sends the pixel down the generic path.
@@ -502,21 +528,49 @@ impl FastPixel {
         if *o != known || !closed || model.sensor.waveform != Waveform::Sinusoid {
             return None;
         }
-        let k = std::f64::consts::TAU / model.sensor.unambiguous_range_mm();
-        let db = obs.background_distance_mm;
-        let phi_d = k * obs.distance_mm;
-        let (s, c) = (k * db - phi_d).sin_cos();
+        let range = model.sensor.unambiguous_range_mm();
         Some(Self {
-            ir: obs.ir - o.ambient_offset,
-            a: xi * xi * (obs.background_ir - o.ambient_offset).max(0.0),
-            l1: (1.0 - xi) * obs.emitted_light,
+            xi,
+            offset: o.ambient_offset,
+            delay_mm: o.subsurface_delay_mm,
             p: o.transmission_albedo_power,
             x_max,
-            k,
-            mm_per_rad: model.sensor.unambiguous_range_mm() / std::f64::consts::TAU,
-            phi_d: phi_d - k * o.subsurface_delay_mm,
-            bg: (c, s),
+            k: std::f64::consts::TAU / range,
+            mm_per_rad: range / std::f64::consts::TAU,
+            range_mm: range,
         })
+    }
+
+    /// The reading's phase `k d` and the background's angle from it, `k db - k d`.
+    #[inline(always)]
+    fn angles(&self, obs: &PixelObservation) -> (f64, f64) {
+        let phi_d = self.k * obs.distance_mm;
+        (phi_d, self.k * obs.background_distance_mm - phi_d)
+    }
+
+    /// One pixel's constants, given its [`Self::angles`] and the `(sin, cos)`
+    /// of the background's angle.
+    #[inline(always)]
+    fn pixel(&self, obs: &PixelObservation, phi_d: f64, (s, c): (f64, f64)) -> FastPixel {
+        FastPixel {
+            ir: obs.ir - self.offset,
+            a: self.xi * self.xi * (obs.background_ir - self.offset).max(0.0),
+            l1: (1.0 - self.xi) * obs.emitted_light,
+            p: self.p,
+            x_max: self.x_max,
+            k: self.k,
+            mm_per_rad: self.mm_per_rad,
+            phi_d: phi_d - self.k * self.delay_mm,
+            bg: (c, s),
+        }
+    }
+}
+
+impl FastPixel {
+    fn new(model: &ForwardModel, obs: &PixelObservation, xi: f64, x_max: f64) -> Option<Self> {
+        let fm = FastModel::new(model, xi, x_max)?;
+        let (phi_d, background) = fm.angles(obs);
+        Some(fm.pixel(obs, phi_d, sin_cos(background)))
     }
 
     /// `X` at `df` (Eq. 10), if admissible (`0 < X <= x_max`).
@@ -573,7 +627,7 @@ impl FastPixel {
     #[inline]
     fn phasor(&self, df: f64, x: f64) -> (f64, f64) {
         let (l1, l2) = self.strengths(df, x);
-        self.mix(l1, l2, (self.k * df - self.phi_d).sin_cos())
+        self.mix(l1, l2, sin_cos(self.k * df - self.phi_d))
     }
 
     /// The rotated phasor of returns `L1` and `L2`, the layer's turned by its
@@ -606,7 +660,7 @@ impl FastPixel {
     /// is not admissible.
     fn derivatives(&self, df: f64) -> Option<(f64, f64)> {
         let (x, l1, l2) = self.albedo_strengths(df)?;
-        let (sn, cs) = (self.k * df - self.phi_d).sin_cos();
+        let (sn, cs) = sin_cos(self.k * df - self.phi_d);
         let (re, im) = self.mix(l1, l2, (sn, cs));
         let per_df = 1.0 / df;
         let b = self.l1 * per_df * per_df;
@@ -639,7 +693,7 @@ impl FastPixel {
     #[inline]
     fn eval(&self, df: f64) -> Option<Sample> {
         let (x, l1, l2) = self.albedo_strengths(df)?;
-        let (re, im) = self.mix(l1, l2, (self.k * df - self.phi_d).sin_cos());
+        let (re, im) = self.mix(l1, l2, sin_cos(self.k * df - self.phi_d));
         let residual = self.residual_mm(re, im);
         residual.is_finite().then_some(Sample { df, residual, x })
     }
@@ -680,8 +734,8 @@ impl ScanSample {
 fn scan_fast(fast: &FastPixel, lo: f64, hi: f64, step_mm: f64, mut visit: impl FnMut(Option<ScanSample>)) {
     let n = ((hi - lo) / step_mm).ceil().max(2.0) as usize;
     let step = (hi - lo) / n as f64;
-    let (mut rs, mut rc) = (fast.k * lo - fast.phi_d).sin_cos();
-    let (ss, sc) = (fast.k * step).sin_cos();
+    let (mut rs, mut rc) = sin_cos(fast.k * lo - fast.phi_d);
+    let (ss, sc) = sin_cos(fast.k * step);
     let full = |df: f64| -> Option<ScanSample> {
         let x = fast.albedo(df)?;
         let (re, im) = fast.phasor(df, x);
@@ -693,7 +747,7 @@ fn scan_fast(fast: &FastPixel, lo: f64, hi: f64, step_mm: f64, mut visit: impl F
         if k > 0 {
             // e^{i (phi_k - phi_d)} by rotation; resynchronised every 64 steps.
             if k % 64 == 0 {
-                (rs, rc) = (fast.k * df - fast.phi_d).sin_cos();
+                (rs, rc) = sin_cos(fast.k * df - fast.phi_d);
             } else {
                 (rs, rc) = (rs * sc + rc * ss, rc * sc - rs * ss);
             }
@@ -811,7 +865,7 @@ impl HumpRoots {
     /// `e` and `de / d df`.
     #[inline]
     fn e(&self, df: f64) -> (f64, f64) {
-        let (sn, cs) = (self.k * df - self.phi_d).sin_cos();
+        let (sn, cs) = sin_cos(self.k * df - self.phi_d);
         let (t, dt) = self.tau(df);
         (self.sigma * sn - t, self.sigma * self.k * cs - dt)
     }

@@ -16,7 +16,8 @@ pub use model::{ForwardModel, IrMode, LayerScene, Measurement, ModelOptions, Ret
 pub use sensor::{Sensor, Waveform};
 pub mod inversion;
 pub use inversion::{
-    foreground_distance, foreground_distance_without_slopes, InversionBounds, LayerEstimate, PixelObservation,
+    foreground_distance, foreground_distance_without_slopes, foreground_distances, InversionBounds, LayerEstimate,
+    PixelObservation,
 };
 pub mod camera;
 pub mod emitted_light;
@@ -29,3 +30,4 @@ pub use translucency::{XiEstimate, XiMethod};
 pub mod audit;
 pub mod noise;
 pub mod parallel;
+pub mod trig;

@@ -21,6 +21,29 @@ where
     }
 }
 
+/// `f` over consecutive chunks of `items` of `chunk` each (the last may be
+/// shorter), in parallel over the current rayon pool when there are at least
+/// `min_parallel` items, else in turn; each chunk's results, in order, joined.
+pub fn map_chunks_ordered<T, R, F>(items: &[T], chunk: usize, min_parallel: usize, f: F) -> Vec<R>
+where
+    T: Sync,
+    R: Send,
+    F: Fn(&[T]) -> Vec<R> + Sync + Send,
+{
+    let chunks: Vec<&[T]> = items.chunks(chunk.max(1)).collect();
+    let parts: Vec<Vec<R>> = if items.len() < min_parallel {
+        chunks.into_iter().map(f).collect()
+    } else {
+        chunks.par_iter().map(|c| f(c)).collect()
+    };
+    // Sized once: a growing Vec of this size would be moved to new pages at each doubling.
+    let mut out = Vec::with_capacity(items.len());
+    for part in parts {
+        out.extend(part);
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -34,5 +57,17 @@ mod tests {
         assert_eq!(sequential, parallel);
         assert_eq!(parallel[999], 998_001);
         assert!(map_ordered(&[] as &[u32], 0, 1, square).is_empty());
+    }
+
+    #[test]
+    fn chunks_joined_in_order_either_way() {
+        let items: Vec<u32> = (0..1000).collect();
+        let squares = |c: &[u32]| c.iter().map(|v| u64::from(*v) * u64::from(*v)).collect::<Vec<_>>();
+        let sequential = map_chunks_ordered(&items, 64, usize::MAX, squares);
+        let parallel = map_chunks_ordered(&items, 7, 0, squares);
+        assert_eq!(sequential, parallel);
+        assert_eq!(sequential.len(), 1000);
+        assert_eq!(parallel[999], 998_001);
+        assert!(map_chunks_ordered(&[] as &[u32], 8, 0, squares).is_empty());
     }
 }

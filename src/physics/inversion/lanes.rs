@@ -1,0 +1,524 @@
+//! Many pixels inverted at one ξ side by side (Eq. 8-12).
+//!
+//! Eight pixels at a time run the fast path's common case in straight-line
+//! code over arrays of eight lanes, which the compiler turns into vector
+//! instructions (AVX2 where the processor has it, chosen at run time). The
+//! common case is a pixel whose search range meets at most two half-periods
+//! of the closed root structure ([`HumpRoots`]) and finds exactly one root
+//! there, from one end of its half-period (the other half-period has none).
+//! Every lane does the same work: the pixel's constants, `e` at the ends of
+//! both half-periods, Newton's method in lockstep until every lane has
+//! stopped, the root's sample and its slopes. Any other pixel (no root,
+//! several, a half-period that needs its maximum, an angle beyond the
+//! polynomial's range, a residual off the small-angle series) is inverted on
+//! its own afterwards, so the answer is [`foreground_distance`]'s for every
+//! pixel, bit for bit (test `the_same_as_pixel_by_pixel`): each lane runs the
+//! same operations in the same order as the pixel's own search, with the
+//! same `sin`/`cos` ([`sin_cos_reduced`]).
+
+use super::*;
+use crate::physics::trig::{sin_cos_reduced, REDUCED_LIMIT};
+
+/// Lanes of one pass.
+const W: usize = 8;
+
+/// One number per lane.
+type V = [f64; W];
+
+/// Largest angle, radians, a lane may meet: below [`REDUCED_LIMIT`], so the
+/// per-pixel path's [`sin_cos`] takes the same polynomial.
+const ANGLE_LIMIT: f64 = 1.0e6;
+const _: () = assert!(ANGLE_LIMIT < REDUCED_LIMIT);
+
+#[inline(always)]
+fn lanes(f: impl FnMut(usize) -> f64) -> V {
+    std::array::from_fn(f)
+}
+
+#[inline(always)]
+fn masks(f: impl FnMut(usize) -> bool) -> [bool; W] {
+    std::array::from_fn(f)
+}
+
+/// [`foreground_distance`] (`slopes`) or [`foreground_distance_without_slopes`]
+/// of every pixel in `obs` at one ξ, in order, the root nearest each reading
+/// (no preference): the same estimates, bit for bit.
+pub fn foreground_distances(
+    model: &ForwardModel,
+    obs: &[PixelObservation],
+    xi: f64,
+    bounds: &InversionBounds,
+    slopes: bool,
+) -> Vec<Option<LayerEstimate>> {
+    let mut out = Vec::with_capacity(obs.len());
+    let Some(fm) = FastModel::new(model, xi, bounds.max_albedo_cos) else {
+        out.extend(obs.iter().map(|o| invert(model, o, xi, bounds, None, slopes)));
+        return out;
+    };
+    let mut chunks = obs.chunks_exact(W);
+    for chunk in &mut chunks {
+        let chunk: &[PixelObservation; W] = chunk.try_into().expect("chunks_exact gives W");
+        let lanes = pass(&fm, bounds, chunk, slopes);
+        for (o, lane) in chunk.iter().zip(lanes) {
+            out.push(match lane {
+                Lane::Done(est) => Some(est),
+                Lane::Alone => invert(model, o, xi, bounds, None, slopes),
+            });
+        }
+    }
+    out.extend(
+        chunks
+            .remainder()
+            .iter()
+            .map(|o| invert(model, o, xi, bounds, None, slopes)),
+    );
+    out
+}
+
+/// What one lane of a pass gave.
+#[derive(Clone, Copy)]
+enum Lane {
+    /// The pixel's estimate.
+    Done(LayerEstimate),
+    /// Not the common case: the pixel is inverted on its own.
+    Alone,
+}
+
+/// One pass over eight pixels, the power's code chosen for the processor.
+fn pass(fm: &FastModel, bounds: &InversionBounds, obs: &[PixelObservation; W], slopes: bool) -> [Lane; W] {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the processor has AVX2 (checked just above).
+            return unsafe {
+                match fm.p {
+                    2.0 => pass_avx2::<2>(fm, bounds, obs, slopes),
+                    1.0 => pass_avx2::<1>(fm, bounds, obs, slopes),
+                    _ => pass_avx2::<0>(fm, bounds, obs, slopes),
+                }
+            };
+        }
+    }
+    match fm.p {
+        2.0 => pass_lanes::<2>(fm, bounds, obs, slopes),
+        1.0 => pass_lanes::<1>(fm, bounds, obs, slopes),
+        _ => pass_lanes::<0>(fm, bounds, obs, slopes),
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn pass_avx2<const P: u8>(
+    fm: &FastModel,
+    bounds: &InversionBounds,
+    obs: &[PixelObservation; W],
+    slopes: bool,
+) -> [Lane; W] {
+    pass_lanes::<P>(fm, bounds, obs, slopes)
+}
+
+/// `e` and `de / d df` of [`HumpRoots::e`] in every lane, with its `tau`.
+#[inline(always)]
+fn e_lanes<const P: u8>(k: f64, phi_d: &V, sigma: &V, s: &V, c: &V, df: &V) -> (V, V) {
+    let mut e = [0.0; W];
+    let mut de = [0.0; W];
+    for l in 0..W {
+        let (sn, cs) = sin_cos_reduced(k * df[l] - phi_d[l]);
+        let (t, dt) = match P {
+            2 => {
+                let d2 = df[l] * df[l];
+                let cd4 = c[l] * d2 * d2;
+                let q = (1.0 + cd4).sqrt();
+                (0.5 * s[l] * cd4 / (q + 1.0), s[l] * c[l] * d2 * df[l] / q)
+            }
+            1 => (c[l] * df[l] * df[l], 2.0 * c[l] * df[l]),
+            _ => (c[l], 0.0),
+        };
+        e[l] = sigma[l] * sn - t;
+        de[l] = sigma[l] * k * cs - dt;
+    }
+    (e, de)
+}
+
+/// The lanes' pass: see the module's text. Each expression is the per-pixel
+/// path's, in its order.
+#[inline(always)]
+fn pass_lanes<const P: u8>(
+    fm: &FastModel,
+    bounds: &InversionBounds,
+    obs: &[PixelObservation; W],
+    slopes: bool,
+) -> [Lane; W] {
+    use std::f64::consts::{PI, TAU};
+    let k = fm.k;
+    let lo = bounds.min_distance_mm;
+    let d = lanes(|l| obs[l].distance_mm);
+    let ir_raw = lanes(|l| obs[l].ir);
+    let ib = lanes(|l| obs[l].background_ir);
+    let lin = lanes(|l| obs[l].emitted_light);
+    let db = lanes(|l| obs[l].background_distance_mm);
+    // invert's range.
+    let hi = lanes(|l| db[l] - bounds.min_separation_mm);
+    // FastPixel: the constants.
+    let phi0 = lanes(|l| k * d[l]);
+    let angle = lanes(|l| k * db[l] - phi0[l]);
+    let mut sb = [0.0; W];
+    let mut cb = [0.0; W];
+    for l in 0..W {
+        (sb[l], cb[l]) = sin_cos_reduced(angle[l]);
+    }
+    let ir = lanes(|l| ir_raw[l] - fm.offset);
+    let a = lanes(|l| fm.xi * fm.xi * (ib[l] - fm.offset).max(0.0));
+    let l1 = lanes(|l| (1.0 - fm.xi) * lin[l]);
+    let phi_d = lanes(|l| phi0[l] - k * fm.delay_mm);
+    // HumpRoots: tau's constant.
+    let s = lanes(|l| sb[l].abs());
+    let c = lanes(|l| match P {
+        2 => 4.0 * a[l] * ir[l] / (l1[l] * l1[l]),
+        1 => s[l] * a[l] / l1[l],
+        _ => s[l] * a[l] / (ir[l] - a[l]),
+    });
+    let sigma = lanes(|l| -sb[l].signum());
+    let mut ok = masks(|l| {
+        hi[l] > lo
+            && d[l].is_finite()
+            && ir_raw[l].is_finite()
+            && angle[l].abs() <= ANGLE_LIMIT
+            && sb[l] != 0.0
+            && ir[l] > 0.0
+            && l1[l] > 0.0
+            && a[l] > 0.0
+            && sb[l].is_finite()
+            && (P != 0 || ir[l] > a[l])
+            && c[l].is_finite()
+    });
+    // admissible_limit.
+    let xp = match P {
+        2 => fm.x_max * fm.x_max,
+        0 => 1.0,
+        _ => fm.x_max,
+    };
+    let hi_e = lanes(|l| {
+        let rest = ir[l] - a[l] * xp;
+        let limit = if rest > 0.0 {
+            (l1[l] * fm.x_max / rest).sqrt()
+        } else {
+            f64::INFINITY
+        };
+        hi[l].min(limit)
+    });
+    // HumpRoots::roots: the half-periods m and m + 1 (m + 2 must lie beyond the range).
+    let a0 = lanes(|l| if sigma[l] > 0.0 { 0.0 } else { PI });
+    let m0 = lanes(|l| ((k * lo - phi_d[l] - a0[l]) / TAU).floor());
+    let m1 = lanes(|l| m0[l] + 1.0);
+    let to_df = |alpha: f64, l: usize| (alpha + phi_d[l]) / k;
+    let start0 = lanes(|l| to_df(a0[l] + TAU * m0[l], l));
+    let start1 = lanes(|l| to_df(a0[l] + TAU * m1[l], l));
+    let l0 = lanes(|l| start0[l].max(lo));
+    let u0 = lanes(|l| to_df(a0[l] + TAU * m0[l] + PI, l).min(hi_e[l]));
+    let lb1 = lanes(|l| start1[l].max(lo));
+    let u1 = lanes(|l| to_df(a0[l] + TAU * m1[l] + PI, l).min(hi_e[l]));
+    let act0 = masks(|l| start0[l] < hi_e[l] && l0[l] < u0[l]);
+    let act1 = masks(|l| start1[l] < hi_e[l] && lb1[l] < u1[l]);
+    for l in 0..W {
+        let start2 = to_df(a0[l] + TAU * (m1[l] + 1.0), l);
+        let ends = [l0[l], u0[l], lb1[l], u1[l]];
+        ok[l] &= !(start2 < hi_e[l]) && ends.iter().all(|&x| (k * x - phi_d[l]).abs() <= ANGLE_LIMIT);
+    }
+    let (el0, dl0) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &l0);
+    let (eu0, du0) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &u0);
+    let (el1, dl1) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &lb1);
+    let (eu1, du1) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &u1);
+    // Each lane's one root: from the end of its half-period where e <= 0.
+    let mut x = [0.0; W];
+    let mut toward = [0.0; W];
+    let mut e = [0.0; W];
+    let mut de = [0.0; W];
+    for l in 0..W {
+        // 0: no root; 1: from the lower end; 2: from the upper; 3: two or none (the maximum).
+        let kind = |act: bool, el: f64, eu: f64| -> u8 {
+            match (act, el > 0.0, eu > 0.0) {
+                (false, _, _) | (true, true, true) => 0,
+                (true, false, true) => 1,
+                (true, true, false) => 2,
+                (true, false, false) => 3,
+            }
+        };
+        let k0 = kind(act0[l], el0[l], eu0[l]);
+        let k1 = kind(act1[l], el1[l], eu1[l]);
+        ok[l] &= (k0 == 0) != (k1 == 0) && k0 != 3 && k1 != 3;
+        (x[l], toward[l], e[l], de[l]) = match (k0, k1) {
+            (1, _) => (l0[l], u0[l], el0[l], dl0[l]),
+            (2, _) => (u0[l], l0[l], eu0[l], du0[l]),
+            (_, 1) => (lb1[l], u1[l], el1[l], dl1[l]),
+            _ => (u1[l], lb1[l], eu1[l], du1[l]),
+        };
+    }
+    // HumpRoots::newton in lockstep.
+    let nlo = lanes(|l| x[l].min(toward[l]));
+    let nhi = lanes(|l| x[l].max(toward[l]));
+    let mut running = ok;
+    for iteration in 0..50 {
+        if iteration > 0 {
+            (e, de) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &x);
+        }
+        // Selects, not branches, so the lanes stay in vector registers.
+        for l in 0..W {
+            let step = -e[l] / de[l];
+            // f64::clamp's result without its check (a lane not running may hold NaN).
+            let v = x[l] + step;
+            let next = if v < nlo[l] {
+                nlo[l]
+            } else if v > nhi[l] {
+                nhi[l]
+            } else {
+                v
+            };
+            let moved = (next - x[l]).abs();
+            let go = running[l] & (step.abs() < f64::INFINITY);
+            x[l] = if go { next } else { x[l] };
+            running[l] = go & !((moved < 1e-3) | (e[l] == 0.0));
+        }
+        if !running.iter().any(|&r| r) {
+            break;
+        }
+    }
+    // The root's sample (FastPixel::eval) and slopes (FastPixel::derivatives).
+    let mut sn = [0.0; W];
+    let mut cs = [0.0; W];
+    for l in 0..W {
+        (sn[l], cs[l]) = sin_cos_reduced(k * x[l] - phi_d[l]);
+    }
+    // Every lane computed, then kept where it is the common case (selects, not branches).
+    let mut xa = [0.0; W];
+    let mut s1 = [0.0; W];
+    let mut s2 = [0.0; W];
+    for l in 0..W {
+        // albedo_strengths.
+        (xa[l], s1[l], s2[l]) = if P == 2 {
+            let u = x[l] * x[l];
+            let r = 2.0 * ir[l] / (l1[l] + (l1[l] * l1[l] + 4.0 * a[l] * ir[l] * u * u).sqrt());
+            let xa = r * u;
+            (xa, l1[l] * r, a[l] * xa * xa)
+        } else {
+            let b = l1[l] / (x[l] * x[l]);
+            let xa = if P == 0 { (ir[l] - a[l]) / b } else { ir[l] / (a[l] + b) };
+            let xpow = if P == 0 { 1.0 } else { xa };
+            (xa, l1[l] * xa / (x[l] * x[l]), a[l] * xpow)
+        };
+    }
+    let re = lanes(|l| s1[l] * cs[l] + s2[l] * cb[l]);
+    let im = lanes(|l| s1[l] * sn[l] + s2[l] * sb[l]);
+    // residual_mm on its small-angle series (a lane off it goes alone).
+    let residual = lanes(|l| {
+        let t = im[l] / re[l];
+        t * (1.0 - t * t / 3.0) * fm.mm_per_rad
+    });
+    let range = fm.range_mm;
+    let done = masks(|l| {
+        ok[l]
+            & (xa[l].abs() < f64::INFINITY)
+            & (xa[l] > 0.0)
+            & (xa[l] <= fm.x_max)
+            & (re[l] > 0.0)
+            & (im[l].abs() <= 1e-4 * re[l])
+            & (residual[l].abs() < f64::INFINITY)
+            & (residual[l].abs() < range / 4.0)
+    });
+    let mut slope = [f64::NAN; W];
+    let mut per_ir = [f64::NAN; W];
+    if slopes {
+        for l in 0..W {
+            let per_df = 1.0 / x[l];
+            let b = l1[l] * per_df * per_df;
+            let dl2_dx = match P {
+                2 => 2.0 * a[l] * xa[l],
+                0 => 0.0,
+                _ => a[l],
+            };
+            let dx_di = 1.0 / (b + dl2_dx);
+            let dx_ddf = 2.0 * b * xa[l] * per_df * dx_di;
+            let rate = fm.mm_per_rad / (re[l] * re[l] + im[l] * im[l]);
+            let angle_rate = |dre: f64, dim: f64| (re[l] * dim - im[l] * dre) * rate;
+            let dl1 = b * dx_ddf - 2.0 * s1[l] * per_df;
+            let dl2 = dl2_dx * dx_ddf;
+            let along = angle_rate(
+                dl1 * cs[l] - s1[l] * k * sn[l] + dl2 * cb[l],
+                dl1 * sn[l] + s1[l] * k * cs[l] + dl2 * sb[l],
+            );
+            let (dl1, dl2) = (b * dx_di, dl2_dx * dx_di);
+            let across = angle_rate(dl1 * cs[l] + dl2 * cb[l], dl1 * sn[l] + dl2 * sb[l]);
+            let finite = (along.abs() < f64::INFINITY) & (across.abs() < f64::INFINITY);
+            slope[l] = if finite { along } else { f64::NAN };
+            per_ir[l] = if finite { across } else { f64::NAN };
+        }
+    }
+    std::array::from_fn(|l| {
+        if done[l] {
+            Lane::Done(LayerEstimate {
+                foreground_distance_mm: x[l],
+                albedo_cos: xa[l],
+                residual_mm: residual[l],
+                roots: 1,
+                pinned: false,
+                slope: slope[l],
+                reading_per_ir: per_ir[l],
+            })
+        } else {
+            Lane::Alone
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::physics::model::{IrMode, ModelOptions};
+    use crate::physics::sensor::{Sensor, Waveform};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Pixels drawn from seeded ranges: the layer anywhere before the background, any
+    /// translucency and albedo, noise on the reading and the IR, some with the IR or
+    /// reading far off (no root, several roots, nothing admissible).
+    fn pixels(model: &ForwardModel, seed: u64, n: usize) -> Vec<PixelObservation> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let lin = 1.5e10;
+        (0..n)
+            .map(|_| {
+                let db = rng.random_range(600.0..4500.0);
+                let df = rng.random_range(150.0..db - 20.0);
+                let xb = rng.random_range(0.2..1.0);
+                let s = LayerScene {
+                    foreground_distance_mm: df,
+                    background_distance_mm: db,
+                    translucency: rng.random_range(0.05..0.97),
+                    foreground_albedo_cos: rng.random_range(0.05..1.0),
+                    background_albedo_cos: xb,
+                    emitted_light: lin,
+                };
+                let m = model.measure_layer(&s);
+                let bg = model.measure(&[ForwardModel::opaque_return(db, xb, lin)]);
+                let wild = rng.random_range(0.0..1.0) < 0.1;
+                PixelObservation {
+                    distance_mm: m.distance_mm + rng.random_range(-15.0..15.0) + if wild { 900.0 } else { 0.0 },
+                    ir: m.ir * rng.random_range(0.97..1.03) * if wild { 3.0 } else { 1.0 },
+                    background_distance_mm: db,
+                    background_ir: bg.ir,
+                    emitted_light: lin,
+                }
+            })
+            .collect()
+    }
+
+    fn bits(e: &Option<LayerEstimate>) -> Option<[u64; 7]> {
+        e.map(|e| {
+            [
+                e.foreground_distance_mm.to_bits(),
+                e.albedo_cos.to_bits(),
+                e.residual_mm.to_bits(),
+                u64::from(e.roots),
+                u64::from(e.pinned),
+                e.slope.to_bits(),
+                e.reading_per_ir.to_bits(),
+            ]
+        })
+    }
+
+    #[test]
+    fn the_same_as_pixel_by_pixel() {
+        let sr4000 = Sensor::sr4000();
+        let paper = ForwardModel::paper(sr4000.clone());
+        let with = |options: ModelOptions| ForwardModel {
+            options,
+            ..paper.clone()
+        };
+        let models = [
+            paper.clone(),
+            with(ModelOptions {
+                transmission_albedo_power: 1.0,
+                ..paper.options.clone()
+            }),
+            with(ModelOptions {
+                transmission_albedo_power: 0.0,
+                ..paper.options.clone()
+            }),
+            with(ModelOptions {
+                ambient_offset: 40.0,
+                subsurface_delay_mm: 6.0,
+                ..paper.options.clone()
+            }),
+            // Not on the fast path: every pixel is inverted on its own.
+            with(ModelOptions {
+                ir_mode: IrMode::Amplitude,
+                ..paper.options.clone()
+            }),
+            ForwardModel::paper(Sensor::new(30e6, Waveform::Triangle)),
+        ];
+        let bounds = InversionBounds::default();
+        let mut checked = [0usize; 4];
+        let mut laned = 0;
+        for (seed, model) in models.iter().enumerate() {
+            let obs = pixels(model, 7 + seed as u64, 600);
+            for xi in [0.3, 0.65, 0.9] {
+                for slopes in [true, false] {
+                    let batch = foreground_distances(model, &obs, xi, &bounds, slopes);
+                    if let Some(fm) = FastModel::new(model, xi, bounds.max_albedo_cos) {
+                        for chunk in obs.chunks_exact(W) {
+                            let chunk: &[PixelObservation; W] = chunk.try_into().expect("W");
+                            laned += pass(&fm, &bounds, chunk, slopes)
+                                .iter()
+                                .filter(|l| matches!(l, Lane::Done(_)))
+                                .count();
+                        }
+                    }
+                    assert_eq!(batch.len(), obs.len());
+                    for (o, b) in obs.iter().zip(&batch) {
+                        let one = invert(model, o, xi, &bounds, None, slopes);
+                        assert_eq!(bits(b), bits(&one), "{o:?} at xi {xi}: {b:?} vs {one:?}");
+                        match one {
+                            None => checked[0] += 1,
+                            Some(e) if e.pinned => checked[1] += 1,
+                            Some(e) if e.roots > 1 => checked[2] += 1,
+                            Some(_) => checked[3] += 1,
+                        }
+                    }
+                }
+            }
+        }
+        // Every kind of outcome was compared, and most single roots came from the lanes.
+        assert!(checked.iter().all(|&c| c > 50), "{checked:?}");
+        assert!(
+            laned * 2 > checked[3],
+            "{laned} of {} single roots from the lanes",
+            checked[3]
+        );
+    }
+
+    #[test]
+    fn empty_and_degenerate_input() {
+        let model = ForwardModel::paper(Sensor::sr4000());
+        let bounds = InversionBounds::default();
+        assert!(foreground_distances(&model, &[], 0.65, &bounds, true).is_empty());
+        let bad = PixelObservation {
+            distance_mm: f64::NAN,
+            ir: 100.0,
+            background_distance_mm: 2000.0,
+            background_ir: 200.0,
+            emitted_light: 1.5e10,
+        };
+        let beyond = PixelObservation {
+            distance_mm: 1e12,
+            background_distance_mm: 1e13,
+            ..bad
+        };
+        // A pass of lanes (W) and a remainder, both kinds in each.
+        let input: Vec<PixelObservation> = (0..W + 3).map(|i| if i % 2 == 0 { bad } else { beyond }).collect();
+        let out = foreground_distances(&model, &input, 0.65, &bounds, true);
+        assert_eq!(out.len(), input.len());
+        for (o, e) in input.iter().zip(&out) {
+            assert_eq!(bits(e), bits(&invert(&model, o, 0.65, &bounds, None, true)));
+        }
+        assert!(out[0].is_none());
+    }
+}
