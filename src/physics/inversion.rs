@@ -811,8 +811,9 @@ struct HumpRoots {
     sigma: f64,
     /// `|sin beta|`.
     s: f64,
-    /// `k`, radians per mm, and the reading's phase less the delay's.
+    /// `k`, radians per mm, its inverse, and the reading's phase less the delay's.
     k: f64,
+    mm_per_rad: f64,
     phi_d: f64,
     /// The transmission power and `tau`'s constant for it.
     p: f64,
@@ -840,6 +841,7 @@ impl HumpRoots {
             sigma: -sb.signum(),
             s: sb.abs(),
             k: fast.k,
+            mm_per_rad: fast.mm_per_rad,
             phi_d: fast.phi_d,
             p: fast.p,
             c,
@@ -893,11 +895,11 @@ impl HumpRoots {
 
     /// Every root of `e` on `[lo, hi]`, in increasing `df`, to `found`.
     fn roots(&self, lo: f64, hi: f64, mut found: impl FnMut(f64)) {
-        use std::f64::consts::{FRAC_PI_2, PI, TAU};
+        use std::f64::consts::{FRAC_1_PI, FRAC_PI_2, PI, TAU};
         // Half-periods where sgn(sin alpha) = sigma: alpha in (a0 + 2 pi m, a0 + 2 pi m + pi).
         let a0 = if self.sigma > 0.0 { 0.0 } else { PI };
-        let to_df = |alpha: f64| (alpha + self.phi_d) / self.k;
-        let mut m = ((self.k * lo - self.phi_d - a0) / TAU).floor();
+        let to_df = |alpha: f64| (alpha + self.phi_d) * self.mm_per_rad;
+        let mut m = ((self.k * lo - self.phi_d - a0) * (0.5 * FRAC_1_PI)).floor();
         loop {
             let start = to_df(a0 + TAU * m);
             if !(start < hi) {

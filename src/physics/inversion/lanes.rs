@@ -149,7 +149,7 @@ fn pass_lanes<const P: u8>(
     obs: &[PixelObservation; W],
     slopes: bool,
 ) -> [Lane; W] {
-    use std::f64::consts::{PI, TAU};
+    use std::f64::consts::{FRAC_1_PI, PI, TAU};
     let k = fm.k;
     let lo = bounds.min_distance_mm;
     let d = lanes(|l| obs[l].distance_mm);
@@ -209,9 +209,9 @@ fn pass_lanes<const P: u8>(
     });
     // HumpRoots::roots: the half-periods m and m + 1 (m + 2 must lie beyond the range).
     let a0 = lanes(|l| if sigma[l] > 0.0 { 0.0 } else { PI });
-    let m0 = lanes(|l| ((k * lo - phi_d[l] - a0[l]) / TAU).floor());
+    let m0 = lanes(|l| ((k * lo - phi_d[l] - a0[l]) * (0.5 * FRAC_1_PI)).floor());
     let m1 = lanes(|l| m0[l] + 1.0);
-    let to_df = |alpha: f64, l: usize| (alpha + phi_d[l]) / k;
+    let to_df = |alpha: f64, l: usize| (alpha + phi_d[l]) * fm.mm_per_rad;
     let start0 = lanes(|l| to_df(a0[l] + TAU * m0[l], l));
     let start1 = lanes(|l| to_df(a0[l] + TAU * m1[l], l));
     let l0 = lanes(|l| start0[l].max(lo));
@@ -225,10 +225,18 @@ fn pass_lanes<const P: u8>(
         let ends = [l0[l], u0[l], lb1[l], u1[l]];
         ok[l] &= !(start2 < hi_e[l]) && ends.iter().all(|&x| (k * x - phi_d[l]).abs() <= ANGLE_LIMIT);
     }
-    let (el0, dl0) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &l0);
-    let (eu0, du0) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &u0);
-    let (el1, dl1) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &lb1);
-    let (eu1, du1) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &u1);
+    // e at the half-periods' ends (a half-period no lane needs is skipped).
+    let ends = |act: &[bool; W], lower: &V, upper: &V| {
+        if act.iter().zip(&ok).any(|(&a, &o)| a & o) {
+            let (el, dl) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, lower);
+            let (eu, du) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, upper);
+            (el, dl, eu, du)
+        } else {
+            ([0.0; W], [0.0; W], [0.0; W], [0.0; W])
+        }
+    };
+    let (el0, dl0, eu0, du0) = ends(&act0, &l0, &u0);
+    let (el1, dl1, eu1, du1) = ends(&act1, &lb1, &u1);
     // Each lane's one root: from the end of its half-period where e <= 0.
     let mut x = [0.0; W];
     let mut toward = [0.0; W];
