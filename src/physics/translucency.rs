@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use super::buffer::ImageBuf;
 use super::inversion::{
-    albedo_cos_clamped, foreground_distance_without_slopes, predicted_reading, InversionBounds, PixelObservation,
+    albedo_cos_clamped, foreground_distances, predicted_reading, InversionBounds, PixelObservation,
 };
 use super::model::ForwardModel;
 use super::stats::median_and_sigma;
@@ -301,6 +301,9 @@ pub fn frame_profile(
         height: h,
         data: obs.data.iter().map(|o| o.is_some()).collect(),
     };
+    // The sampled pixels with an observation, in grid order: inverted together at each ξ.
+    let observed: Vec<(usize, PixelObservation)> = (0..w * h).filter_map(|i| obs.data[i].map(|o| (i, o))).collect();
+    let observations: Vec<PixelObservation> = observed.iter().map(|&(_, o)| o).collect();
     // Each ξ on its own (in parallel over the current rayon pool), gathered in grid order.
     let per_xi = |xi: f64| -> (Vec<GroupStat>, f64, f64, TruthFit) {
         let mut points = ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
@@ -308,15 +311,19 @@ pub fn frame_profile(
         let mut pinned = 0usize;
         let mut eq12 = 0.0;
         let mut fit = TruthFit::default();
-        for i in 0..w * h {
-            let Some(o) = obs.data[i] else { continue };
+        let estimates = if usage == ProfileUse::Calibration {
+            vec![]
+        } else {
+            foreground_distances(model, &observations, xi, bounds, false)
+        };
+        for (k, &(i, o)) in observed.iter().enumerate() {
             if let Some(t) = sample.truth_mm.as_ref().map(|t| t.data[i]).filter(|t| t.is_finite()) {
                 add_truth_error(model, &o, t, xi, bounds, &mut fit);
             }
             if usage == ProfileUse::Calibration {
                 continue;
             }
-            match foreground_distance_without_slopes(model, &o, xi, bounds, None) {
+            match estimates[k] {
                 Some(est) => {
                     eq12 += est.residual_mm * est.residual_mm;
                     if est.pinned {
