@@ -140,6 +140,29 @@ fn e_lanes<const P: u8>(k: f64, phi_d: &V, sigma: &V, s: &V, c: &V, df: &V) -> (
     (e, de)
 }
 
+/// `e` and `de / d df` at both ends of a half-period in every lane (zeros
+/// when no lane `needed` it).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn ends_lanes<const P: u8>(
+    needed: bool,
+    k: f64,
+    phi_d: &V,
+    sigma: &V,
+    s: &V,
+    c: &V,
+    lower: &V,
+    upper: &V,
+) -> (V, V, V, V) {
+    if needed {
+        let (el, dl) = e_lanes::<P>(k, phi_d, sigma, s, c, lower);
+        let (eu, du) = e_lanes::<P>(k, phi_d, sigma, s, c, upper);
+        (el, dl, eu, du)
+    } else {
+        ([0.0; W], [0.0; W], [0.0; W], [0.0; W])
+    }
+}
+
 /// The lanes' pass: see the module's text. Each expression is the per-pixel
 /// path's, in its order.
 #[inline(always)]
@@ -226,17 +249,11 @@ fn pass_lanes<const P: u8>(
         ok[l] &= !(start2 < hi_e[l]) && ends.iter().all(|&x| (k * x - phi_d[l]).abs() <= ANGLE_LIMIT);
     }
     // e at the half-periods' ends (a half-period no lane needs is skipped).
-    let ends = |act: &[bool; W], lower: &V, upper: &V| {
-        if act.iter().zip(&ok).any(|(&a, &o)| a & o) {
-            let (el, dl) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, lower);
-            let (eu, du) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, upper);
-            (el, dl, eu, du)
-        } else {
-            ([0.0; W], [0.0; W], [0.0; W], [0.0; W])
-        }
-    };
-    let (el0, dl0, eu0, du0) = ends(&act0, &l0, &u0);
-    let (el1, dl1, eu1, du1) = ends(&act1, &lb1, &u1);
+    // (Plain calls: a closure is not compiled for the pass's target features.)
+    let needed0 = act0.iter().zip(&ok).any(|(&a, &o)| a & o);
+    let needed1 = act1.iter().zip(&ok).any(|(&a, &o)| a & o);
+    let (el0, dl0, eu0, du0) = ends_lanes::<P>(needed0, k, &phi_d, &sigma, &s, &c, &l0, &u0);
+    let (el1, dl1, eu1, du1) = ends_lanes::<P>(needed1, k, &phi_d, &sigma, &s, &c, &lb1, &u1);
     // Each lane's one root: from the end of its half-period where e <= 0.
     let mut x = [0.0; W];
     let mut toward = [0.0; W];
