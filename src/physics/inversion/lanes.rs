@@ -491,10 +491,22 @@ mod tests {
                     if let Some(fm) = FastModel::new(model, xi, bounds.max_albedo_cos) {
                         for chunk in obs.chunks_exact(W) {
                             let chunk: &[PixelObservation; W] = chunk.try_into().expect("W");
-                            laned += pass(&fm, &bounds, chunk, slopes)
-                                .iter()
-                                .filter(|l| matches!(l, Lane::Done(_)))
-                                .count();
+                            let dispatched = pass(&fm, &bounds, chunk, slopes);
+                            laned += dispatched.iter().filter(|l| matches!(l, Lane::Done(_))).count();
+                            // The code for any processor (built for the base target here) gives
+                            // what the dispatched one gives.
+                            let portable = match fm.p {
+                                2.0 => pass_lanes::<2>(&fm, &bounds, chunk, slopes),
+                                1.0 => pass_lanes::<1>(&fm, &bounds, chunk, slopes),
+                                _ => pass_lanes::<0>(&fm, &bounds, chunk, slopes),
+                            };
+                            for (a, b) in dispatched.iter().zip(&portable) {
+                                let done = |l: &Lane| match l {
+                                    Lane::Done(e) => bits(&Some(*e)),
+                                    Lane::Alone => None,
+                                };
+                                assert_eq!(done(a), done(b));
+                            }
                         }
                     }
                     assert_eq!(batch.len(), obs.len());
