@@ -24,6 +24,7 @@ where
 /// `f` over consecutive chunks of `items` of `chunk` each (the last may be
 /// shorter), in parallel over the current rayon pool when there are at least
 /// `min_parallel` items, else in turn; each chunk's results, in order, joined.
+/// `f` gives one result per item of its chunk.
 pub fn map_chunks_ordered<T, R, F>(items: &[T], chunk: usize, min_parallel: usize, f: F) -> Vec<R>
 where
     T: Sync,
@@ -41,6 +42,7 @@ where
     for part in parts {
         out.extend(part);
     }
+    debug_assert_eq!(out.len(), items.len(), "one result per item");
     out
 }
 

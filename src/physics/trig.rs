@@ -4,10 +4,11 @@
 //!
 //! The polynomials are the classic minimax kernels of degree 13 (sine) and
 //! 14 (cosine) on `[-pi/4, pi/4]`; the reduction subtracts `n pi/2` in three
-//! parts (Cody and Waite), exact for `|n| < 2^20`. Within 1 ulp of the
+//! parts (Cody and Waite), exact for `|n| <= 2^20`. Within 1 ulp of the
 //! platform's `f64::sin_cos` for `|x| <= 1000` (the inversion's angles stay
 //! below a few hundred radians), within 2 ulp up to `2^20 pi/2` (test
-//! `within_an_ulp_of_the_platform`); beyond that it is the platform's.
+//! `within_an_ulp_of_the_platform`); beyond that it is the platform's. The
+//! sine of `-0.0` comes out `+0.0`.
 
 #![allow(clippy::excessive_precision)] // the kernels' coefficients as published
 
@@ -28,7 +29,7 @@ const C5: f64 = 2.087_572_321_298_174_827_90e-9;
 const C6: f64 = -1.135_964_755_778_819_482_65e-11;
 
 /// `pi/2` in three parts: the first two of 33 significant bits (so `n` times
-/// either is exact for `|n| < 2^20`), the third the rest.
+/// either is exact for `|n| <= 2^20`), the third the rest.
 const PIO2_1: f64 = 1.570_796_326_734_125_614_17;
 const PIO2_2: f64 = 6.077_100_506_303_965_976_60e-11;
 const PIO2_3: f64 = 2.022_266_248_795_950_631_54e-21;
@@ -37,7 +38,7 @@ const PIO2_3: f64 = 2.022_266_248_795_950_631_54e-21;
 /// integer held in the low bits of the sum's mantissa.
 const ROUNDER: f64 = 6_755_399_441_055_744.0;
 
-/// Largest `|x|` [`sin_cos_reduced`] takes: `|n| < 2^20`.
+/// Largest `|x|` [`sin_cos_reduced`] takes: `|n| <= 2^20`.
 pub const REDUCED_LIMIT: f64 = 1_647_099.0;
 
 /// `(sin x, cos x)`: [`sin_cos_reduced`] within its range, else the platform's.

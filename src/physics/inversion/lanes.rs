@@ -249,7 +249,8 @@ fn pass_lanes<const P: u8>(
         ok[l] &= !(start2 < hi_e[l]) && ends.iter().all(|&x| (k * x - phi_d[l]).abs() <= ANGLE_LIMIT);
     }
     // e at the half-periods' ends (a half-period no lane needs is skipped).
-    // (Plain calls: a closure is not compiled for the pass's target features.)
+    // (Plain calls: a closure the compiler does not inline is not built for the pass's
+    // target features.)
     let needed0 = act0.iter().zip(&ok).any(|(&a, &o)| a & o);
     let needed1 = act1.iter().zip(&ok).any(|(&a, &o)| a & o);
     let (el0, dl0, eu0, du0) = ends_lanes::<P>(needed0, k, &phi_d, &sigma, &s, &c, &l0, &u0);
