@@ -579,35 +579,54 @@ impl FastPixel {
         if self.ir <= 0.0 {
             return None;
         }
+        let x = self.albedo_unchecked(df);
+        self.admissible(x).then_some(x)
+    }
+
+    /// [`Self::albedo`]'s number before its checks.
+    #[inline(always)]
+    fn albedo_unchecked(&self, df: f64) -> f64 {
         // albedo_closed_form's closed forms, inlined.
         let (a, b, ir) = (self.a, self.l1 / (df * df), self.ir);
-        let x = if self.p == 2.0 {
+        if self.p == 2.0 {
             2.0 * ir / (b + (b * b + 4.0 * a * ir).sqrt())
         } else if self.p == 0.0 {
             (ir - a) / b
         } else {
             ir / (a + b)
-        };
-        (x.is_finite() && x > 0.0 && x <= self.x_max).then_some(x)
+        }
+    }
+
+    /// `0 < X <= x_max`.
+    #[inline(always)]
+    fn admissible(&self, x: f64) -> bool {
+        x.is_finite() && x > 0.0 && x <= self.x_max
     }
 
     /// `X` at `df` with L1 and L2 there: [`Self::albedo`] and [`Self::strengths`]
     /// with one division and one square root for the transmission power 2.
     #[inline]
     fn albedo_strengths(&self, df: f64) -> Option<(f64, f64, f64)> {
-        if self.p != 2.0 {
-            let x = self.albedo(df)?;
-            let (l1, l2) = self.strengths(df, x);
-            return Some((x, l1, l2));
-        }
         if self.ir <= 0.0 {
             return None;
+        }
+        let (x, l1, l2) = self.albedo_strengths_unchecked(df);
+        self.admissible(x).then_some((x, l1, l2))
+    }
+
+    /// [`Self::albedo_strengths`]' numbers before its checks.
+    #[inline(always)]
+    fn albedo_strengths_unchecked(&self, df: f64) -> (f64, f64, f64) {
+        if self.p != 2.0 {
+            let x = self.albedo_unchecked(df);
+            let (l1, l2) = self.strengths(df, x);
+            return (x, l1, l2);
         }
         // With u = df^2: X = 2 I u / (l1 + sqrt(l1^2 + 4 a I u^2)), L1 = l1 X / u.
         let u = df * df;
         let r = 2.0 * self.ir / (self.l1 + (self.l1 * self.l1 + 4.0 * self.a * self.ir * u * u).sqrt());
         let x = r * u;
-        (x.is_finite() && x > 0.0 && x <= self.x_max).then_some((x, self.l1 * r, self.a * x * x))
+        (x, self.l1 * r, self.a * x * x)
     }
 
     /// L1 and L2 at `(df, X)`.
@@ -643,13 +662,17 @@ impl FastPixel {
         if re == 0.0 && im == 0.0 {
             return f64::NAN;
         }
-        // Near a root the angle is tiny: atan t = t - t^3/3 + t^5/5 - ..., whose third
-        // term is below the rounding of the first for |t| <= 1e-4.
-        if re > 0.0 && im.abs() <= 1e-4 * re {
-            let t = im / re;
-            return t * (1.0 - t * t / 3.0) * self.mm_per_rad;
+        if on_small_angle_series(re, im) {
+            return self.small_angle_residual_mm(re, im);
         }
         im.atan2(re) * self.mm_per_rad
+    }
+
+    /// [`Self::residual_mm`] on its small-angle series ([`on_small_angle_series`]).
+    #[inline(always)]
+    fn small_angle_residual_mm(&self, re: f64, im: f64) -> f64 {
+        let t = im / re;
+        t * (1.0 - t * t / 3.0) * self.mm_per_rad
     }
 
     /// The residual's derivatives at `df`, mm per mm of layer and mm per count
@@ -659,8 +682,15 @@ impl FastPixel {
     /// X^(p-1))`, `dX/d df = 2 b X / df / (b + a p X^(p-1))`). `None` where `X`
     /// is not admissible.
     fn derivatives(&self, df: f64) -> Option<(f64, f64)> {
-        let (x, l1, l2) = self.albedo_strengths(df)?;
-        let (sn, cs) = sin_cos(self.k * df - self.phi_d);
+        let strengths = self.albedo_strengths(df)?;
+        let (slope, per_ir) = self.derivatives_at(df, strengths, sin_cos(self.k * df - self.phi_d));
+        (slope.is_finite() && per_ir.is_finite()).then_some((slope, per_ir))
+    }
+
+    /// [`Self::derivatives`] from `X`, L1 and L2 at `df` and the layer's
+    /// `(sin, cos)` there, before the check that both are finite.
+    #[inline(always)]
+    fn derivatives_at(&self, df: f64, (x, l1, l2): (f64, f64, f64), (sn, cs): (f64, f64)) -> (f64, f64) {
         let (re, im) = self.mix(l1, l2, (sn, cs));
         let per_df = 1.0 / df;
         let b = self.l1 * per_df * per_df;
@@ -686,7 +716,7 @@ impl FastPixel {
         // Along the IR at a fixed df.
         let (dl1, dl2) = (b * dx_di, dl2_dx * dx_di);
         let per_ir = angle_rate(dl1 * cs + dl2 * self.bg.0, dl1 * sn + dl2 * self.bg.1);
-        (slope.is_finite() && per_ir.is_finite()).then_some((slope, per_ir))
+        (slope, per_ir)
     }
 
     /// One full sample at `df`.
@@ -697,6 +727,14 @@ impl FastPixel {
         let residual = self.residual_mm(re, im);
         residual.is_finite().then_some(Sample { df, residual, x })
     }
+}
+
+/// Whether a rotated phasor's angle is small enough for the residual's
+/// series: near a root the angle is tiny, and `atan t = t - t^3/3 + t^5/5 -
+/// ...` has its third term below the rounding of the first for `|t| <= 1e-4`.
+#[inline(always)]
+fn on_small_angle_series(re: f64, im: f64) -> bool {
+    re > 0.0 && im.abs() <= 1e-4 * re
 }
 
 /// A scan sample of the fast path: the rotated phasor, its residual when needed.
@@ -806,6 +844,7 @@ fn scan_fast(fast: &FastPixel, lo: f64, hi: f64, step_mm: f64, mut visit: impl F
 /// concave function Newton's steps stay on that side and converge
 /// monotonically). The admissible albedo `X <= x_max` is `df <= df*` in
 /// closed form (`X` grows with `df`).
+#[derive(Clone, Copy)]
 struct HumpRoots {
     /// `-sgn(sin beta)`: the sign `sin(alpha)` must have.
     sigma: f64,
@@ -828,15 +867,7 @@ impl HumpRoots {
         if sb == 0.0 || !(fast.ir > 0.0) || !(fast.l1 > 0.0) || !(fast.a > 0.0) || !sb.is_finite() {
             return None;
         }
-        let c = if fast.p == 2.0 {
-            4.0 * fast.a * fast.ir / (fast.l1 * fast.l1)
-        } else if fast.p == 1.0 {
-            sb.abs() * fast.a / fast.l1
-        } else if fast.ir > fast.a {
-            sb.abs() * fast.a / (fast.ir - fast.a)
-        } else {
-            return None;
-        };
+        let c = Self::tau_constant(fast);
         c.is_finite().then_some(Self {
             sigma: -sb.signum(),
             s: sb.abs(),
@@ -848,8 +879,24 @@ impl HumpRoots {
         })
     }
 
+    /// `tau`'s constant for the pixel's transmission power (NaN where the
+    /// structure does not hold: `p` = 0 with `I <= a`).
+    #[inline(always)]
+    fn tau_constant(fast: &FastPixel) -> f64 {
+        let s = fast.bg.1.abs();
+        if fast.p == 2.0 {
+            4.0 * fast.a * fast.ir / (fast.l1 * fast.l1)
+        } else if fast.p == 1.0 {
+            s * fast.a / fast.l1
+        } else if fast.ir > fast.a {
+            s * fast.a / (fast.ir - fast.a)
+        } else {
+            f64::NAN
+        }
+    }
+
     /// `tau` and `d tau / d df`.
-    #[inline]
+    #[inline(always)]
     fn tau(&self, df: f64) -> (f64, f64) {
         if self.p == 2.0 {
             let d2 = df * df;
@@ -867,7 +914,12 @@ impl HumpRoots {
     /// `e` and `de / d df`.
     #[inline]
     fn e(&self, df: f64) -> (f64, f64) {
-        let (sn, cs) = sin_cos(self.k * df - self.phi_d);
+        self.e_at(df, sin_cos(self.k * df - self.phi_d))
+    }
+
+    /// [`Self::e`] given the layer's `(sin, cos)` at `df`.
+    #[inline(always)]
+    fn e_at(&self, df: f64, (sn, cs): (f64, f64)) -> (f64, f64) {
         let (t, dt) = self.tau(df);
         (self.sigma * sn - t, self.sigma * self.k * cs - dt)
     }
@@ -957,6 +1009,7 @@ impl HumpRoots {
 /// The largest `df` whose albedo is admissible (`X <= x_max`; `X` grows with
 /// `df`): `b = (I - a x_max^p) / x_max` in the IR equation. Infinite when no
 /// `df` reaches the bound.
+#[inline(always)]
 fn admissible_limit(fast: &FastPixel) -> f64 {
     let xp = if fast.p == 2.0 {
         fast.x_max * fast.x_max

@@ -12,9 +12,12 @@
 //! several, a half-period that needs its maximum, an angle beyond the
 //! polynomial's range, a residual off the small-angle series) is inverted on
 //! its own afterwards, so the answer is [`foreground_distance`]'s for every
-//! pixel, bit for bit (test `the_same_as_pixel_by_pixel`): each lane runs the
-//! same operations in the same order as the pixel's own search, with the
-//! same `sin`/`cos` ([`sin_cos_reduced`]).
+//! pixel, bit for bit (test `the_same_as_pixel_by_pixel`): each lane calls
+//! the pixel's own pieces ([`FastModel::pixel`], [`HumpRoots::e_at`],
+//! [`FastPixel::albedo_strengths_unchecked`], [`FastPixel::derivatives_at`],
+//! ...) with the same `sin`/`cos` ([`sin_cos_reduced`]); what the lanes add
+//! is the half-period walk and Newton's loop for the common case, written
+//! over eight lanes, and their checks as masks.
 
 use super::*;
 use crate::physics::trig::{sin_cos_reduced, REDUCED_LIMIT};
@@ -117,25 +120,64 @@ fn pass_avx2<const P: u8>(
     pass_lanes::<P>(fm, bounds, obs, slopes)
 }
 
-/// `e` and `de / d df` of [`HumpRoots::e`] in every lane, with its `tau`.
+/// The lanes' pixels, field by field (so the per-lane loops stay in vector
+/// registers): each lane's [`FastPixel`] and [`HumpRoots`] are made from
+/// them where used, their `p` the constant `P`.
+struct Pixels<const P: u8> {
+    k: f64,
+    mm_per_rad: f64,
+    x_max: f64,
+    ir: V,
+    a: V,
+    l1: V,
+    phi_d: V,
+    /// The background's `(sin, cos)`.
+    sb: V,
+    cb: V,
+    /// `HumpRoots`' sign, `|sin beta|` and `tau`'s constant.
+    sigma: V,
+    s: V,
+    c: V,
+}
+
+impl<const P: u8> Pixels<P> {
+    #[inline(always)]
+    fn fast(&self, l: usize) -> FastPixel {
+        FastPixel {
+            ir: self.ir[l],
+            a: self.a[l],
+            l1: self.l1[l],
+            p: f64::from(P),
+            x_max: self.x_max,
+            k: self.k,
+            mm_per_rad: self.mm_per_rad,
+            phi_d: self.phi_d[l],
+            bg: (self.cb[l], self.sb[l]),
+        }
+    }
+
+    #[inline(always)]
+    fn hump(&self, l: usize) -> HumpRoots {
+        HumpRoots {
+            sigma: self.sigma[l],
+            s: self.s[l],
+            k: self.k,
+            mm_per_rad: self.mm_per_rad,
+            phi_d: self.phi_d[l],
+            p: f64::from(P),
+            c: self.c[l],
+        }
+    }
+}
+
+/// [`HumpRoots::e`] in every lane.
 #[inline(always)]
-fn e_lanes<const P: u8>(k: f64, phi_d: &V, sigma: &V, s: &V, c: &V, df: &V) -> (V, V) {
+fn e_lanes<const P: u8>(px: &Pixels<P>, df: &V) -> (V, V) {
     let mut e = [0.0; W];
     let mut de = [0.0; W];
     for l in 0..W {
-        let (sn, cs) = sin_cos_reduced(k * df[l] - phi_d[l]);
-        let (t, dt) = match P {
-            2 => {
-                let d2 = df[l] * df[l];
-                let cd4 = c[l] * d2 * d2;
-                let q = (1.0 + cd4).sqrt();
-                (0.5 * s[l] * cd4 / (q + 1.0), s[l] * c[l] * d2 * df[l] / q)
-            }
-            1 => (c[l] * df[l] * df[l], 2.0 * c[l] * df[l]),
-            _ => (c[l], 0.0),
-        };
-        e[l] = sigma[l] * sn - t;
-        de[l] = sigma[l] * k * cs - dt;
+        let h = px.hump(l);
+        (e[l], de[l]) = h.e_at(df[l], sin_cos_reduced(h.k * df[l] - h.phi_d));
     }
     (e, de)
 }
@@ -143,20 +185,10 @@ fn e_lanes<const P: u8>(k: f64, phi_d: &V, sigma: &V, s: &V, c: &V, df: &V) -> (
 /// `e` and `de / d df` at both ends of a half-period in every lane (zeros
 /// when no lane `needed` it).
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn ends_lanes<const P: u8>(
-    needed: bool,
-    k: f64,
-    phi_d: &V,
-    sigma: &V,
-    s: &V,
-    c: &V,
-    lower: &V,
-    upper: &V,
-) -> (V, V, V, V) {
+fn ends_lanes<const P: u8>(needed: bool, px: &Pixels<P>, lower: &V, upper: &V) -> (V, V, V, V) {
     if needed {
-        let (el, dl) = e_lanes::<P>(k, phi_d, sigma, s, c, lower);
-        let (eu, du) = e_lanes::<P>(k, phi_d, sigma, s, c, upper);
+        let (el, dl) = e_lanes(px, lower);
+        let (eu, du) = e_lanes(px, upper);
         (el, dl, eu, du)
     } else {
         ([0.0; W], [0.0; W], [0.0; W], [0.0; W])
@@ -177,8 +209,6 @@ fn pass_lanes<const P: u8>(
     let lo = bounds.min_distance_mm;
     let d = lanes(|l| obs[l].distance_mm);
     let ir_raw = lanes(|l| obs[l].ir);
-    let ib = lanes(|l| obs[l].background_ir);
-    let lin = lanes(|l| obs[l].emitted_light);
     let db = lanes(|l| obs[l].background_distance_mm);
     // invert's range.
     let hi = lanes(|l| db[l] - bounds.min_separation_mm);
@@ -190,18 +220,31 @@ fn pass_lanes<const P: u8>(
     for l in 0..W {
         (sb[l], cb[l]) = sin_cos_reduced(angle[l]);
     }
-    let ir = lanes(|l| ir_raw[l] - fm.offset);
-    let a = lanes(|l| fm.xi * fm.xi * (ib[l] - fm.offset).max(0.0));
-    let l1 = lanes(|l| (1.0 - fm.xi) * lin[l]);
-    let phi_d = lanes(|l| phi0[l] - k * fm.delay_mm);
-    // HumpRoots: tau's constant.
-    let s = lanes(|l| sb[l].abs());
-    let c = lanes(|l| match P {
-        2 => 4.0 * a[l] * ir[l] / (l1[l] * l1[l]),
-        1 => s[l] * a[l] / l1[l],
-        _ => s[l] * a[l] / (ir[l] - a[l]),
-    });
-    let sigma = lanes(|l| -sb[l].signum());
+    // Each lane's FastPixel and HumpRoots constants.
+    let mut px = Pixels::<P> {
+        k,
+        mm_per_rad: fm.mm_per_rad,
+        x_max: fm.x_max,
+        ir: [0.0; W],
+        a: [0.0; W],
+        l1: [0.0; W],
+        phi_d: [0.0; W],
+        sb,
+        cb,
+        sigma: [0.0; W],
+        s: [0.0; W],
+        c: [0.0; W],
+    };
+    for l in 0..W {
+        let f = fm.pixel(&obs[l], phi0[l], (sb[l], cb[l]));
+        (px.ir[l], px.a[l], px.l1[l], px.phi_d[l]) = (f.ir, f.a, f.l1, f.phi_d);
+    }
+    // HumpRoots::new, its checks as a mask.
+    for l in 0..W {
+        let f = px.fast(l);
+        (px.sigma[l], px.s[l], px.c[l]) = (-sb[l].signum(), sb[l].abs(), HumpRoots::tau_constant(&f));
+    }
+    let (ir, a, l1, phi_d, sigma) = (px.ir, px.a, px.l1, px.phi_d, px.sigma);
     let mut ok = masks(|l| {
         hi[l] > lo
             && d[l].is_finite()
@@ -212,24 +255,9 @@ fn pass_lanes<const P: u8>(
             && l1[l] > 0.0
             && a[l] > 0.0
             && sb[l].is_finite()
-            && (P != 0 || ir[l] > a[l])
-            && c[l].is_finite()
+            && px.c[l].is_finite()
     });
-    // admissible_limit.
-    let xp = match P {
-        2 => fm.x_max * fm.x_max,
-        0 => 1.0,
-        _ => fm.x_max,
-    };
-    let hi_e = lanes(|l| {
-        let rest = ir[l] - a[l] * xp;
-        let limit = if rest > 0.0 {
-            (l1[l] * fm.x_max / rest).sqrt()
-        } else {
-            f64::INFINITY
-        };
-        hi[l].min(limit)
-    });
+    let hi_e = lanes(|l| hi[l].min(admissible_limit(&px.fast(l))));
     // HumpRoots::roots: the half-periods m and m + 1 (m + 2 must lie beyond the range).
     let a0 = lanes(|l| if sigma[l] > 0.0 { 0.0 } else { PI });
     let m0 = lanes(|l| ((k * lo - phi_d[l] - a0[l]) * (0.5 * FRAC_1_PI)).floor());
@@ -253,8 +281,8 @@ fn pass_lanes<const P: u8>(
     // target features.)
     let needed0 = act0.iter().zip(&ok).any(|(&a, &o)| a & o);
     let needed1 = act1.iter().zip(&ok).any(|(&a, &o)| a & o);
-    let (el0, dl0, eu0, du0) = ends_lanes::<P>(needed0, k, &phi_d, &sigma, &s, &c, &l0, &u0);
-    let (el1, dl1, eu1, du1) = ends_lanes::<P>(needed1, k, &phi_d, &sigma, &s, &c, &lb1, &u1);
+    let (el0, dl0, eu0, du0) = ends_lanes(needed0, &px, &l0, &u0);
+    let (el1, dl1, eu1, du1) = ends_lanes(needed1, &px, &lb1, &u1);
     // Each lane's one root: from the end of its half-period where e <= 0.
     let mut x = [0.0; W];
     let mut toward = [0.0; W];
@@ -286,7 +314,7 @@ fn pass_lanes<const P: u8>(
     let mut running = ok;
     for iteration in 0..50 {
         if iteration > 0 {
-            (e, de) = e_lanes::<P>(k, &phi_d, &sigma, &s, &c, &x);
+            (e, de) = e_lanes(&px, &x);
         }
         // Selects, not branches, so the lanes stay in vector registers.
         for l in 0..W {
@@ -316,38 +344,23 @@ fn pass_lanes<const P: u8>(
         (sn[l], cs[l]) = sin_cos_reduced(k * x[l] - phi_d[l]);
     }
     // Every lane computed, then kept where it is the common case (selects, not branches).
-    let mut xa = [0.0; W];
-    let mut s1 = [0.0; W];
-    let mut s2 = [0.0; W];
+    let mut strengths = [(0.0, 0.0, 0.0); W];
+    let mut re = [0.0; W];
+    let mut im = [0.0; W];
+    let mut residual = [0.0; W];
     for l in 0..W {
-        // albedo_strengths.
-        (xa[l], s1[l], s2[l]) = if P == 2 {
-            let u = x[l] * x[l];
-            let r = 2.0 * ir[l] / (l1[l] + (l1[l] * l1[l] + 4.0 * a[l] * ir[l] * u * u).sqrt());
-            let xa = r * u;
-            (xa, l1[l] * r, a[l] * xa * xa)
-        } else {
-            let b = l1[l] / (x[l] * x[l]);
-            let xa = if P == 0 { (ir[l] - a[l]) / b } else { ir[l] / (a[l] + b) };
-            let xpow = if P == 0 { 1.0 } else { xa };
-            (xa, l1[l] * xa / (x[l] * x[l]), a[l] * xpow)
-        };
+        let f = px.fast(l);
+        strengths[l] = f.albedo_strengths_unchecked(x[l]);
+        let (_, s1, s2) = strengths[l];
+        (re[l], im[l]) = f.mix(s1, s2, (sn[l], cs[l]));
+        residual[l] = f.small_angle_residual_mm(re[l], im[l]);
     }
-    let re = lanes(|l| s1[l] * cs[l] + s2[l] * cb[l]);
-    let im = lanes(|l| s1[l] * sn[l] + s2[l] * sb[l]);
-    // residual_mm on its small-angle series (a lane off it goes alone).
-    let residual = lanes(|l| {
-        let t = im[l] / re[l];
-        t * (1.0 - t * t / 3.0) * fm.mm_per_rad
-    });
     let range = fm.range_mm;
     let done = masks(|l| {
+        let f = px.fast(l);
         ok[l]
-            & (xa[l].abs() < f64::INFINITY)
-            & (xa[l] > 0.0)
-            & (xa[l] <= fm.x_max)
-            & (re[l] > 0.0)
-            & (im[l].abs() <= 1e-4 * re[l])
+            & f.admissible(strengths[l].0)
+            & on_small_angle_series(re[l], im[l])
             & (residual[l].abs() < f64::INFINITY)
             & (residual[l].abs() < range / 4.0)
     });
@@ -355,25 +368,8 @@ fn pass_lanes<const P: u8>(
     let mut per_ir = [f64::NAN; W];
     if slopes {
         for l in 0..W {
-            let per_df = 1.0 / x[l];
-            let b = l1[l] * per_df * per_df;
-            let dl2_dx = match P {
-                2 => 2.0 * a[l] * xa[l],
-                0 => 0.0,
-                _ => a[l],
-            };
-            let dx_di = 1.0 / (b + dl2_dx);
-            let dx_ddf = 2.0 * b * xa[l] * per_df * dx_di;
-            let rate = fm.mm_per_rad / (re[l] * re[l] + im[l] * im[l]);
-            let angle_rate = |dre: f64, dim: f64| (re[l] * dim - im[l] * dre) * rate;
-            let dl1 = b * dx_ddf - 2.0 * s1[l] * per_df;
-            let dl2 = dl2_dx * dx_ddf;
-            let along = angle_rate(
-                dl1 * cs[l] - s1[l] * k * sn[l] + dl2 * cb[l],
-                dl1 * sn[l] + s1[l] * k * cs[l] + dl2 * sb[l],
-            );
-            let (dl1, dl2) = (b * dx_di, dl2_dx * dx_di);
-            let across = angle_rate(dl1 * cs[l] + dl2 * cb[l], dl1 * sn[l] + dl2 * sb[l]);
+            let f = px.fast(l);
+            let (along, across) = f.derivatives_at(x[l], strengths[l], (sn[l], cs[l]));
             let finite = (along.abs() < f64::INFINITY) & (across.abs() < f64::INFINITY);
             slope[l] = if finite { along } else { f64::NAN };
             per_ir[l] = if finite { across } else { f64::NAN };
@@ -383,7 +379,7 @@ fn pass_lanes<const P: u8>(
         if done[l] {
             Lane::Done(LayerEstimate {
                 foreground_distance_mm: x[l],
-                albedo_cos: xa[l],
+                albedo_cos: strengths[l].0,
                 residual_mm: residual[l],
                 roots: 1,
                 pinned: false,
