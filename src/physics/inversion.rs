@@ -334,16 +334,21 @@ fn invert(
     prefer_mm: Option<f64>,
     slopes: bool,
 ) -> Option<LayerEstimate> {
-    let lo = bounds.min_distance_mm;
-    let hi = obs.background_distance_mm - bounds.min_separation_mm;
-    if !(hi > lo) || !obs.distance_mm.is_finite() || !obs.ir.is_finite() {
-        return None;
-    }
+    let (lo, hi) = search_range(obs, bounds)?;
     let search = Search { lo, hi, slopes };
     match FastPixel::new(model, obs, xi, bounds.max_albedo_cos) {
         Some(fast) => foreground_distance_fast(&fast, model, obs, bounds, prefer_mm, search),
         None => foreground_distance_generic(model, obs, xi, bounds, prefer_mm, search),
     }
+}
+
+/// `[d_min, db - min_separation]`, where a pixel's layer is looked for; `None`
+/// when it is empty or the reading or IR is not finite (nothing to invert).
+#[inline(always)]
+fn search_range(obs: &PixelObservation, bounds: &InversionBounds) -> Option<(f64, f64)> {
+    let lo = bounds.min_distance_mm;
+    let hi = obs.background_distance_mm - bounds.min_separation_mm;
+    (hi > lo && obs.distance_mm.is_finite() && obs.ir.is_finite()).then_some((lo, hi))
 }
 
 /// Where an inversion looks for the layer, `df` in `[lo, hi]`, and whether
@@ -863,20 +868,30 @@ impl HumpRoots {
     /// `None` where the structure does not hold (no background angle, no layer
     /// light, no second return): the scan handles those pixels.
     fn new(fast: &FastPixel) -> Option<Self> {
+        let hump = Self::of(fast);
+        hump.holds(fast).then_some(hump)
+    }
+
+    /// The structure's constants for `fast`, whether or not it holds.
+    #[inline(always)]
+    fn of(fast: &FastPixel) -> Self {
         let sb = fast.bg.1;
-        if sb == 0.0 || !(fast.ir > 0.0) || !(fast.l1 > 0.0) || !(fast.a > 0.0) || !sb.is_finite() {
-            return None;
-        }
-        let c = Self::tau_constant(fast);
-        c.is_finite().then_some(Self {
+        Self {
             sigma: -sb.signum(),
             s: sb.abs(),
             k: fast.k,
             mm_per_rad: fast.mm_per_rad,
             phi_d: fast.phi_d,
             p: fast.p,
-            c,
-        })
+            c: Self::tau_constant(fast),
+        }
+    }
+
+    /// Whether the structure holds for `fast`, whose constants these are.
+    #[inline(always)]
+    fn holds(&self, fast: &FastPixel) -> bool {
+        let sb = fast.bg.1;
+        sb != 0.0 && fast.ir > 0.0 && fast.l1 > 0.0 && fast.a > 0.0 && sb.is_finite() && self.c.is_finite()
     }
 
     /// `tau`'s constant for the pixel's transmission power (NaN where the

@@ -13,7 +13,8 @@
 //! polynomial's range, a residual off the small-angle series) is inverted on
 //! its own afterwards, so the answer is [`foreground_distance`]'s for every
 //! pixel, bit for bit (test `the_same_as_pixel_by_pixel`): each lane calls
-//! the pixel's own pieces ([`FastModel::pixel`], [`HumpRoots::e_at`],
+//! the pixel's own pieces ([`search_range`], [`FastModel::angles`],
+//! [`FastModel::pixel`], [`HumpRoots::of`], [`HumpRoots::holds`], [`HumpRoots::e_at`],
 //! [`FastPixel::albedo_strengths_unchecked`], [`FastPixel::derivatives_at`],
 //! ...) with the same `sin`/`cos` ([`sin_cos_reduced`]); what the lanes add
 //! is the half-period walk and Newton's loop for the common case, written
@@ -207,14 +208,17 @@ fn pass_lanes<const P: u8>(
     use std::f64::consts::{FRAC_1_PI, PI, TAU};
     let k = fm.k;
     let lo = bounds.min_distance_mm;
-    let d = lanes(|l| obs[l].distance_mm);
-    let ir_raw = lanes(|l| obs[l].ir);
-    let db = lanes(|l| obs[l].background_distance_mm);
-    // invert's range.
-    let hi = lanes(|l| db[l] - bounds.min_separation_mm);
+    // invert's range (where there is none the lane is not ok: its upper end NaN).
+    let mut hi = [f64::NAN; W];
     // FastPixel: the constants.
-    let phi0 = lanes(|l| k * d[l]);
-    let angle = lanes(|l| k * db[l] - phi0[l]);
+    let mut phi0 = [0.0; W];
+    let mut angle = [0.0; W];
+    for l in 0..W {
+        if let Some((_, h)) = search_range(&obs[l], bounds) {
+            hi[l] = h;
+        }
+        (phi0[l], angle[l]) = fm.angles(&obs[l]);
+    }
     let mut sb = [0.0; W];
     let mut cb = [0.0; W];
     for l in 0..W {
@@ -239,24 +243,15 @@ fn pass_lanes<const P: u8>(
         let f = fm.pixel(&obs[l], phi0[l], (sb[l], cb[l]));
         (px.ir[l], px.a[l], px.l1[l], px.phi_d[l]) = (f.ir, f.a, f.l1, f.phi_d);
     }
-    // HumpRoots::new, its checks as a mask.
+    // HumpRoots::new, its checks (and the range's) as a mask.
+    let mut ok = [false; W];
     for l in 0..W {
         let f = px.fast(l);
-        (px.sigma[l], px.s[l], px.c[l]) = (-sb[l].signum(), sb[l].abs(), HumpRoots::tau_constant(&f));
+        let hump = HumpRoots::of(&f);
+        (px.sigma[l], px.s[l], px.c[l]) = (hump.sigma, hump.s, hump.c);
+        ok[l] = hi[l] > lo && angle[l].abs() <= ANGLE_LIMIT && hump.holds(&f);
     }
-    let (ir, a, l1, phi_d, sigma) = (px.ir, px.a, px.l1, px.phi_d, px.sigma);
-    let mut ok = masks(|l| {
-        hi[l] > lo
-            && d[l].is_finite()
-            && ir_raw[l].is_finite()
-            && angle[l].abs() <= ANGLE_LIMIT
-            && sb[l] != 0.0
-            && ir[l] > 0.0
-            && l1[l] > 0.0
-            && a[l] > 0.0
-            && sb[l].is_finite()
-            && px.c[l].is_finite()
-    });
+    let (phi_d, sigma) = (px.phi_d, px.sigma);
     let hi_e = lanes(|l| hi[l].min(admissible_limit(&px.fast(l))));
     // HumpRoots::roots: the half-periods m and m + 1 (m + 2 must lie beyond the range).
     let a0 = lanes(|l| if sigma[l] > 0.0 { 0.0 } else { PI });
