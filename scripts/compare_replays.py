@@ -39,10 +39,15 @@ def main():
             print(f"{what}: {len(old[what])} messages against {len(new[what])}")
             sys.exit(1)
         values = sum(len(m) for m in old[what])
-        bad = sum(1 for a, b in zip(old[what], new[what]) for u, v in zip(a, b) if not same(u, v))
-        bad += sum(abs(len(a) - len(b)) for a, b in zip(old[what], new[what]))
+        pairs = [(u, v) for a, b in zip(old[what], new[what]) for u, v in zip(a, b) if not same(u, v)]
+        # The largest difference between two finite values, and how many differ in finiteness.
+        finite = [abs(u - v) for u, v in pairs if math.isfinite(u) and math.isfinite(v)]
+        bad = len(pairs) + sum(abs(len(a) - len(b)) for a, b in zip(old[what], new[what]))
         differ += bad
-        parts.append(f"{what} {len(old[what])} messages, {values} values, {bad} differ")
+        part = f"{what} {len(old[what])} messages, {values} values, {bad} differ"
+        if pairs:
+            part += f" (largest difference {max(finite, default=0.0):.3g}, {len(pairs) - len(finite)} finite in one only)"
+        parts.append(part)
     print("; ".join(parts))
     sys.exit(1 if differ else 0)
 

@@ -7,6 +7,9 @@ use super::buffer::ImageBuf;
 use super::parallel::map_ordered;
 use super::stats::{median_select, sigma_about};
 
+mod columns;
+use columns::Columns;
+
 /// A plane `normal . p = offset`, with the fit's spread.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Plane {
@@ -465,44 +468,32 @@ impl Moments {
 /// residuals are millimetres of z.
 fn fit_inverse_depth<const N: usize>(
     points: &[RayPoint],
+    centre: (f64, f64),
+    min_points: usize,
+    robust: &Robust,
+) -> Option<InverseDepthFit<N>> {
+    COLUMNS.with(|cols| fit_inverse_depth_in(&mut cols.borrow_mut(), points, centre, min_points, robust))
+}
+
+thread_local! {
+    /// Each thread's columns for [`fit_inverse_depth`], kept between fits.
+    static COLUMNS: std::cell::RefCell<Columns> = std::cell::RefCell::new(Columns::default());
+}
+
+/// [`fit_inverse_depth`] with its points held in `cols`.
+fn fit_inverse_depth_in<const N: usize>(
+    cols: &mut Columns,
+    points: &[RayPoint],
     (a0, b0): (f64, f64),
     min_points: usize,
     robust: &Robust,
 ) -> Option<InverseDepthFit<N>> {
     // Each point's coordinates, weight and right-hand side once (the passes only drop points).
-    struct Term {
-        a: f64,
-        b: f64,
-        z: f64,
-        w: f64,
-        rhs: f64,
-        keep: bool,
-        resid: f64,
-    }
-    let mut t: Vec<Term> = points
-        .iter()
-        .map(|p| {
-            let z2 = p.z * p.z;
-            let w = z2 * z2; // d(1/z) = dz / z^2
-            Term {
-                a: p.a - a0,
-                b: p.b - b0,
-                z: p.z,
-                w,
-                rhs: z2 * p.z, // w / z
-                keep: true,
-                resid: 0.0,
-            }
-        })
-        .collect();
+    cols.fill(points, (a0, b0));
     // The moments over every point, then each pass takes out the points it drops (a
     // downdate) instead of summing the kept ones again.
-    let mut moments = Moments::default();
-    let mut n = 0;
-    for p in t.iter().filter(|p| p.keep) {
-        moments.add(p.a, p.b, p.w, p.rhs, 1.0);
-        n += 1;
-    }
+    let mut moments = cols.moments(N > 3);
+    let mut n = points.len();
     let mut fit = None;
     for pass in 0..=robust.passes {
         if n < min_points {
@@ -514,11 +505,7 @@ fn fit_inverse_depth<const N: usize>(
         if !c.iter().all(|v| v.is_finite()) || c[0] <= 0.0 {
             return fit;
         }
-        let mut ss = 0.0;
-        for p in t.iter_mut().filter(|p| p.keep) {
-            p.resid = (p.z - 1.0 / polynomial(&c, p.a, p.b)).abs();
-            ss += p.resid * p.resid;
-        }
+        let ss = cols.residuals(&c);
         let rms = (ss / n as f64).sqrt();
         fit = Some(InverseDepthFit {
             coef: c,
@@ -533,18 +520,11 @@ fn fit_inverse_depth<const N: usize>(
             break;
         }
         let cut = (robust.k * rms).max(robust.floor_mm);
-        let mut changed = false;
-        for p in t.iter_mut() {
-            if p.keep && p.resid > cut {
-                p.keep = false;
-                moments.add(p.a, p.b, p.w, p.rhs, -1.0);
-                n -= 1;
-                changed = true;
-            }
-        }
-        if !changed {
+        let dropped = cols.drop_beyond(cut, &mut moments);
+        if dropped == 0 {
             break;
         }
+        n -= dropped;
     }
     fit
 }
