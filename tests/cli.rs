@@ -442,6 +442,50 @@ fn replay_with_fixed_xi_reports_fixed() {
     assert_eq!(r["background_frames"].as_u64(), Some(10));
 }
 
+/// The loops built for any processor (`TTOF_PORTABLE=1`) give what the AVX2
+/// builds give (where the processor has AVX2): every message of `replay`'s
+/// output bag, byte for byte, ξ estimated (the lanes, the ξ profile's fits and
+/// the prior's all run).
+#[test]
+fn replay_with_the_portable_code_gives_the_same_bag() {
+    let dir = temp();
+    let input = bundled("document_holder.mcap");
+    for (out, portable) in [("vector.mcap", "0"), ("portable.mcap", "1")] {
+        let o = Command::new(env!("CARGO_BIN_EXE_translucent_tof"))
+            .args(["replay", input.to_str().unwrap(), "--out", out])
+            .env("TTOF_PORTABLE", portable)
+            .current_dir(dir.path())
+            .output()
+            .expect("running the translucent_tof binary");
+        assert_ok(&o);
+        // The binary says when it took the portable code (and only then).
+        assert_eq!(
+            text(&o.stderr).contains("TTOF_PORTABLE"),
+            portable == "1",
+            "{}",
+            describe(&o)
+        );
+    }
+    if !translucent_tof::physics::vector::avx2() {
+        eprintln!("no AVX2 here: the portable code is compared with itself");
+    }
+    let vector = messages_by_topic(&dir.path().join("vector.mcap"));
+    let portable = messages_by_topic(&dir.path().join("portable.mcap"));
+    assert_eq!(vector.keys().collect::<Vec<_>>(), portable.keys().collect::<Vec<_>>());
+    let mut compared = 0;
+    for (topic, msgs) in &vector {
+        assert_eq!(msgs.len(), portable[topic].len(), "{topic}");
+        for (k, (a, b)) in msgs.iter().zip(&portable[topic]).enumerate() {
+            assert!(a == b, "{topic}: message {k} differs");
+            compared += 1;
+        }
+    }
+    assert!(
+        vector.keys().any(|t| t.ends_with("depth/corrected")) && compared > 20,
+        "{compared} messages"
+    );
+}
+
 /// A3: `--json -` puts the report alone on stdout; the summary goes to stderr.
 /// (`--xi` keeps this run short; the stdout/stderr split does not depend on it.)
 #[test]

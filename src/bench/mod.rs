@@ -230,6 +230,9 @@ pub struct Machine {
     /// The vector instruction sets the processor offers, of those that matter
     /// to the numerics (the build itself targets baseline x86-64).
     pub features: Vec<&'static str>,
+    /// Which build of the hand-vectorised loops ran: `avx2`, or `portable`
+    /// (no AVX2, or `TTOF_PORTABLE=1`; see [`crate::physics::vector`]).
+    pub vector_code: &'static str,
 }
 
 impl Machine {
@@ -277,20 +280,22 @@ impl Machine {
             cpu,
             cores: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             features,
+            vector_code: crate::physics::vector::name(),
         }
     }
 
     /// One line for a table's header.
     pub fn describe(&self) -> String {
         format!(
-            "{}, {} cores, {}",
+            "{}, {} cores, {}, {} code",
             self.cpu,
             self.cores,
             if self.features.is_empty() {
                 "no AVX2/FMA".into()
             } else {
                 self.features.join("+")
-            }
+            },
+            self.vector_code
         )
     }
 }

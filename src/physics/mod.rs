@@ -31,3 +31,4 @@ pub mod audit;
 pub mod noise;
 pub mod parallel;
 pub mod trig;
+pub mod vector;

@@ -92,8 +92,8 @@ enum Lane {
 fn pass(fm: &FastModel, bounds: &InversionBounds, obs: &[PixelObservation; W], slopes: bool) -> [Lane; W] {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::is_x86_feature_detected!("avx2") {
-            // SAFETY: the processor has AVX2 (checked just above).
+        if crate::physics::vector::avx2() {
+            // SAFETY: the processor has AVX2 (`avx2` checks it).
             return unsafe {
                 match fm.p {
                     2.0 => pass_avx2::<2>(fm, bounds, obs, slopes),
