@@ -34,14 +34,24 @@ type V = [f64; W];
 const ANGLE_LIMIT: f64 = 1.0e6;
 const _: () = assert!(ANGLE_LIMIT < REDUCED_LIMIT);
 
+// Plain loops, not `std::array::from_fn`: the compiler does not always inline that, and
+// what it leaves out of line is not built for the pass's target features.
 #[inline(always)]
-fn lanes(f: impl FnMut(usize) -> f64) -> V {
-    std::array::from_fn(f)
+fn lanes(mut f: impl FnMut(usize) -> f64) -> V {
+    let mut v = [0.0; W];
+    for (l, v) in v.iter_mut().enumerate() {
+        *v = f(l);
+    }
+    v
 }
 
 #[inline(always)]
-fn masks(f: impl FnMut(usize) -> bool) -> [bool; W] {
-    std::array::from_fn(f)
+fn masks(mut f: impl FnMut(usize) -> bool) -> [bool; W] {
+    let mut m = [false; W];
+    for (l, m) in m.iter_mut().enumerate() {
+        *m = f(l);
+    }
+    m
 }
 
 /// [`foreground_distance`] (`slopes`) or [`foreground_distance_without_slopes`]
@@ -370,8 +380,9 @@ fn pass_lanes<const P: u8>(
             per_ir[l] = if finite { across } else { f64::NAN };
         }
     }
-    std::array::from_fn(|l| {
-        if done[l] {
+    let mut out = [Lane::Alone; W];
+    for (l, out) in out.iter_mut().enumerate() {
+        *out = if done[l] {
             Lane::Done(LayerEstimate {
                 foreground_distance_mm: x[l],
                 albedo_cos: strengths[l].0,
@@ -383,8 +394,9 @@ fn pass_lanes<const P: u8>(
             })
         } else {
             Lane::Alone
-        }
-    })
+        };
+    }
+    out
 }
 
 #[cfg(test)]
