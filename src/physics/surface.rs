@@ -883,44 +883,35 @@ fn window_fit(
     radius: usize,
     min_points: usize,
 ) -> Option<WindowFit> {
-    WINDOW.with(|window| window_fit_in(&mut window.borrow_mut(), points, width, rays, i, radius, min_points))
+    WINDOW.with(|window| {
+        // The window's points, gathered into the thread's buffer.
+        let window = &mut *window.borrow_mut();
+        let h = points.len() / width.max(1);
+        let (col, row) = (i % width, i / width);
+        window.clear();
+        for r in row.saturating_sub(radius)..(row + radius + 1).min(h) {
+            let cols = col.saturating_sub(radius)..(col + radius + 1).min(width);
+            window.extend(points[r * width + cols.start..r * width + cols.end].iter().flatten());
+        }
+        // A least-squares start is only as good as its worst points: drop those far from the
+        // window's median distance first (pixels of another surface that joined the region).
+        keep_near_median(window, 4.0, 20.0);
+        if window.len() < min_points.max(3) {
+            return None;
+        }
+        // The quadric where the window allows it (curved layers), else a plane.
+        let (k, floor_mm, passes) = (2.5, 1.0, 2);
+        if let Some(q) = fit_quadric_along_rays(window, &rays.data[i], k, floor_mm, passes) {
+            return Some(WindowFit::Quadric(q));
+        }
+        let robust = Robust { k, floor_mm, passes };
+        fit_inverse_depth::<3>(window, (0.0, 0.0), 3, &robust).map(WindowFit::Plane)
+    })
 }
 
 thread_local! {
     /// Each thread's window of points for [`window_fit`], kept between windows.
     static WINDOW: std::cell::RefCell<Vec<RayPoint>> = const { std::cell::RefCell::new(Vec::new()) };
-}
-
-/// [`window_fit`] with the window's points gathered in `window`.
-fn window_fit_in(
-    window: &mut Vec<RayPoint>,
-    points: &[Option<RayPoint>],
-    width: usize,
-    rays: &ImageBuf<Vector3<f64>>,
-    i: usize,
-    radius: usize,
-    min_points: usize,
-) -> Option<WindowFit> {
-    let h = points.len() / width.max(1);
-    let (col, row) = (i % width, i / width);
-    window.clear();
-    for r in row.saturating_sub(radius)..(row + radius + 1).min(h) {
-        let cols = col.saturating_sub(radius)..(col + radius + 1).min(width);
-        window.extend(points[r * width + cols.start..r * width + cols.end].iter().flatten());
-    }
-    // A least-squares start is only as good as its worst points: drop those far from the
-    // window's median distance first (pixels of another surface that joined the region).
-    keep_near_median(window, 4.0, 20.0);
-    if window.len() < min_points.max(3) {
-        return None;
-    }
-    // The quadric where the window allows it (curved layers), else a plane.
-    let (k, floor_mm, passes) = (2.5, 1.0, 2);
-    if let Some(q) = fit_quadric_along_rays(window, &rays.data[i], k, floor_mm, passes) {
-        return Some(WindowFit::Quadric(q));
-    }
-    let robust = Robust { k, floor_mm, passes };
-    fit_inverse_depth::<3>(window, (0.0, 0.0), 3, &robust).map(WindowFit::Plane)
 }
 
 #[cfg(test)]
