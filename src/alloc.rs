@@ -116,6 +116,26 @@ fn keep_cached(p: *mut u8, len: usize) -> bool {
     true
 }
 
+/// Bytes of free memory glibc may keep at the top of its heaps before handing
+/// it back ([`keep_heap_tops`]).
+pub const HEAP_TOP_KEPT: usize = 32 << 20;
+
+/// Lets glibc keep up to [`HEAP_TOP_KEPT`] bytes free at the top of its heaps
+/// (`M_TRIM_THRESHOLD`; its default is 128 KiB). The pipeline's small
+/// per-frame buffers (under [`LARGE`], so not in mappings of their own) are
+/// freed at the end of each frame; glibc then handed the heap's top back to
+/// the kernel, and the next frame paid a page fault for each page again (7 %
+/// of `bench --cases recover`'s samples, in the kernel). The memory kept is
+/// what the frames themselves use: it is not allocated, only not returned.
+/// Call it first in `main`, before any thread starts; nothing off glibc.
+pub fn keep_heap_tops() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets one of glibc's parameters; called before other threads exist.
+    unsafe {
+        libc::mallopt(libc::M_TRIM_THRESHOLD, HEAP_TOP_KEPT as libc::c_int);
+    }
+}
+
 /// Large allocations in mappings of their own, the rest from [`System`].
 pub struct LargeMapped;
 

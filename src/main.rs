@@ -3,6 +3,7 @@
 static ALLOCATOR: translucent_tof::alloc::LargeMapped = translucent_tof::alloc::LargeMapped;
 
 fn main() {
+    translucent_tof::alloc::keep_heap_tops();
     // The loops built for any processor even where AVX2 is at hand (the same numbers; a check).
     if std::env::var_os("TTOF_PORTABLE").is_some_and(|v| !v.is_empty() && v != "0") {
         translucent_tof::physics::vector::use_portable_code(true);
