@@ -412,11 +412,12 @@ const fn product(i: usize, j: usize) -> usize {
 }
 
 impl Moments {
-    /// Adds (`sign` 1) or takes out (`sign` -1) a point at `(a, b)` of weight `w`
-    /// and right-hand side `rhs`.
+    /// Takes out a point at `(a, b)` of weight `w` and right-hand side `rhs`
+    /// (a robust pass's downdate; the sums themselves are made four points at a
+    /// time, [`Columns::moments`]).
     #[inline]
-    fn add(&mut self, a: f64, b: f64, w: f64, rhs: f64, sign: f64) {
-        let w = sign * w;
+    fn take_out(&mut self, a: f64, b: f64, w: f64, rhs: f64) {
+        let w = -w;
         let (wa, wb) = (w * a, w * b);
         let (wa2, wab, wb2) = (wa * a, wa * b, wb * b);
         let (wa3, wa2b, wab2, wb3) = (wa2 * a, wa2 * b, wab * b, wb2 * b);
@@ -440,7 +441,7 @@ impl Moments {
         for (m, t) in self.w.iter_mut().zip(terms) {
             *m += t;
         }
-        let r = sign * rhs;
+        let r = -rhs;
         let (ra, rb) = (r * a, r * b);
         for (m, t) in self.rhs.iter_mut().zip([r, ra, rb, ra * a, ra * b, rb * b]) {
             *m += t;

@@ -324,7 +324,7 @@ unsafe fn drop_beyond<Q: Quad>(cols: &mut Columns, cut: f64, moments: &mut Momen
             let k = bits.trailing_zeros() as usize;
             bits &= bits - 1;
             g.keep[k] = 0;
-            moments.add(g.a[k], g.b[k], g.w[k], g.rhs[k], -1.0);
+            moments.take_out(g.a[k], g.b[k], g.w[k], g.rhs[k]);
             dropped += 1;
         }
     }
