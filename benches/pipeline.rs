@@ -15,7 +15,7 @@ fn pool(threads: usize) -> rayon::ThreadPool {
 fn inversion(c: &mut Criterion) {
     let scene = BenchScene::new(176, 144);
     let obs = scene.observe(scene.near_frame());
-    let pixels: Vec<PixelObservation> = obs.observations.data.iter().flatten().step_by(50).copied().collect();
+    let pixels: Vec<PixelObservation> = obs.observations.iter().map(|(_, o)| *o).step_by(50).collect();
     let cfg = &scene.pipeline.config;
     let mut g = c.benchmark_group(format!("inversion_{}px", pixels.len()));
     g.sample_size(10);

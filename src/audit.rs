@@ -75,7 +75,7 @@ pub fn gather(
                 if c == 0 || r == 0 || c + 1 >= w || r + 1 >= h {
                     continue;
                 }
-                let Some(o) = obs.observations.data[i] else {
+                let Some(&o) = obs.observations.get(i) else {
                     continue;
                 };
                 // Inside the layer: the 3x3 neighbourhood on it and seen through it.

@@ -19,7 +19,7 @@ use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{
     foreground_distance_without_slopes, foreground_distances, ForwardModel, ImageBuf, Intrinsics, InversionBounds,
-    PixelObservation, Region, Sensor, XiEstimate, XiMethod,
+    PixelObservation, Region, Sensor, SparseImage, XiEstimate, XiMethod,
 };
 
 /// Why a frame or a latch could not be processed.
@@ -53,6 +53,14 @@ pub enum PipelineError {
     /// The emitted-light map could not be derived.
     #[error("emitted light (Eq. 13)")]
     EmittedLight(#[from] EmittedLightError),
+    /// The image has more pixels than a frame's per-pixel indices (`u32`) hold.
+    #[error("the image is {width}x{height}: more pixels than this pipeline indexes (4,294,967,294)")]
+    TooLarge {
+        /// Its width.
+        width: usize,
+        /// Its height.
+        height: usize,
+    },
     /// A given Lin calibration does not match the camera.
     #[error("the Lin calibration is {got_w}x{got_h} but the camera is {want_w}x{want_h}")]
     LinSize {
@@ -348,8 +356,8 @@ pub struct Observed {
     pub distance_mm: ImageBuf<f64>,
     /// Pixels segmented as translucent.
     pub mask: ImageBuf<bool>,
-    /// Observations at those pixels (None where `Lin` or the background is missing).
-    pub observations: ImageBuf<Option<PixelObservation>>,
+    /// Observations at those pixels (none where `Lin` or the background is missing).
+    pub observations: SparseImage<PixelObservation>,
     /// Segmented pixels.
     pub translucent_pixels: usize,
 }
@@ -479,47 +487,36 @@ impl Pipeline {
             self.change_noise.as_ref(),
         );
         let (mask, _) = remove_small_regions(&raw, self.config.min_region_pixels);
-        let observations = ImageBuf {
+        let observations = SparseImage::from_mask(&mask, |i| {
+            let ir = frame.ir.data[i] as f64;
+            // The background behind the layer (displaced when the model refracts).
+            let (db, ib) = if self.config.model.options.refracts() {
+                self.config
+                    .model
+                    .options
+                    .background_through_layer(&bg.distance_mm, &bg.ir, &bg.emitted_light, i % k.width, i / k.width)
+                    .unwrap_or((f64::NAN, f64::NAN))
+            } else {
+                (bg.distance_mm.data[i], bg.ir.data[i])
+            };
+            let o = PixelObservation {
+                distance_mm: d.data[i],
+                ir,
+                background_distance_mm: db,
+                background_ir: ib,
+                emitted_light: bg.emitted_light.data[i],
+            };
+            let ok = ir.is_finite()
+                && ir > 0.0
+                && o.background_ir > 0.0
+                && o.emitted_light.is_finite()
+                && o.emitted_light > 0.0;
+            ok.then_some(o)
+        })
+        .ok_or(PipelineError::TooLarge {
             width: k.width,
             height: k.height,
-            data: (0..k.width * k.height)
-                .map(|i| {
-                    if !mask.data[i] {
-                        return None;
-                    }
-                    let ir = frame.ir.data[i] as f64;
-                    // The background behind the layer (displaced when the model refracts).
-                    let (db, ib) = if self.config.model.options.refracts() {
-                        self.config
-                            .model
-                            .options
-                            .background_through_layer(
-                                &bg.distance_mm,
-                                &bg.ir,
-                                &bg.emitted_light,
-                                i % k.width,
-                                i / k.width,
-                            )
-                            .unwrap_or((f64::NAN, f64::NAN))
-                    } else {
-                        (bg.distance_mm.data[i], bg.ir.data[i])
-                    };
-                    let o = PixelObservation {
-                        distance_mm: d.data[i],
-                        ir,
-                        background_distance_mm: db,
-                        background_ir: ib,
-                        emitted_light: bg.emitted_light.data[i],
-                    };
-                    let ok = ir.is_finite()
-                        && ir > 0.0
-                        && o.background_ir > 0.0
-                        && o.emitted_light.is_finite()
-                        && o.emitted_light > 0.0;
-                    ok.then_some(o)
-                })
-                .collect(),
-        };
+        })?;
         let translucent_pixels = mask.data.iter().filter(|&&m| m).count();
         Ok(Observed {
             stamp_ns: frame.stamp_ns,
@@ -609,7 +606,7 @@ impl Pipeline {
         observed.extend(
             region
                 .pixels()
-                .filter(|&(i, fi)| mask.data[i] && obs.observations.data[fi].is_some()),
+                .filter(|&(i, fi)| mask.data[i] && obs.observations.get(fi).is_some()),
         );
         let per_pixel: Vec<Option<PixelSolve>> = map_chunks_ordered(
             &observed,
@@ -617,8 +614,10 @@ impl Pipeline {
             MIN_PARALLEL_PIXELS,
             |batch: &[(usize, usize)]| {
                 // `observed` holds only pixels with an observation: one estimate each.
-                let observations: Vec<PixelObservation> =
-                    batch.iter().filter_map(|&(_, fi)| obs.observations.data[fi]).collect();
+                let observations: Vec<PixelObservation> = batch
+                    .iter()
+                    .filter_map(|&(_, fi)| obs.observations.get(fi).copied())
+                    .collect();
                 let estimates =
                     foreground_distances(&self.config.model, &observations, xi.xi, &self.config.bounds, true);
                 batch
@@ -680,7 +679,7 @@ impl Pipeline {
             // (the first pass took the one nearest the reading); then the surface again.
             let repicks: Vec<Option<f64>> =
                 map_ordered(&several_roots, MIN_PARALLEL_PIXELS, 64, |&(i, fi): &(usize, usize)| {
-                    let o = obs.observations.data[fi]?;
+                    let o = *obs.observations.get(fi)?;
                     let t = surfaces.ray_distance(i, &rays)?;
                     let est = foreground_distance_without_slopes(
                         &self.config.model,
@@ -704,7 +703,7 @@ impl Pipeline {
             surfaces.update(&points, &rays, &windows, &repicked);
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
             for &(i, fi) in &observed {
-                let Some(o) = obs.observations.data[fi] else {
+                let Some(o) = obs.observations.get(fi) else {
                     continue;
                 };
                 let t = surfaces.ray_distance(i, &rays).or_else(|| {

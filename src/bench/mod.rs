@@ -327,8 +327,7 @@ pub fn fast_per_pixel(pipeline: &Pipeline, obs: &Observed, xi: f64) -> (ImageBuf
     let c = &pipeline.config;
     let mut df = ImageBuf::filled(obs.mask.width, obs.mask.height, f64::NAN);
     let mut several = vec![false; df.len()];
-    for (i, o) in obs.observations.data.iter().enumerate() {
-        let Some(o) = o else { continue };
+    for (i, o) in obs.observations.iter() {
         if let Some(est) = crate::physics::foreground_distance(&c.model, o, xi, &c.bounds, None) {
             if !est.pinned {
                 df.data[i] = est.foreground_distance_mm;

@@ -51,8 +51,8 @@ pub fn recover_per_pixel(pipeline: &Pipeline, obs: &Observed, xi: f64) -> (Image
     let c = &pipeline.config;
     let mut df = ImageBuf::filled(obs.mask.width, obs.mask.height, f64::NAN);
     let mut res = df.clone();
-    for (i, o) in obs.observations.data.iter().enumerate() {
-        if let Some((d, r)) = o.and_then(|o| grid_search(&c.model, &o, xi, &c.bounds)) {
+    for (i, o) in obs.observations.iter() {
+        if let Some((d, r)) = grid_search(&c.model, o, xi, &c.bounds) {
             df.data[i] = d;
             res.data[i] = r;
         }

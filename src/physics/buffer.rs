@@ -49,6 +49,77 @@ impl<T> ImageBuf<T> {
     }
 }
 
+/// Values at some of an image's pixels: the values in pixel order and each
+/// pixel's place among them (4 bytes a pixel, where an `ImageBuf<Option<T>>`
+/// writes a whole `T` at every pixel). What a frame knows at its segmented
+/// pixels, often a small part of the image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SparseImage<T> {
+    /// Columns.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// Per pixel, its value's index in `values` ([`SparseImage::NONE`] for none).
+    slot: Vec<u32>,
+    /// The pixels holding a value, ascending, and their values.
+    pixels: Vec<u32>,
+    values: Vec<T>,
+}
+
+impl<T> SparseImage<T> {
+    /// The slot of a pixel without a value.
+    const NONE: u32 = u32::MAX;
+
+    /// An image holding no value; `None` when it has `u32::MAX` pixels or more.
+    pub fn empty(width: usize, height: usize) -> Option<Self> {
+        let n = width.checked_mul(height)?;
+        (n < Self::NONE as usize).then(|| Self {
+            width,
+            height,
+            slot: vec![Self::NONE; n],
+            pixels: vec![],
+            values: vec![],
+        })
+    }
+
+    /// The values `f` gives at the pixels where `mask` holds (it may give
+    /// none); `None` when the image has `u32::MAX` pixels or more.
+    pub fn from_mask(mask: &ImageBuf<bool>, mut f: impl FnMut(usize) -> Option<T>) -> Option<Self> {
+        let mut out = Self::empty(mask.width, mask.height)?;
+        let expected = mask.data.iter().filter(|&&m| m).count();
+        out.pixels.reserve_exact(expected);
+        out.values.reserve_exact(expected);
+        for (i, _) in mask.data.iter().enumerate().filter(|&(_, &m)| m) {
+            if let Some(v) = f(i) {
+                out.pixels.push(i as u32);
+                out.values.push(v);
+            }
+        }
+        // The slots afterwards, in a loop of their own.
+        for (k, &p) in out.pixels.iter().enumerate() {
+            out.slot[p as usize] = k as u32;
+        }
+        Some(out)
+    }
+
+    /// The value at pixel `i`, if any.
+    #[inline]
+    pub fn get(&self, i: usize) -> Option<&T> {
+        let s = *self.slot.get(i)?;
+        self.values.get(s as usize)
+    }
+
+    /// The pixels holding a value and their values, in pixel order.
+    pub fn iter(&self) -> impl Iterator<Item = (usize, &T)> + '_ {
+        self.pixels.iter().map(|&p| p as usize).zip(&self.values)
+    }
+
+    /// Pixels holding a value.
+    pub fn count(&self) -> usize {
+        self.values.len()
+    }
+}
+
 /// A rectangle of an image `full_width` wide: columns from `col0`, rows from
 /// `row0`, `width` by `height`. Work on a small object in a large image is
 /// done on the rectangle around it, not the whole image.
@@ -156,5 +227,28 @@ mod tests {
         let region = Region::around(&mask, 3).unwrap();
         assert_eq!((region.col0, region.width, region.row0, region.height), (3, 7, 0, 8));
         assert!(Region::around(&ImageBuf::filled(4, 4, false), 3).is_none());
+    }
+
+    #[test]
+    fn sparse_image_holds_what_it_was_given_where_it_was_given() {
+        let (w, h) = (7, 5);
+        let dense: Vec<Option<f64>> = (0..w * h)
+            .map(|i| (i % 3 == 1 && i % 4 != 0).then_some(i as f64 * 0.5))
+            .collect();
+        let mask = ImageBuf::from_vec(w, h, (0..w * h).map(|i| i % 2 == 1).collect()).unwrap();
+        let s = SparseImage::from_mask(&mask, |i| dense[i]).unwrap();
+        for (i, d) in dense.iter().enumerate() {
+            let want = if i % 2 == 1 { *d } else { None };
+            assert_eq!(s.get(i).copied(), want, "pixel {i}");
+        }
+        assert_eq!(s.get(w * h), None);
+        let held: Vec<(usize, f64)> = s.iter().map(|(i, v)| (i, *v)).collect();
+        let want: Vec<(usize, f64)> = (0..w * h)
+            .filter(|&i| mask.data[i])
+            .filter_map(|i| dense[i].map(|v| (i, v)))
+            .collect();
+        assert_eq!(held, want);
+        assert_eq!(s.count(), want.len());
+        assert!(SparseImage::<u8>::empty(1 << 16, 1 << 16).is_none());
     }
 }

@@ -8,7 +8,7 @@
 
 pub mod buffer;
 
-pub use buffer::{ImageBuf, Region};
+pub use buffer::{ImageBuf, Region, SparseImage};
 pub mod model;
 pub mod sensor;
 

@@ -15,7 +15,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::buffer::ImageBuf;
+use super::buffer::{ImageBuf, SparseImage};
 use super::inversion::{
     albedo_cos_clamped, foreground_distances, predicted_reading, InversionBounds, PixelObservation,
 };
@@ -149,12 +149,12 @@ impl FrameSample {
     /// Takes every `stride`-th pixel in both directions, with the stride chosen
     /// so at most `max_pixels` observations remain.
     pub fn from_image(
-        observations: &ImageBuf<Option<PixelObservation>>,
+        observations: &SparseImage<PixelObservation>,
         rays: &ImageBuf<Vector3<f64>>,
         truth_mm: Option<&ImageBuf<f64>>,
         max_pixels: usize,
     ) -> Self {
-        let n = observations.data.iter().filter(|o| o.is_some()).count().max(1);
+        let n = observations.count().max(1);
         let stride = ((n as f64 / max_pixels.max(1) as f64).sqrt().ceil() as usize).max(1);
         let (w, h) = (
             (observations.width).div_ceil(stride),
@@ -162,7 +162,7 @@ impl FrameSample {
         );
         let pick = |img_w: usize, k: usize| (k / w) * stride * img_w + (k % w) * stride;
         let obs = (0..w * h)
-            .map(|k| observations.data[pick(observations.width, k)])
+            .map(|k| observations.get(pick(observations.width, k)).copied())
             .collect();
         let ray = (0..w * h).map(|k| rays.data[pick(rays.width, k)]).collect();
         let truth = truth_mm.map(|t| ImageBuf {
