@@ -267,13 +267,17 @@ struct Robust {
 #[derive(Clone, Copy)]
 struct InverseDepthFit<const N: usize> {
     coef: [f64; N],
-    /// `A^T W A`, factored.
-    normal: Ldl<N>,
     a0: f64,
     b0: f64,
     rms: f64,
     sigma: f64,
     count: usize,
+    /// `e_a^T (A^T W A)^-1 e_a + e_b^T (A^T W A)^-1 e_b`, `e_a`, `e_b` the slopes'
+    /// coefficients (`c1`, `c2`): the tangent plane's normal variance, over
+    /// `(sigma / v)^2`, where the slopes are those coefficients alone (a plane
+    /// anywhere, a quadric at its centre). Kept instead of the factored matrix,
+    /// whose 42 numbers every copy of the fit would carry.
+    slope_var: f64,
 }
 
 impl<const N: usize> InverseDepthFit<N> {
@@ -298,7 +302,8 @@ impl<const N: usize> InverseDepthFit<N> {
     /// The plane tangent to the fitted surface where the ray `u` (z > 0) meets
     /// it: `1/z = v + g_a (a - a1) + g_b (b - b1)` at `(a1, b1) = (x/z, y/z)`,
     /// i.e. `(g_a, g_b, v - g_a a1 - g_b b1) . p = 1`, its normal toward the
-    /// camera; the normal's standard error from the coefficients' covariance.
+    /// camera; the normal's standard error from the coefficients' covariance
+    /// for a plane, or at a quadric's centre (NaN elsewhere on a quadric).
     fn tangent_plane(&self, u: &Vector3<f64>) -> Option<Plane> {
         self.tangent_plane_with(u, true)
     }
@@ -319,9 +324,8 @@ impl<const N: usize> InverseDepthFit<N> {
         };
         // Residuals are in z units under the z^4 weights, so Cov(c) = sigma^2 (A^T W A)^-1;
         // the normal turns by d(g_a, g_b) / v.
-        let normal_sigma_rad = if sigma {
-            let var = self.normal.inverse_form(&d_a) + self.normal.inverse_form(&d_b);
-            self.sigma * var.max(0.0).sqrt() / v
+        let normal_sigma_rad = if sigma && (N < 6 || (ra == 0.0 && rb == 0.0)) {
+            self.sigma * self.slope_var.max(0.0).sqrt() / v
         } else {
             f64::NAN
         };
@@ -508,9 +512,14 @@ fn fit_inverse_depth_in<const N: usize>(
         }
         let ss = cols.residuals(&c);
         let rms = (ss / n as f64).sqrt();
+        let unit = |k: usize| {
+            let mut e = [0.0; N];
+            e[k] = 1.0;
+            e
+        };
         fit = Some(InverseDepthFit {
             coef: c,
-            normal,
+            slope_var: normal.inverse_form(&unit(1)) + normal.inverse_form(&unit(2)),
             a0,
             b0,
             rms,
@@ -579,7 +588,7 @@ pub fn local_planes_adaptive(
         points: ray_pts,
         members: with_point,
     }
-    .planes_with(rays, false)
+    .planes(rays)
 }
 
 /// The windows of [`local_planes`]: `(2 radius + 1)^2` pixels, fitted when
@@ -599,7 +608,8 @@ pub struct Windows {
 /// [`fit_tangent_plane_along_rays`]) at the pixel's ray `rays` through the
 /// masked neighbours' points (`None` with fewer than `windows.min_points`). The
 /// smooth-surface prior: a noisy per-pixel depth is replaced by its
-/// neighbourhood's plane. The planes of [`LocalSurfaces`], pixel by pixel.
+/// neighbourhood's plane. The planes of [`LocalSurfaces`], pixel by pixel,
+/// without the normal's standard error (NaN).
 pub fn local_planes(
     points: &ImageBuf<Vector3<f64>>,
     rays: &ImageBuf<Vector3<f64>>,
@@ -691,15 +701,14 @@ impl LocalSurfaces {
         if !self.members.data[i] {
             return None;
         }
-        let s = self.blocks.stride;
-        let (c, r) = (i % self.members.width, i / self.members.width);
-        let slot = self.blocks.slot[(r / s) * self.blocks.across + c / s];
-        self.fits.get(slot)?.as_ref()
+        self.fits.get(self.blocks.pixel_slot[i] as usize)?.as_ref()
     }
 
-    /// The tangent plane at pixel `i`'s ray (`None` off the mask or without a fit).
+    /// The tangent plane at pixel `i`'s ray (`None` off the mask or without a
+    /// fit), without the normal's standard error (NaN): the fits keep only
+    /// what it takes at their centres.
     pub fn plane(&self, i: usize, rays: &ImageBuf<Vector3<f64>>) -> Option<Plane> {
-        self.fit_of(i)?.tangent_plane(&rays.data[i])
+        self.fit_of(i)?.tangent_plane_with(&rays.data[i], false)
     }
 
     /// `plane(i).ray_distance(rays[i])`, up to rounding, without making the plane.
@@ -733,18 +742,11 @@ impl LocalSurfaces {
 
     /// Every pixel's plane ([`Self::plane`]).
     pub fn planes(&self, rays: &ImageBuf<Vector3<f64>>) -> ImageBuf<Option<Plane>> {
-        self.planes_with(rays, true)
-    }
-
-    /// Every pixel's plane, its normal's standard error NaN unless `sigma`.
-    fn planes_with(&self, rays: &ImageBuf<Vector3<f64>>, sigma: bool) -> ImageBuf<Option<Plane>> {
         let m = &self.members;
         ImageBuf {
             width: m.width,
             height: m.height,
-            data: (0..m.data.len())
-                .map(|i| self.fit_of(i)?.tangent_plane_with(&rays.data[i], sigma))
-                .collect(),
+            data: (0..m.data.len()).map(|i| self.plane(i, rays)).collect(),
         }
     }
 }
@@ -753,12 +755,11 @@ impl LocalSurfaces {
 /// masked pixel nearest the block's middle). Only blocks with a masked
 /// pixel have a window: a small object in a large image has few.
 struct Blocks {
-    stride: usize,
-    across: usize,
-    /// Per block, its window's index in `centres` (`usize::MAX` for none).
-    slot: Vec<usize>,
     /// The windows' centres (pixel indices), in block order.
     centres: Vec<usize>,
+    /// Per pixel, its block's `slot` (`u32::MAX` for none): found without a
+    /// division at every pixel that asks for its surface.
+    pixel_slot: Vec<u32>,
 }
 
 impl Blocks {
@@ -791,12 +792,17 @@ impl Blocks {
                 centres.push(c);
             }
         }
-        Self {
-            stride: s,
-            across,
-            slot,
-            centres,
+        // Each row's blocks, repeated `s` times across and down.
+        let mut pixel_slot = Vec::with_capacity(w * h);
+        for r in 0..h {
+            let row = &slot[(r / s) * across..(r / s + 1) * across];
+            pixel_slot.extend(
+                row.iter()
+                    .flat_map(|&k| std::iter::repeat_n(u32::try_from(k).unwrap_or(u32::MAX), s))
+                    .take(w),
+            );
         }
+        Self { centres, pixel_slot }
     }
 
     /// Fits the windows `windows` (indices into `centres`) with `fit` (given the
@@ -1016,12 +1022,21 @@ mod tests {
             };
             let mut surfaces = LocalSurfaces::new(&before_move, &rays, &mask, &windows);
             surfaces.update(&points, &rays, &windows, &moved);
-            let planes = surfaces.planes(&rays);
+            // Plane for plane, bit for bit (the prior's planes carry no standard error).
+            let bits = |planes: &ImageBuf<Option<Plane>>| -> Vec<Option<([u64; 5], usize)>> {
+                let key = |p: &Plane| {
+                    assert!(p.normal_sigma_rad.is_nan());
+                    let v = [p.normal.x, p.normal.y, p.normal.z, p.offset, p.rms_mm];
+                    (v.map(f64::to_bits), p.count)
+                };
+                planes.data.iter().map(|p| p.as_ref().map(key)).collect()
+            };
+            let planes = bits(&surfaces.planes(&rays));
             let full = local_planes(&points, &rays, &mask, &windows);
-            assert_eq!(planes.data, full.data, "stride {stride}");
+            assert_eq!(planes, bits(&full), "stride {stride}");
             // The update did refit: the planes before the move differ somewhere.
             let before = local_planes(&before_move, &rays, &mask, &windows);
-            assert_ne!(before.data, full.data, "stride {stride}");
+            assert_ne!(bits(&before), bits(&full), "stride {stride}");
             // Every masked pixel has a plane (the windows hold enough points everywhere).
             let masked = mask.data.iter().filter(|&&m| m).count();
             assert_eq!(
@@ -1092,8 +1107,10 @@ mod tests {
                 };
                 let blocks = Blocks::new(&mask, stride);
                 let across = w.div_ceil(stride);
-                for (b, &slot) in blocks.slot.iter().enumerate() {
+                for b in 0..across * h.div_ceil(stride) {
                     let (c0, r0) = ((b % across) * stride, (b / across) * stride);
+                    // The block's window, as its first pixel knows it.
+                    let slot = blocks.pixel_slot[r0 * w + c0];
                     let (c1, r1) = ((c0 + stride).min(w), (r0 + stride).min(h));
                     let mut best: Option<(f64, usize)> = None;
                     for r in r0..r1 {
@@ -1105,9 +1122,16 @@ mod tests {
                             }
                         }
                     }
-                    let got = (slot != usize::MAX).then(|| blocks.centres[slot]);
+                    let got = (slot != u32::MAX).then(|| blocks.centres[slot as usize]);
                     assert_eq!(got, best.map(|b| b.1), "stride {stride}, fill {fill}, block {b}");
+                    // Every pixel of the block knows the same window.
+                    for r in r0..r1 {
+                        for c in c0..c1 {
+                            assert_eq!(blocks.pixel_slot[r * w + c], slot, "pixel ({c}, {r})");
+                        }
+                    }
                 }
+                assert_eq!(blocks.pixel_slot.len(), w * h);
             }
         }
     }
