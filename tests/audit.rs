@@ -172,12 +172,15 @@ fn replay_with_the_audit_physics(v: &Value, dir: &Path) {
     let b = bag("audit_b.mcap");
 
     let replay = |args: &[&str]| -> f64 {
-        let json = dir.join("replay.json");
+        let (json, out) = (dir.join("replay.json"), dir.join("replay.mcap"));
+        // (`--out` in the test's directory: the default is the working directory, the crate's.)
         let mut a = vec![
             "replay",
             b.to_str().expect("utf-8"),
             "--json",
             json.to_str().expect("utf-8"),
+            "--out",
+            out.to_str().expect("utf-8"),
         ];
         a.extend_from_slice(args);
         let out = Command::new(env!("CARGO_BIN_EXE_translucent_tof"))

@@ -825,9 +825,13 @@ fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
     // Every point within the floor of the median is kept whatever the spread: no need
     // to measure it (the common case on a smooth layer). Within the floor of each other,
     // they are within it of the median too.
-    let (lo, hi) = points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
-        (a.min(p.distance), b.max(p.distance))
-    });
+    // (Comparisons, not `f64::min`: the distances are finite, so no NaN to order.)
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for p in points.iter() {
+        let d = p.distance;
+        lo = if d < lo { d } else { lo };
+        hi = if d > hi { d } else { hi };
+    }
     if hi - lo <= floor_mm {
         return;
     }
