@@ -45,14 +45,27 @@ pub fn thread_pool(threads: usize, pin: bool) -> Result<rayon::ThreadPool, rayon
     builder(threads, pin).0.build()
 }
 
-/// [`thread_pool`] as rayon's global pool (the node's), with the CPUs its
-/// workers are pinned to in worker order (empty: unpinned); an error if the
-/// global pool was already built.
-pub fn global_pool(threads: usize, pin: bool) -> Result<Vec<usize>, rayon::ThreadPoolBuildError> {
+/// [`thread_pool`] with the calling thread as its first worker (rayon's
+/// `use_current_thread`; the node's processing thread): the parallel parts of
+/// the work it does are pushed to its own queue, where it starts on them at
+/// once and the other workers take their share, instead of being handed to a
+/// pool it then sleeps on until they are done (two thread wake-ups each
+/// time). With the CPUs the workers are pinned to, in worker order (empty:
+/// unpinned; the calling thread to the first). The calling thread stays in
+/// the pool for as long as it runs (rayon keeps its registration), so call it
+/// once per thread: an error if the thread is already in a pool.
+pub fn pool_on_current_thread(
+    threads: usize,
+    pin: bool,
+) -> Result<(rayon::ThreadPool, Vec<usize>), rayon::ThreadPoolBuildError> {
     let (b, cpus) = builder(threads, pin);
-    b.build_global()?;
-    // Outside any pool, the global pool's size.
-    Ok(worker_cpus(&cpus, rayon::current_num_threads()))
+    let pool = b.use_current_thread().build()?;
+    // rayon runs the start handler on the threads it starts, not on this one.
+    if !cpus.is_empty() {
+        let _ = pin_current_thread(cpu_of(&cpus, 0));
+    }
+    let n = pool.current_num_threads();
+    Ok((pool, worker_cpus(&cpus, n)))
 }
 
 /// The CPU of worker `i`: the mask's CPUs in turn (`cpus` not empty).
@@ -106,5 +119,44 @@ mod tests {
         let free = thread_pool(1, false).expect("a pool");
         assert_eq!(free.install(|| allowed_cpus().expect("a mask")), cpus);
         assert!(pin_current_thread(1 << 20).is_err());
+    }
+
+    #[test]
+    fn the_calling_thread_works_in_its_pool() {
+        let cpus = allowed_cpus().expect("the affinity mask");
+        for pin in [false, true] {
+            // A thread of its own: the pool keeps the thread it was built on.
+            let (index, threads, ran_on, pinned, again) = std::thread::spawn(move || {
+                let (pool, pinned) = pool_on_current_thread(2, pin).expect("a pool");
+                // Work asked for on this thread runs in the pool, this thread among its workers.
+                let ran_on: Vec<Option<usize>> = {
+                    use rayon::prelude::*;
+                    (0..64).into_par_iter().map(|_| rayon::current_thread_index()).collect()
+                };
+                let again = pool_on_current_thread(2, pin).is_err();
+                let out = (
+                    rayon::current_thread_index(),
+                    rayon::current_num_threads(),
+                    ran_on,
+                    (pinned, allowed_cpus().expect("a mask")),
+                    again,
+                );
+                drop(pool);
+                out
+            })
+            .join()
+            .expect("the thread");
+            assert_eq!((index, threads), (Some(0), 2));
+            assert!(ran_on.iter().all(|i| matches!(i, Some(0) | Some(1))), "{ran_on:?}");
+            assert!(again, "a thread already in a pool is refused");
+            let (pinned, mask) = pinned;
+            if pin {
+                assert_eq!(pinned, worker_cpus(&cpus, 2));
+                assert_eq!(mask, vec![pinned[0]], "the calling thread pinned to the first");
+            } else {
+                assert!(pinned.is_empty());
+                assert_eq!(mask, cpus);
+            }
+        }
     }
 }

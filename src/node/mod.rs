@@ -256,28 +256,14 @@ fn release_free_heap() {
 /// Runs the node until SIGINT / SIGTERM (or `max_frames`).
 pub fn run(s: NodeSettings) -> anyhow::Result<NodeStats> {
     fix_mmap_threshold();
-    let mut pinned_cpus = vec![];
-    if s.pin_threads {
-        // The pool recovery spreads a large frame over (rayon's global pool), built before
-        // anything uses it.
-        match crate::affinity::global_pool(0, true) {
-            Ok(cpus) => {
-                info!("pin_threads: the processing pool's workers pinned to CPUs {cpus:?}");
-                pinned_cpus = cpus;
-            }
-            Err(e) => {
-                warn!("pin_threads: the pinned processing pool could not be built, its workers run unpinned ({e})")
-            }
-        }
-    }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
         .build()?;
-    rt.block_on(run_async(s, pinned_cpus))
+    rt.block_on(run_async(s))
 }
 
-async fn run_async(s: NodeSettings, pinned_cpus: Vec<usize>) -> anyhow::Result<NodeStats> {
+async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     // Rerun first: a bad target is an error before anything appears on DDS.
     let viz = VizSink::start(&s.rerun, "translucent_tof", 2).map_err(|e| anyhow::anyhow!(e))?;
     let ctx = context(s.domain_id, s.localhost_only)?;
@@ -496,7 +482,6 @@ async fn run_async(s: NodeSettings, pinned_cpus: Vec<usize>) -> anyhow::Result<N
             stats.dropped.get(&DropCause::BadImage).copied().unwrap_or(0) + read_errors,
         );
     }
-    stats.pinned_cpus = pinned_cpus;
     info!("{}", summary(&stats));
     if let Some(p) = &s.stats_json {
         let text = serde_json::to_string_pretty(&stats)?;
@@ -532,8 +517,22 @@ fn worker(
     replies: tokio::sync::mpsc::UnboundedSender<(Token, TriggerResponse)>,
     done: tokio::sync::mpsc::UnboundedSender<NodeStats>,
 ) {
-    let mut core: NodeCore<Token> = NodeCore::new(s.config.clone(), s.background_frames, s.latch_timeout);
     let mut stats = NodeStats::default();
+    // The processing pool, this thread its first worker (see `pool_on_current_thread`).
+    let _pool = match crate::affinity::pool_on_current_thread(0, s.pin_threads) {
+        Ok((pool, cpus)) => {
+            if s.pin_threads {
+                info!("pin_threads: the processing pool's workers pinned to CPUs {cpus:?}");
+            }
+            stats.pinned_cpus = cpus;
+            Some(pool)
+        }
+        Err(e) => {
+            warn!("the processing pool could not be built on the pipeline thread; rayon's global pool does the work ({e})");
+            None
+        }
+    };
+    let mut core: NodeCore<Token> = NodeCore::new(s.config.clone(), s.background_frames, s.latch_timeout);
     let mut latencies: Vec<f64> = Vec::with_capacity(LATENCY_WINDOW);
     let mut last_report = Instant::now();
     let (mut last_sample, mut last_trim) = (Instant::now(), Instant::now());
