@@ -600,26 +600,41 @@ impl Pipeline {
         let mut unresolved = 0;
         let bg = self.background.as_ref();
         // The translucent pixels with an observation, in pixel order, each as its index in the
-        // rectangle and in the image: inverted in batches (in parallel over the current rayon
-        // pool when there are enough of them), then the counts in pixel order.
-        let mut observed: Vec<(usize, usize)> = Vec::with_capacity(obs.translucent_pixels);
-        observed.extend(
-            region
-                .pixels()
-                .filter(|&(i, fi)| mask.data[i] && obs.observations.get(fi).is_some()),
-        );
+        // rectangle and in the image (walking the rectangle's rows: no division per pixel), with
+        // their observations: inverted in batches (in parallel over the current rayon pool
+        // when there are enough of them), then the counts in pixel order.
+        let mut observed: Vec<(usize, usize)> = Vec::with_capacity(obs.observations.count());
+        let (mut row, mut row_start) = (0, 0);
+        let full = region.full_width.max(1);
+        for fi in obs.observations.pixels() {
+            while fi >= row_start + full {
+                (row, row_start) = (row + 1, row_start + full);
+            }
+            let col = fi - row_start;
+            if (region.row0..region.row0 + region.height).contains(&row)
+                && (region.col0..region.col0 + region.width).contains(&col)
+            {
+                observed.push(((row - region.row0) * region.width + col - region.col0, fi));
+            }
+        }
+        // Every observation lies in the rectangle (both come from the frame's mask), so the
+        // observations are the frame's own list, not a copy (unless that ever fails).
+        let held: std::borrow::Cow<[PixelObservation]> = if observed.len() == obs.observations.count() {
+            std::borrow::Cow::Borrowed(obs.observations.values())
+        } else {
+            observed
+                .iter()
+                .filter_map(|&(_, fi)| obs.observations.get(fi).copied())
+                .collect()
+        };
         let per_pixel: Vec<Option<PixelSolve>> = map_chunks_ordered(
             &observed,
             INVERSION_BATCH,
             MIN_PARALLEL_PIXELS,
-            |batch: &[(usize, usize)]| {
-                // `observed` holds only pixels with an observation: one estimate each.
-                let observations: Vec<PixelObservation> = batch
-                    .iter()
-                    .filter_map(|&(_, fi)| obs.observations.get(fi).copied())
-                    .collect();
+            |start: usize, batch: &[(usize, usize)]| {
+                let observations = &held[start..start + batch.len()];
                 let estimates =
-                    foreground_distances(&self.config.model, &observations, xi.xi, &self.config.bounds, true);
+                    foreground_distances(&self.config.model, observations, xi.xi, &self.config.bounds, true);
                 batch
                     .iter()
                     .zip(observations.iter().zip(estimates))

@@ -118,6 +118,16 @@ impl<T> SparseImage<T> {
     pub fn count(&self) -> usize {
         self.values.len()
     }
+
+    /// The values, in pixel order (those of [`SparseImage::pixels`]).
+    pub fn values(&self) -> &[T] {
+        &self.values
+    }
+
+    /// The pixels holding a value, ascending.
+    pub fn pixels(&self) -> impl ExactSizeIterator<Item = usize> + '_ {
+        self.pixels.iter().map(|&p| p as usize)
+    }
 }
 
 /// A rectangle of an image `full_width` wide: columns from `col0`, rows from
@@ -249,6 +259,9 @@ mod tests {
             .collect();
         assert_eq!(held, want);
         assert_eq!(s.count(), want.len());
+        let (pixels, values): (Vec<usize>, Vec<f64>) = want.iter().copied().unzip();
+        assert_eq!(s.pixels().collect::<Vec<_>>(), pixels);
+        assert_eq!(s.values(), values);
         assert!(SparseImage::<u8>::empty(1 << 16, 1 << 16).is_none());
     }
 }

@@ -22,20 +22,22 @@ where
 }
 
 /// `f` over consecutive chunks of `items` of `chunk` each (the last may be
-/// shorter), in parallel over the current rayon pool when there are at least
-/// `min_parallel` items, else in turn; each chunk's results, in order, joined.
-/// `f` gives one result per item of its chunk.
+/// shorter), given each chunk's first index in `items`, in parallel over the
+/// current rayon pool when there are at least `min_parallel` items, else in
+/// turn; each chunk's results, in order, joined. `f` gives one result per
+/// item of its chunk.
 pub fn map_chunks_ordered<T, R, F>(items: &[T], chunk: usize, min_parallel: usize, f: F) -> Vec<R>
 where
     T: Sync,
     R: Send,
-    F: Fn(&[T]) -> Vec<R> + Sync + Send,
+    F: Fn(usize, &[T]) -> Vec<R> + Sync + Send,
 {
-    let chunks: Vec<&[T]> = items.chunks(chunk.max(1)).collect();
+    let size = chunk.max(1);
+    let chunks: Vec<(usize, &[T])> = items.chunks(size).enumerate().map(|(k, c)| (k * size, c)).collect();
     let parts: Vec<Vec<R>> = if items.len() < min_parallel {
-        chunks.into_iter().map(f).collect()
+        chunks.into_iter().map(|(start, c)| f(start, c)).collect()
     } else {
-        chunks.par_iter().map(|c| f(c)).collect()
+        chunks.par_iter().map(|&(start, c)| f(start, c)).collect()
     };
     // Sized once: a growing Vec of this size would be moved to new pages at each doubling.
     let mut out = Vec::with_capacity(items.len());
@@ -64,7 +66,16 @@ mod tests {
     #[test]
     fn chunks_joined_in_order_either_way() {
         let items: Vec<u32> = (0..1000).collect();
-        let squares = |c: &[u32]| c.iter().map(|v| u64::from(*v) * u64::from(*v)).collect::<Vec<_>>();
+        // Each chunk's first index given with it: the squares of the indices themselves.
+        let squares = |start: usize, c: &[u32]| {
+            c.iter()
+                .enumerate()
+                .map(|(k, v)| {
+                    assert_eq!(*v as usize, start + k);
+                    u64::from(*v) * u64::from(*v)
+                })
+                .collect::<Vec<_>>()
+        };
         let sequential = map_chunks_ordered(&items, 64, usize::MAX, squares);
         let parallel = map_chunks_ordered(&items, 7, 0, squares);
         assert_eq!(sequential, parallel);
