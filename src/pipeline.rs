@@ -717,10 +717,7 @@ impl Pipeline {
             // The windows those pixels are in, refitted (the same surfaces as refitting all).
             surfaces.update(&points, &rays, &windows, &repicked);
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
-            for &(i, fi) in &observed {
-                let Some(o) = obs.observations.get(fi) else {
-                    continue;
-                };
+            for (&(i, _), o) in observed.iter().zip(held.iter()) {
                 let t = surfaces.ray_distance(i, &rays).or_else(|| {
                     surfaces
                         .nearest_plane(i, self.config.prior_radius_px, &rays)

@@ -36,42 +36,18 @@ pub fn changed_pixels(
     // vectorizes): a difference already within half the range is its own wrapped
     // difference. The few valid pixels beyond it are wrapped afterwards.
     let half = range_mm / 2.0;
-    // (`move`: the constants copied in, so the loops do not read them back at every pixel.)
+    // (`move`: the constant copied in, so the loops do not read it back at every pixel.)
     let threshold = move |sigma: f64| threshold_mm.max(NOISE_SIGMAS * if sigma.is_finite() { sigma } else { 0.0 });
-    let near = move |d: f64, db: f64| {
-        let diff = d - db;
-        (diff >= -half) & (diff < half)
-    };
-    // Whether a pixel changed (given its threshold), and whether it is valid but beyond
-    // the common case.
-    let test = move |d: f64, db: f64, t: f64| {
-        let (both, near) = (valid(d) & valid(db), near(d, db));
-        (both & near & ((d - db).abs() > t), both & !near)
-    };
     let (d, b) = (&distance_mm.data, &background_mm.data);
     let mut data = vec![false; d.len()];
-    let mut far = 0usize;
-    match change_noise_mm {
-        Some(n) => {
-            for (((out, &d), &db), &s) in data.iter_mut().zip(d).zip(b).zip(&n.data) {
-                let (changed, beyond) = test(d, db, threshold(s));
-                *out = changed;
-                far += usize::from(beyond);
-            }
-        }
-        None => {
-            let t = threshold(0.0);
-            for ((out, &d), &db) in data.iter_mut().zip(d).zip(b) {
-                let (changed, beyond) = test(d, db, t);
-                *out = changed;
-                far += usize::from(beyond);
-            }
-        }
-    }
+    let far = match change_noise_mm {
+        Some(n) => changed_within_half(&mut data, d, b, n.data.iter().map(|&s| threshold(s)), half),
+        None => changed_within_half(&mut data, d, b, std::iter::repeat(threshold(0.0)), half),
+    };
     if far > 0 {
         for (i, out) in data.iter_mut().enumerate() {
             let (d, db) = (d[i], b[i]);
-            if valid(d) & valid(db) & !near(d, db) {
+            if valid(d) & valid(db) & !within_half(d, db, half) {
                 let sigma = change_noise_mm.map_or(0.0, |n| n.data[i]);
                 *out = wrapped_difference(d, db, range_mm).abs() > threshold(sigma);
             }
@@ -82,6 +58,34 @@ pub fn changed_pixels(
         height: distance_mm.height,
         data,
     }
+}
+
+/// [`changed_pixels`]'s common case at every pixel: `out` marks the valid
+/// pairs whose difference, within half the range, exceeds the pixel's
+/// threshold (one per pixel, in order); how many valid pairs lie beyond half
+/// the range (left unmarked, to be wrapped).
+#[inline(always)]
+fn changed_within_half(
+    out: &mut [bool],
+    d: &[f64],
+    b: &[f64],
+    thresholds: impl Iterator<Item = f64>,
+    half: f64,
+) -> usize {
+    let mut far = 0usize;
+    for (((out, &d), &db), t) in out.iter_mut().zip(d).zip(b).zip(thresholds) {
+        let (both, near) = (valid(d) & valid(db), within_half(d, db, half));
+        *out = both & near & ((d - db).abs() > t);
+        far += usize::from(both & !near);
+    }
+    far
+}
+
+/// `d - db` in `[-half, half)`: its own wrapped difference.
+#[inline(always)]
+fn within_half(d: f64, db: f64, half: f64) -> bool {
+    let diff = d - db;
+    (diff >= -half) & (diff < half)
 }
 
 #[inline(always)]
