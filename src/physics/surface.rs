@@ -351,6 +351,21 @@ struct RayPoint {
 }
 
 impl RayPoint {
+    /// No point (off the mask, not finite or behind the camera) in an image of
+    /// points ([`ray_points`]): NaN everywhere, so [`Self::is_point`] is false.
+    const NONE: Self = Self {
+        a: f64::NAN,
+        b: f64::NAN,
+        z: f64::NAN,
+        distance: f64::NAN,
+    };
+
+    /// Whether this is a point, not [`Self::NONE`] (a point's distance is finite).
+    #[inline]
+    fn is_point(&self) -> bool {
+        !self.distance.is_nan()
+    }
+
     /// `None` for a point that is not finite or not in front of the camera.
     #[inline]
     fn new(p: &Vector3<f64>) -> Option<Self> {
@@ -363,13 +378,14 @@ impl RayPoint {
     }
 }
 
-/// The masked pixels' points as [`RayPoint`]s (`None` elsewhere).
-fn ray_points(points: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> Vec<Option<RayPoint>> {
+/// The masked pixels' points as [`RayPoint`]s ([`RayPoint::NONE`] elsewhere:
+/// a window's rows are then gathered without a branch per pixel).
+fn ray_points(points: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> Vec<RayPoint> {
     points
         .data
         .iter()
         .zip(&mask.data)
-        .map(|(p, &m)| if m { RayPoint::new(p) } else { None })
+        .map(|(p, &m)| m.then(|| RayPoint::new(p)).flatten().unwrap_or(RayPoint::NONE))
         .collect()
 }
 
@@ -630,7 +646,7 @@ pub struct LocalSurfaces {
     blocks: Blocks,
     fits: Vec<Option<WindowFit>>,
     /// The points fitted.
-    points: Vec<Option<RayPoint>>,
+    points: Vec<RayPoint>,
     /// The pixels that take a plane.
     members: ImageBuf<bool>,
 }
@@ -681,9 +697,9 @@ impl LocalSurfaces {
             .collect();
         for &i in changed {
             self.points[i] = if self.members.data[i] {
-                RayPoint::new(&points.data[i])
+                RayPoint::new(&points.data[i]).unwrap_or(RayPoint::NONE)
             } else {
-                None
+                RayPoint::NONE
             };
         }
         let ray_pts = &self.points;
@@ -887,7 +903,7 @@ impl WindowFit {
 
 /// The surface through the masked, finite points in the window around pixel `i`.
 fn window_fit(
-    points: &[Option<RayPoint>],
+    points: &[RayPoint],
     width: usize,
     rays: &ImageBuf<Vector3<f64>>,
     i: usize,
@@ -899,11 +915,22 @@ fn window_fit(
         let window = &mut *window.borrow_mut();
         let h = points.len() / width.max(1);
         let (col, row) = (i % width, i / width);
-        window.clear();
-        for r in row.saturating_sub(radius)..(row + radius + 1).min(h) {
-            let cols = col.saturating_sub(radius)..(col + radius + 1).min(width);
-            window.extend(points[r * width + cols.start..r * width + cols.end].iter().flatten());
+        // Each pixel is written at the end and counted only if it is a point: no branch per
+        // pixel (the buffer is first made as long as the window).
+        let rows = row.saturating_sub(radius)..(row + radius + 1).min(h);
+        let cols = col.saturating_sub(radius)..(col + radius + 1).min(width);
+        let most = rows.len() * cols.len();
+        if window.len() < most {
+            window.resize(most, RayPoint::NONE);
         }
+        let mut len = 0;
+        for r in rows {
+            for p in &points[r * width + cols.start..r * width + cols.end] {
+                window[len] = *p;
+                len += usize::from(p.is_point());
+            }
+        }
+        window.truncate(len);
         // A least-squares start is only as good as its worst points: drop those far from the
         // window's median distance first (pixels of another surface that joined the region).
         keep_near_median(window, 4.0, 20.0);
