@@ -366,6 +366,17 @@ impl RayPoint {
         !self.distance.is_nan()
     }
 
+    /// A pixel's entry in an image of points: its point ([`Self::new`]) where
+    /// it is a `member` of the fitted pixels and has one, else [`Self::NONE`].
+    #[inline]
+    fn at(p: &Vector3<f64>, member: bool) -> Self {
+        if member {
+            Self::new(p).unwrap_or(Self::NONE)
+        } else {
+            Self::NONE
+        }
+    }
+
     /// `None` for a point that is not finite or not in front of the camera.
     #[inline]
     fn new(p: &Vector3<f64>) -> Option<Self> {
@@ -385,7 +396,7 @@ fn ray_points(points: &ImageBuf<Vector3<f64>>, mask: &ImageBuf<bool>) -> Vec<Ray
         .data
         .iter()
         .zip(&mask.data)
-        .map(|(p, &m)| m.then(|| RayPoint::new(p)).flatten().unwrap_or(RayPoint::NONE))
+        .map(|(p, &m)| RayPoint::at(p, m))
         .collect()
 }
 
@@ -696,11 +707,7 @@ impl LocalSurfaces {
             })
             .collect();
         for &i in changed {
-            self.points[i] = if self.members.data[i] {
-                RayPoint::new(&points.data[i]).unwrap_or(RayPoint::NONE)
-            } else {
-                RayPoint::NONE
-            };
+            self.points[i] = RayPoint::at(&points.data[i], self.members.data[i]);
         }
         let ray_pts = &self.points;
         let fits = self.blocks.fit(&redo, |c| {
