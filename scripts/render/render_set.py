@@ -1,0 +1,227 @@
+"""Renders the physically rendered CW-ToF validation set into bags/rendered/.
+
+usage: render_set.py [--list] [--out DIR] [--cache DIR] [NAME ...]
+
+Each bag: 10 background-only frames, then its stages (a few frames of one
+geometry each). Each geometry is rendered once (cached by content in
+--cache) and its noisy frames are drawn from that render with per-frame
+seeds. Scene parameters are drawn from seeded ranges (scenes.py).
+"""
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import tofcore as tc  # noqa: E402
+import scenes  # noqa: E402
+from mcap.writer import CompressionType  # noqa: E402
+from mcap_ros2.writer import Writer  # noqa: E402
+
+TIME = "int32 sec\nuint32 nanosec\n"
+HEADER = "builtin_interfaces/Time stamp\nstring frame_id\n"
+SEP = "=" * 80 + "\n"
+IMAGE = (
+    "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\n"
+    "uint8 is_bigendian\nuint32 step\nuint8[] data\n"
+    + SEP + "MSG: std_msgs/Header\n" + HEADER
+    + SEP + "MSG: builtin_interfaces/Time\n" + TIME
+)
+ROI = "uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\nbool do_rectify\n"
+CAMERA_INFO = (
+    "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\n"
+    "float64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\n"
+    "uint32 binning_y\nRegionOfInterest roi\n"
+    + SEP + "MSG: std_msgs/Header\n" + HEADER
+    + SEP + "MSG: builtin_interfaces/Time\n" + TIME
+    + SEP + "MSG: sensor_msgs/RegionOfInterest\n" + ROI
+)
+FRAME_ID = "tof_optical_frame"
+BACKGROUND_FRAMES = 10
+
+
+def geometry_key(objects, materials, spp):
+    used = {o["material"] for o in objects}
+    blob = json.dumps({"objects": objects, "materials": {k: materials[k] for k in sorted(used)},
+                       "spp": spp, "bins": [tc.START_M, tc.BIN_M, tc.BINS],
+                       "emitter": [tc.EMIT_INTENSITY, tc.BEAM_DEG, tc.CUTOFF_DEG], "v": 1},
+                      sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def rendered(objects, materials, spp, cache):
+    """(A, B, S, render_seconds, cached?) of one geometry. The render's seed
+    comes from the geometry's content, so a geometry shared by several bags
+    (e.g. the white wall at 2000 mm) is rendered once."""
+    key = geometry_key(objects, materials, spp)
+    seed = int(key[:7], 16)
+    path = os.path.join(cache, key + ".npz")
+    if os.path.exists(path):
+        z = np.load(path)
+        return z["a"], z["b"], z["s"], float(z["seconds"]), True
+    t0 = time.time()
+    a, b, s = tc.render_transient_ab(objects, materials, spp, seed, chunk_spp=2048,
+                                     log=lambda m: print(m, flush=True))
+    secs = time.time() - t0
+    np.savez(path + ".tmp.npz", a=a, b=b, s=s, seconds=secs)
+    os.replace(path + ".tmp.npz", path)
+    return a, b, s, secs, False
+
+
+def image_msg(hdr, encoding, arr):
+    arr = np.ascontiguousarray(arr)
+    return {"header": hdr, "height": tc.H, "width": tc.W, "encoding": encoding, "is_bigendian": 0,
+            "step": tc.W * arr.dtype.itemsize, "data": arr.tobytes()}
+
+
+def info_msg(hdr):
+    k = tc.camera_info_k()
+    return {"header": hdr, "height": tc.H, "width": tc.W, "distortion_model": "plumb_bob",
+            "d": [0.0] * 5, "k": k, "r": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
+            "p": [k[0], 0.0, k[2], 0.0, 0.0, k[4], k[5], 0.0, 0.0, 0.0, 1.0, 0.0],
+            "binning_x": 0, "binning_y": 0,
+            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}}
+
+
+def toml_value(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(round(float(v), 6))
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    raise TypeError(type(v))
+
+
+def obj_toml(prefix, obj, materials):
+    mat = materials[obj["material"]]
+    lines = [f"[[{prefix}]]", f'kind = "{obj["kind"]}"']
+    if "id" in mat:
+        lines.append(f"material = {mat['id']}")
+    else:
+        lines.append(f"albedo = {toml_value(mat['albedo'])}")
+    lines += [f"center_mm = {toml_value([round(float(x), 1) for x in obj['center_mm']])}",
+              f"size_mm = {toml_value([round(float(x), 1) for x in obj['size_mm']])}"]
+    for k in ("tilt_x_deg", "tilt_y_deg", "tilt_z_deg"):
+        lines.append(f"{k} = {toml_value(round(float(obj.get(k, 0.0)), 3))}")
+    return lines
+
+
+def write_bag(spec, out_dir, cache):
+    name = spec["name"]
+    mats = dict(spec["background_materials"])
+    mats.update(spec["materials"])
+    ids = {k: m["id"] for k, m in spec["materials"].items()}
+    geoms = [(spec["background"], [], BACKGROUND_FRAMES)]
+    for st in spec["stages"]:
+        geoms.append((spec["background"] + st["objects"], st["objects"], st["frames"]))
+    total_secs = 0.0
+    frame = 0
+    stage_rows = []
+    os.makedirs(out_dir, exist_ok=True)
+    tmp = os.path.join(out_dir, name + ".mcap.tmp")
+    with open(tmp, "wb") as out:
+        w = Writer(out, compression=CompressionType.ZSTD)
+        img_s = w.register_msgdef("sensor_msgs/msg/Image", IMAGE)
+        info_s = w.register_msgdef("sensor_msgs/msg/CameraInfo", CAMERA_INFO)
+        for gi, (objects, fg, nframes) in enumerate(geoms):
+            print(f"{name}: geometry {gi}/{len(geoms) - 1} ({len(objects)} objects, {nframes} frames)", flush=True)
+            a, b, s, secs, cached = rendered(objects, mats, spec["spp"], cache)
+            print(f"  {'cached' if cached else 'rendered'} {secs:.1f} s", flush=True)
+            total_secs += secs
+            gt_depth, gt_mat = tc.ground_truth(fg, ids)
+            first = frame
+            for _ in range(nframes):
+                rng = np.random.default_rng([spec["seed"], frame])
+                depth, ir = tc.tof_frame(a, b, s, rng)
+                ir = np.round(ir * 16.0) / 16.0  # 1/16 count: keeps the bags small
+                ns = 1_000_000_000 + frame * 100_000_000
+                hdr = {"stamp": {"sec": ns // 10**9, "nanosec": ns % 10**9}, "frame_id": FRAME_ID}
+                for topic, schema, msg in (
+                        ("/tof/depth/image_raw", img_s, image_msg(hdr, "16UC1", depth.astype("<u2"))),
+                        ("/tof/ir/image_raw", img_s, image_msg(hdr, "32FC1", ir.astype("<f4"))),
+                        ("/tof/depth/camera_info", info_s, info_msg(hdr)),
+                        ("/tof/ground_truth/depth", img_s, image_msg(hdr, "32FC1", gt_depth.astype("<f4"))),
+                        ("/tof/ground_truth/material", img_s, image_msg(hdr, "mono8", gt_mat))):
+                    w.write_message(topic, schema, msg, log_time=ns, publish_time=ns, sequence=frame)
+                frame += 1
+            if gi > 0:
+                stage_rows.append((first, frame - 1, fg, secs))
+        w.finish()
+    os.replace(tmp, os.path.join(out_dir, name + ".mcap"))
+
+    lines = [f"# Physically rendered CW-ToF bag (Mitsuba 3 + mitransient); made by scripts/render/render_set.py {name}",
+             f"name = {toml_value(name)}", f"description = {toml_value(spec['description'])}",
+             f"seed = {spec['seed']}", f"translucency_model = {toml_value(spec['model'])}",
+             f"translucency_model_note = {toml_value(scenes.MODEL_NOTES[spec['model']])}",
+             f"spp = {spec['spp']}",
+             f"spp_note = {toml_value(spec.get('spp_note', 'high sample count: one render per geometry'))}",
+             f"render_seconds = {round(total_secs, 1)}",
+             f"background_frames = {BACKGROUND_FRAMES}", f"frames = {frame}",
+             'frame_period_s = 0.1', 'first_stamp_s = 1.0',
+             "", "[sensor]", f"width = {tc.W}", f"height = {tc.H}", f"hfov_deg = {tc.HFOV_DEG}",
+             f"vfov_deg = {tc.VFOV_DEG}", f"fx = {tc.FX!r}", f"fy = {tc.FY!r}", f"cx = {tc.CX!r}", f"cy = {tc.CY!r}",
+             'pixel_centre = "pixel (u, v) centre ray ((u - cx)/fx, (v - cy)/fy, 1); cx = (W-1)/2, cy = (H-1)/2"',
+             f"modulation_hz = {tc.F_MOD!r}", f"unambiguous_range_mm = {round(tc.R_MM, 4)}",
+             'correlation = "sinusoidal: A = sum L cos(2 pi (p/2)/R), B = sum L sin(...); depth = R/(2 pi) atan2(B, A) mod R, as z"',
+             f"transient_bin_mm = {tc.BIN_M * 1000}", f"transient_path_range_mm = [{tc.START_M * 1000}, {(tc.START_M + tc.BINS * tc.BIN_M) * 1000}]",
+             f'emitter = "spot at the camera centre, flat to {tc.BEAM_DEG} deg off axis, linear falloff in angle to 0 at {tc.CUTOFF_DEG} deg"',
+             f"ir = {toml_value('demodulated amplitude sqrt(A^2 + B^2) times ir_gain, counts, rounded to 1/16')}",
+             f"ir_gain = {tc.IR_GAIN!r}",
+             f"ir_reference = {toml_value('white (albedo 1) wall at 2000 mm, image centre = %g counts' % tc.IR_REF_COUNTS)}",
+             "", "[noise]",
+             'model = "A, B (counts) += N(0, alpha * (S + floor)) each, S = total collected light (sum of all bins) in counts; per-frame seed [seed, frame]"',
+             f"alpha = {tc.NOISE_ALPHA!r}", f"floor_counts = {tc.NOISE_FLOOR!r}",
+             f"reference_depth_std_mm = {tc.REF_DEPTH_STD_MM} # white wall, 2000 mm, image centre",
+             f"min_amplitude_counts = {tc.MIN_AMPLITUDE} # below: depth 0 (invalid)",
+             "", "[background]", f"description = {toml_value(spec['background_description'])}"]
+    for o in spec["background"]:
+        lines += [""] + obj_toml("background.objects", o, mats)
+    for key in sorted(spec["materials"], key=lambda k: spec["materials"][k]["id"]):
+        m = spec["materials"][key]
+        lines += ["", "[[materials]]", f"id = {m['id']}", f"name = {toml_value(m['name'])}",
+                  f"xi = {toml_value(m['xi'])}", f"albedo = {toml_value(m['albedo'])}",
+                  f"opaque = {toml_value(m['model'] == 'opaque')}", f"model = {toml_value(m['model'])}"]
+    for i, (f0, f1, fg, secs) in enumerate(stage_rows):
+        lines += ["", "[[stages]]", f"index = {i}", f"frames = {toml_value(list(range(f0, f1 + 1)))}",
+                  f"render_seconds = {round(secs, 1)}"]
+        for o in fg:
+            lines += [""] + obj_toml("stages.objects", o, mats)
+    with open(os.path.join(out_dir, name + ".toml"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+    print(f"{name}: {frame} frames, render {total_secs:.1f} s", flush=True)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("names", nargs="*")
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "bags", "rendered"))
+    ap.add_argument("--cache", default=os.environ.get("TTOF_RENDER_CACHE", "/work/render-cache"))
+    ap.add_argument("--list", action="store_true")
+    ap.add_argument("--spp", type=int, default=0, help="override every bag's spp (quick tests)")
+    args = ap.parse_args()
+    specs = scenes.all_specs()
+    if args.list:
+        for s in specs:
+            print(s["name"], s["spp"], len(s["stages"]))
+        return
+    names = args.names or [s["name"] for s in specs]
+    by = {s["name"]: s for s in specs}
+    os.makedirs(args.cache, exist_ok=True)
+    for n in names:
+        if args.spp:
+            by[n]["spp"] = args.spp
+        write_bag(by[n], os.path.normpath(args.out), args.cache)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,316 @@
+"""The scenes of the rendered set, drawn from seeded ranges (one seed per
+bag). Distances in mm, optical frame (x right, y down, z forward)."""
+
+import math
+
+import numpy as np
+
+MODEL_NOTES = {
+    "mask": "Mitsuba mask BSDF: each layer passes light straight through with probability xi "
+            "(opacity 1 - xi) and otherwise reflects diffusely (two-sided diffuse, albedo rho): "
+            "the paper's two-layer model, physically",
+    "difftrans": "thin diffuse transmitter (scripts/render/tofcore.py ThinDiffTrans): each layer reflects "
+                 "diffusely with albedo (1 - xi) * rho and transmits a fraction xi diffusely (cosine lobe) "
+                 "to its other side; nothing passes straight through",
+    "mixed": "per material, see [[materials]].model: mask (straight pass-through with probability xi) "
+             "or difftrans (diffuse transmission xi, reflection (1 - xi) * rho)",
+}
+HIGH_SPP = 8192
+COVERAGE_SPP = 2048
+TAN_H, TAN_V = math.tan(math.radians(22)), math.tan(math.radians(17.5))
+
+
+def mat(id_, name, xi, albedo, model):
+    return {"id": id_, "name": name, "xi": round(float(xi), 4), "albedo": round(float(albedo), 4), "model": model}
+
+
+def rect(center, size, tx=0.0, ty=0.0, tz=0.0, material="bg0"):
+    return {"kind": "rect", "center_mm": [float(c) for c in center], "size_mm": [float(s) for s in size],
+            "tilt_x_deg": float(tx), "tilt_y_deg": float(ty), "tilt_z_deg": float(tz), "material": material}
+
+
+def box(center, size, tx=0.0, ty=0.0, tz=0.0, material="bg0"):
+    o = rect(center, size, tx, ty, tz, material)
+    o["kind"] = "box"
+    return o
+
+
+# ------------------------------------------------------------ backgrounds ---
+
+def bg_wall(z, albedo, tilt_y=0.0):
+    mats = {"bg0": {"albedo": round(float(albedo), 4), "model": "opaque", "xi": 0.0}}
+    return [rect([0, 0, z], [9000, 9000], ty=tilt_y)], mats, \
+        f"planar wall at {z:.0f} mm (tilt_y {tilt_y:.1f} deg), albedo {albedo:.3f}"
+
+
+def bg_boxes_on_wall(rng, z, albedo_range=(0.3, 1.0), n_boxes=None):
+    wall_alb = rng.uniform(*albedo_range)
+    objs, mats, _ = bg_wall(z, wall_alb)
+    n = int(rng.integers(1, 4)) if n_boxes is None else n_boxes
+    slots = rng.permutation(4)[:n]
+    for i, slot in enumerate(slots):
+        w, h, d = rng.uniform(250, 600), rng.uniform(250, 600), rng.uniform(150, 400)
+        # boxes stand against the wall, spread over the lower/side parts of the view
+        x = (-0.75 + 0.5 * slot) * TAN_H * z + rng.uniform(-100, 100)
+        y = rng.uniform(0.1, 0.6) * TAN_V * z
+        key = f"bg{i + 1}"
+        mats[key] = {"albedo": round(float(rng.uniform(*albedo_range)), 4), "model": "opaque", "xi": 0.0}
+        objs.append(box([x, y, z - d / 2], [w, h, d], tz=rng.uniform(-10, 10), material=key))
+    return objs, mats, f"wall at {z:.0f} mm (albedo {wall_alb:.3f}) with {n} box(es) standing against it"
+
+
+def bg_corner(rng, albedo_range=(0.3, 1.0)):
+    zc = rng.uniform(2600, 3400)
+    xc = rng.uniform(-300, 300)
+    a, b = rng.uniform(30, 50), rng.uniform(30, 50)
+    al, ar = rng.uniform(*albedo_range), rng.uniform(*albedo_range)
+    L = 7000
+    dl = np.array([-math.cos(math.radians(a)), 0, -math.sin(math.radians(a))])
+    dr_ = np.array([math.cos(math.radians(b)), 0, -math.sin(math.radians(b))])
+    c = np.array([xc, 0, zc])
+    mats = {"bg0": {"albedo": round(float(al), 4), "model": "opaque", "xi": 0.0},
+            "bg1": {"albedo": round(float(ar), 4), "model": "opaque", "xi": 0.0}}
+    objs = [rect(c + dl * L / 2, [L, 9000], ty=-a, material="bg0"),
+            rect(c + dr_ * L / 2, [L, 9000], ty=b, material="bg1")]
+    return objs, mats, (f"corner of two walls (vertical edge at x {xc:.0f}, z {zc:.0f} mm), walls "
+                        f"{a:.1f} and {b:.1f} deg from fronto-parallel, albedo {al:.3f} / {ar:.3f}")
+
+
+def bg_table(rng, albedo_range=(0.3, 1.0)):
+    zw = rng.uniform(2600, 3400)
+    yt = rng.uniform(300, 450)  # table top below the optical axis
+    ze = rng.uniform(900, 1400)  # the table's front edge
+    aw, at, af = (rng.uniform(*albedo_range) for _ in range(3))
+    mats = {"bg0": {"albedo": round(float(aw), 4), "model": "opaque", "xi": 0.0},
+            "bg1": {"albedo": round(float(at), 4), "model": "opaque", "xi": 0.0},
+            "bg2": {"albedo": round(float(af), 4), "model": "opaque", "xi": 0.0}}
+    objs = [rect([0, 0, zw], [9000, 9000], material="bg0"),
+            rect([0, yt, (ze + zw) / 2], [4000, zw - ze], tx=90, material="bg1"),  # table top
+            rect([0, yt + 700, zw / 2], [9000, zw], tx=90, material="bg2")]  # floor
+    return objs, mats, (f"wall at {zw:.0f} mm, a table top {yt:.0f} mm below the axis from z {ze:.0f} mm "
+                        f"(its front edge) to the wall, floor {yt + 700:.0f} mm below; albedo "
+                        f"{aw:.3f} / {at:.3f} / {af:.3f}")
+
+
+def near_wall(bg):
+    """Smallest z of the background along the central part of the view."""
+    zs = []
+    for o in bg:
+        if o["kind"] == "rect" and abs(o.get("tilt_x_deg", 0)) < 1:
+            zs.append(o["center_mm"][2] - abs(math.sin(math.radians(o.get("tilt_y_deg", 0)))) * 1200)
+        elif o["kind"] == "box":
+            zs.append(o["center_mm"][2] - o["size_mm"][2] / 2)
+    return min(zs)
+
+
+# ------------------------------------------------------------ foreground ---
+
+def sheet(rng, z, xslot, mat_key, tilted, size=None, max_tilt=45.0, min_tilt=0.0):
+    w, h = size if size is not None else (rng.uniform(250, 400), rng.uniform(300, 400))
+    x = xslot * TAN_H * z + rng.uniform(-40, 40)
+    y = rng.uniform(-0.25, 0.25) * TAN_V * z
+    if tilted:
+        t = rng.uniform(min_tilt, max_tilt) * rng.choice([-1, 1])
+        if rng.uniform() < 0.6:
+            tx, ty = rng.uniform(-5, 5), t
+        else:
+            tx, ty = t, rng.uniform(-5, 5)
+    else:
+        tx, ty = rng.uniform(-3, 3), rng.uniform(-3, 3)
+    return rect([x, y, z], [w, h], tx=tx, ty=ty, tz=rng.uniform(-5, 5), material=mat_key)
+
+
+def opaque_box(rng, z, xslot, mat_key):
+    w, h, d = rng.uniform(150, 350), rng.uniform(150, 350), rng.uniform(150, 350)
+    x = xslot * TAN_H * z + rng.uniform(-40, 40)
+    y = rng.uniform(-0.2, 0.3) * TAN_V * z
+    return box([x, y, z + d / 2], [w, h, d], tx=rng.uniform(-5, 5), ty=rng.uniform(-30, 30), material=mat_key)
+
+
+# ------------------------------------------------------------ named bags ---
+
+def paper(name, seed, xi, desc):
+    rng = np.random.default_rng(seed)
+    bg, bgm, bgd = bg_wall(2000, 1.0)
+    mats = {"sheet": mat(1, "paper_sheet", xi, 0.6, "mask")}
+    stages = []
+    for z in (500, 750, 1000, 1750):
+        o = rect([rng.uniform(-20, 20), rng.uniform(-20, 20), z], [240, 310],
+                 tx=rng.uniform(-3, 3), ty=rng.uniform(-3, 3), material="sheet")
+        stages.append({"frames": 2, "objects": [o]})
+    return dict(name=name, seed=seed, description=desc, model="mask", spp=HIGH_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages)
+
+
+def tilted_gray(seed=31):
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(2400, 3000)
+    bg, bgm, bgd = bg_boxes_on_wall(rng, z, albedo_range=(0.3, 0.6), n_boxes=2)
+    xi, rho = rng.uniform(0.5, 0.9), rng.uniform(0.3, 0.7)
+    mats = {"sheet": mat(1, "tilted_sheet", xi, rho, "mask")}
+    stages = []
+    for zs in sorted(rng.uniform(800, near_wall(bg) - 450, size=4)):
+        stages.append({"frames": 2, "objects": [sheet(rng, zs, rng.uniform(-0.2, 0.2), "sheet", True,
+                                                      min_tilt=20, max_tilt=45)]})
+    return dict(name="tilted_gray", seed=seed, model="mask", spp=HIGH_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
+                description=f"a sheet (xi {xi:.3f}, rho {rho:.3f}) tilted 20-45 deg before gray boxes on a gray wall, 4 poses")
+
+
+def two_materials(seed=41):
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(2400, 3200)
+    bg, bgm, bgd = bg_wall(z, rng.uniform(0.5, 1.0))
+    n = 3
+    mats = {"m1": mat(1, "sheet_low_xi", rng.uniform(0.45, 0.65), rng.uniform(0.3, 0.7), "mask"),
+            "m2": mat(2, "sheet_high_xi", rng.uniform(0.85, 0.95), rng.uniform(0.3, 0.7), "mask"),
+            "m3": mat(3, "sheet_mid_xi", rng.uniform(0.3, 0.45), rng.uniform(0.3, 0.7), "mask")}
+    stages = []
+    for p in range(3):
+        keys = ["m1", "m2", "m3"][: (2 if p == 0 else n)]
+        rng.shuffle(keys)
+        objs = []
+        for i, k in enumerate(keys):
+            zs = rng.uniform(1600 if len(keys) == 3 else 1200, z - 500)
+            slot = (-0.55 + 1.1 * i / (len(keys) - 1)) if len(keys) > 1 else 0
+            objs.append(sheet(rng, zs, slot, k, rng.uniform() < 0.5, size=(rng.uniform(250, 320), rng.uniform(300, 400)),
+                              max_tilt=30))
+        stages.append({"frames": 2, "objects": objs})
+    return dict(name="two_materials", seed=seed, model="mask", spp=HIGH_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
+                description="two (first pose) or three (later poses) sheets of different xi side by side, 3 poses")
+
+
+def opaque_and_translucent(seed=51):
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(2300, 3000)
+    bg, bgm, bgd = bg_wall(z, rng.uniform(0.3, 1.0))
+    mats = {"sheet": mat(1, "sheet", rng.uniform(0.5, 0.9), rng.uniform(0.3, 0.7), "mask"),
+            "box": mat(2, "opaque_box", 0.0, rng.uniform(0.3, 0.8), "opaque")}
+    stages = []
+    for p in range(3):
+        zs = rng.uniform(1000, z - 600)
+        zb = float(np.clip(zs + rng.uniform(-300, 300), 900, z - 600))
+        side = rng.choice([-1, 1])
+        objs = [sheet(rng, zs, side * 0.3, "sheet", p > 0, max_tilt=35),
+                opaque_box(rng, zb, -side * 0.35, "box")]
+        stages.append({"frames": 2, "objects": objs})
+    return dict(name="opaque_and_translucent", seed=seed, model="mask", spp=HIGH_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
+                description="an opaque box placed beside a translucent sheet, 3 poses")
+
+
+def corner_background(seed=61):
+    rng = np.random.default_rng(seed)
+    bg, bgm, bgd = bg_corner(rng)
+    mats = {"sheet": mat(1, "sheet", rng.uniform(0.5, 0.9), rng.uniform(0.3, 0.7), "mask")}
+    stages = []
+    for p in range(3):
+        zs = rng.uniform(900, 1800)
+        stages.append({"frames": 2, "objects": [sheet(rng, zs, rng.uniform(-0.2, 0.2), "sheet", p == 2, max_tilt=35)]})
+    return dict(name="corner_background", seed=seed, model="mask", spp=HIGH_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
+                description="a translucent sheet before the corner of two walls, 3 poses")
+
+
+def calibration_sequence(seed=71):
+    rng = np.random.default_rng(seed)
+    bg, bgm, bgd = bg_wall(3300, 1.0)
+    xi = rng.uniform(0.6, 0.9)
+    rho = rng.uniform(0.4, 0.7)
+    mats = {"sheet": mat(1, "calibration_sheet", xi, rho, "mask")}
+    stages = [{"frames": 2, "objects": [rect([0, 0, z], [400, 400], material="sheet")]}
+              for z in range(700, 2601, 190)]
+    return dict(name="calibration_sequence", seed=seed, model="mask", spp=HIGH_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
+                description=(f"model-validation protocol (paper Sec. V-A): white wall at 3300 mm, a fronto-parallel "
+                             f"400 x 400 mm sheet (xi {xi:.4f}, rho {rho:.4f}) centred on the axis at 11 known "
+                             f"distances 700..2600 mm step 190"))
+
+
+def white_wall_lin(seed=81):
+    bg, bgm, bgd = bg_wall(2000, 1.0)
+    return dict(name="white_wall_lin", seed=seed, model="mask", spp=HIGH_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials={}, stages=[],
+                description="empty white (albedo 1) fronto-parallel wall at 2000 mm, 10 frames, for calibrate-lin")
+
+
+def difftrans_sheet(seed=91):
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(2200, 2800)
+    bg, bgm, bgd = bg_wall(z, rng.uniform(0.5, 1.0))
+    mats = {"sheet": mat(1, "diffuse_transmitter", rng.uniform(0.5, 0.8), rng.uniform(0.4, 0.7), "difftrans")}
+    stages = []
+    for p, zs in enumerate(sorted(rng.uniform(700, z - 500, size=3))):
+        stages.append({"frames": 2, "objects": [sheet(rng, zs, rng.uniform(-0.2, 0.2), "sheet", p == 1, max_tilt=40)]})
+    return dict(name="difftrans_sheet", seed=seed, model="difftrans", spp=HIGH_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
+                description="translucency model (b): a thin diffuse transmitter (light crossing it is scattered, "
+                            "not passed straight) before a wall, 3 poses")
+
+
+# ---------------------------------------------------------- coverage set ---
+
+def draw(i):
+    seed = 1000 + i
+    rng = np.random.default_rng(seed)
+    kind = ["wall", "boxes_on_wall", "corner", "table"][int(rng.integers(4))]
+    if kind == "wall":
+        bg, bgm, bgd = bg_wall(rng.uniform(1800, 3500), rng.uniform(0.3, 1.0), tilt_y=rng.uniform(-20, 20))
+    elif kind == "boxes_on_wall":
+        bg, bgm, bgd = bg_boxes_on_wall(rng, rng.uniform(2200, 3500))
+    elif kind == "corner":
+        bg, bgm, bgd = bg_corner(rng)
+    else:
+        bg, bgm, bgd = bg_table(rng)
+    zmax = near_wall(bg) - 350
+    n_mat = int(rng.integers(1, 4))
+    use_dt = rng.uniform() < 0.2
+    mats = {}
+    for m in range(n_mat):
+        model = "difftrans" if (use_dt and m == 0) else "mask"
+        mats[f"m{m + 1}"] = mat(m + 1, f"sheet_{m + 1}", rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.7), model)
+    with_box = rng.uniform() < 0.4
+    if with_box:
+        mats["box"] = mat(n_mat + 1, "opaque_box", 0.0, rng.uniform(0.3, 0.8), "opaque")
+    stages = []
+    for s in range(int(rng.integers(2, 4))):
+        keys = [f"m{m + 1}" for m in range(n_mat)]
+        if n_mat > 1 and rng.uniform() < 0.3:
+            keys = keys[:-1]
+        if with_box and (s > 0 or rng.uniform() < 0.5):
+            keys.append("box")
+        rng.shuffle(keys)
+        objs = []
+        for j, k in enumerate(keys):
+            zlo = 700 + 400 * (len(keys) - 1)
+            zs = rng.uniform(min(zlo, zmax - 100), zmax)
+            slot = (-0.55 + 1.1 * j / (len(keys) - 1)) if len(keys) > 1 else rng.uniform(-0.2, 0.2)
+            if k == "box":
+                objs.append(opaque_box(rng, zs, slot, k))
+            else:
+                objs.append(sheet(rng, zs, slot, k, rng.uniform() < 0.5))
+        stages.append({"frames": int(rng.integers(1, 3)), "objects": objs})
+    model = "mixed" if use_dt else "mask"
+    return dict(name=f"draw_{i:02d}", seed=seed, model=model, spp=COVERAGE_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
+                spp_note=f"coverage set: {COVERAGE_SPP} spp (fewer than the named bags' {HIGH_SPP}) to keep render time manageable; "
+                         "Monte Carlo noise of the render adds a little to the sensor noise, most on translucent pixels",
+                description=f"coverage draw {i}: {kind} background, {n_mat} translucent material(s)"
+                            f"{', an opaque box' if with_box else ''}, {len(stages)} stages")
+
+
+def all_specs():
+    return [
+        white_wall_lin(),
+        paper("paper_document_holder", 11, 0.65,
+              "paper Fig. 5a: white wall (albedo 1) at 2000 mm, a 24 x 31 cm sheet xi 0.65 rho 0.6 at 500/750/1000/1750 mm"),
+        paper("paper_file_box", 12, 0.94,
+              "paper Fig. 5b: white wall (albedo 1) at 2000 mm, a 24 x 31 cm sheet xi 0.94 rho 0.6 at 500/750/1000/1750 mm"),
+        calibration_sequence(),
+        tilted_gray(),
+        two_materials(),
+        opaque_and_translucent(),
+        corner_background(),
+        difftrans_sheet(),
+    ] + [draw(i) for i in range(20)]
