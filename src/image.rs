@@ -239,7 +239,7 @@ fn image_msg(
 
 // The encoders fill a buffer of the message's size (collecting a `flat_map` would grow
 // it by doubling: its length is not known ahead).
-fn u16_bytes(values: &[f32], map: impl Fn(f32) -> u16) -> Vec<u8> {
+fn u16_bytes<T: Copy>(values: &[T], map: impl Fn(T) -> u16) -> Vec<u8> {
     let mut out = Vec::with_capacity(2 * values.len());
     for &v in values {
         out.extend_from_slice(&map(v).to_le_bytes());
@@ -324,6 +324,20 @@ pub fn mask_image(header: &Header, mask: &ImageBuf<bool>) -> Image {
         encoding: "mono8".into(),
         ..Image::default()
     })
+}
+
+/// A `mono16` image of each pixel's region: its material's id (0 where no region).
+pub fn region_image(header: &Header, ids: &ImageBuf<u16>) -> Result<Image, ImageError> {
+    let data = u16_bytes(&ids.data, |id| id);
+    image_msg(
+        header,
+        ids.width,
+        ids.height,
+        "mono16",
+        Sample::U16,
+        data,
+        "region image",
+    )
 }
 
 /// Bytes per point of [`organized_cloud`]: x y z intensity (4 x float32),

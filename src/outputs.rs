@@ -5,7 +5,7 @@
 use crate::image::{depth_image, mask_image, organized_cloud, ImageError};
 use crate::msgs::translucent_tof::TranslucencyEstimate;
 use crate::msgs::{Header, Image, PointCloud2};
-use crate::physics::{ImageBuf, Intrinsics};
+use crate::physics::{ImageBuf, Intrinsics, XiEstimate};
 use crate::pipeline::FrameOutput;
 
 /// What the node publishes for one frame.
@@ -17,8 +17,8 @@ pub struct OutputMessages {
     pub mask: Image,
     /// `~/points`: organized cloud of the corrected depth.
     pub points: PointCloud2,
-    /// `~/translucency`.
-    pub estimate: TranslucencyEstimate,
+    /// `~/translucency`: one per region (one for the frame when it has none).
+    pub estimates: Vec<TranslucencyEstimate>,
 }
 
 /// Builds the outputs of `out`. `header` is the input depth image's;
@@ -29,15 +29,18 @@ pub fn output_messages(
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
     depth_encoding: &str,
-    frames_pooled: usize,
 ) -> Result<OutputMessages, ImageError> {
     let corrected = corrected_message(header, out, depth_encoding)?;
-    let Companions { mask, points, estimate } = companion_messages(header, intrinsics, out, ir, frames_pooled);
+    let Companions {
+        mask,
+        points,
+        estimates,
+    } = companion_messages(header, intrinsics, out, ir);
     Ok(OutputMessages {
         corrected,
         mask,
         points,
-        estimate,
+        estimates,
     })
 }
 
@@ -55,32 +58,44 @@ pub struct Companions {
     pub mask: Image,
     /// `~/points`.
     pub points: PointCloud2,
-    /// `~/translucency`.
-    pub estimate: TranslucencyEstimate,
+    /// `~/translucency`: one per region (one for the frame when it has none).
+    pub estimates: Vec<TranslucencyEstimate>,
 }
 
-/// The mask, cloud and estimate of [`output_messages`].
+/// The mask, cloud and estimates of [`output_messages`].
 pub fn companion_messages(
     header: &Header,
     intrinsics: &Intrinsics,
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
-    frames_pooled: usize,
 ) -> Companions {
     let xyz = points_m(intrinsics, &out.corrected_z_mm);
+    let count = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
+    let estimate = |xi: &XiEstimate, region_id: u32, region_pixels: usize, opaque: bool| TranslucencyEstimate {
+        header: header.clone(),
+        xi: xi.xi,
+        xi_lower: xi.interval[0],
+        xi_upper: xi.interval[1],
+        method: xi.method.as_str().into(),
+        translucent_pixels: count(out.translucent_pixels),
+        fit_residual_mm: out.fit_residual_mm,
+        frames_pooled: count(xi.frames),
+        region_id,
+        region_pixels: count(region_pixels),
+        opaque,
+    };
+    let mut estimates: Vec<TranslucencyEstimate> = out
+        .regions
+        .iter()
+        .map(|r| estimate(&r.xi, r.id, r.pixels, r.opaque))
+        .collect();
+    if estimates.is_empty() {
+        estimates.push(estimate(&out.xi, 0, 0, out.xi.is_opaque()));
+    }
     Companions {
         mask: mask_image(header, &out.mask),
         points: organized_cloud(header, &xyz, ir, &out.mask),
-        estimate: TranslucencyEstimate {
-            header: header.clone(),
-            xi: out.xi.xi,
-            xi_lower: out.xi.interval[0],
-            xi_upper: out.xi.interval[1],
-            method: out.xi.method.as_str().into(),
-            translucent_pixels: u32::try_from(out.translucent_pixels).unwrap_or(u32::MAX),
-            fit_residual_mm: out.fit_residual_mm,
-            frames_pooled: u32::try_from(frames_pooled).unwrap_or(u32::MAX),
-        },
+        estimates,
     }
 }
 

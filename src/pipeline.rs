@@ -9,10 +9,11 @@ use serde::Serialize;
 use thiserror::Error;
 
 use crate::physics::camera::z_to_ray_distance;
-use crate::physics::emitted_light::{emitted_light_from_plane, EmittedLightError};
+use crate::physics::emitted_light::{emitted_light_from_plane, fill_off_plane, EmittedLightError};
+use crate::physics::materials::{Material, Materials};
 use crate::physics::parallel::{map_chunks_ordered, map_ordered};
 use crate::physics::segmentation::{
-    changed_pixels, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
+    changed_pixels, label_regions, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
 use crate::physics::stats::median_and_sigma;
 use crate::physics::surface::{LocalSurfaces, Windows};
@@ -83,6 +84,11 @@ const MIN_PARALLEL_PIXELS: usize = 2048;
 /// vector loops, few enough to stay in cache and to share out over the pool.
 const INVERSION_BATCH: usize = 256;
 
+/// Darkest background assumed when `Lin` is derived from the background itself: the
+/// albedo the inversion implies is then known only up to the background's albedo, so
+/// `X` is bounded by `background_albedo / MIN_BACKGROUND_ALBEDO`, not by 1.
+pub const MIN_BACKGROUND_ALBEDO: f64 = 0.3;
+
 /// How ξ is chosen.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum XiChoice {
@@ -127,7 +133,7 @@ impl Default for PipelineConfig {
             threshold_mm: DEFAULT_THRESHOLD_MM,
             min_region_pixels: 12,
             xi: XiChoice::Estimate(XiMethod::OneMaterial),
-            model: ForwardModel::paper(Sensor::sr4000()),
+            model: ForwardModel::physical(Sensor::sr4000()),
             bounds: InversionBounds::default(),
             background_albedo: 1.0,
             lin_calibration: None,
@@ -183,6 +189,8 @@ pub struct Background {
     pub emitted_light: ImageBuf<f64>,
     /// Where `Lin` came from, in words.
     pub lin_source: String,
+    /// `Lin` is a calibration's (Eq. 13-14), not derived from this background.
+    pub lin_calibrated: bool,
     /// What looks wrong with this background, in words (empty when nothing does).
     pub warnings: Vec<String>,
     /// Frames averaged.
@@ -277,6 +285,7 @@ impl BackgroundLatch {
         noises.sort_by(f64::total_cmp);
         let median_noise_mm = noises.get(noises.len() / 2).copied().unwrap_or(f64::NAN);
         let mut warnings = vec![];
+        let lin_calibrated = config.lin_calibration.is_some();
         let (lin, lin_source) = match &config.lin_calibration {
             Some(lin) => {
                 if lin.width != self.width || lin.height != self.height {
@@ -290,9 +299,11 @@ impl BackgroundLatch {
                 (lin.clone(), "calibration file (Eq. 13-14)".to_string())
             }
             None => {
-                let (lin, plane) =
-                    emitted_light_from_plane(&d, &ir, &intrinsics.unit_ray_map(), config.background_albedo)?;
+                let rays = intrinsics.unit_ray_map();
+                let (mut lin, plane) = emitted_light_from_plane(&d, &ir, &rays, config.background_albedo)?;
                 let on_plane = lin.data.iter().filter(|v| v.is_finite()).count();
+                // Off the plane (a box on the wall, a corner) the emitter's smooth pattern stands in.
+                let filled = fill_off_plane(&mut lin, &rays);
                 // A plane fits a wall to about its noise; far worse, the background is no plane
                 // (or the object was already there) and Lin from it is unreliable.
                 let expected = (5.0 * median_noise_mm).max(20.0);
@@ -308,7 +319,7 @@ impl BackgroundLatch {
                     ));
                 }
                 let src = format!(
-                    "derived from the latched background as a white plane of albedo {} (no calibration file; plane fit RMS {:.1} mm)",
+                    "derived from the latched background as a plane of albedo {} (no calibration file; plane fit RMS {:.1} mm; {filled} pixels off the plane from the emitter's smooth fit); albedos are bounded allowing for a background as dark as {MIN_BACKGROUND_ALBEDO}",
                     config.background_albedo, plane.rms_mm
                 );
                 (lin, src)
@@ -321,6 +332,7 @@ impl BackgroundLatch {
             ir_noise: ir_sd,
             emitted_light: lin,
             lin_source,
+            lin_calibrated,
             warnings,
             frames: self.frames,
             valid_pixels: valid,
@@ -360,6 +372,34 @@ pub struct Observed {
     pub observations: SparseImage<PixelObservation>,
     /// Segmented pixels.
     pub translucent_pixels: usize,
+    /// Each pixel's region (0 off the mask, else 1 + its index in `regions`).
+    pub labels: ImageBuf<u32>,
+    /// The regions of the mask: connected, without a step in the readings between them.
+    pub regions: Vec<ObservedRegion>,
+}
+
+/// One region of a frame's changed pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ObservedRegion {
+    /// Its pixels.
+    pub pixels: usize,
+    /// The material its evidence joined ([`Pipeline::add_xi_evidence`]), if it carried any.
+    pub material: Option<u32>,
+}
+
+/// What a frame's region was recovered with.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RegionOutput {
+    /// The material's id (stable over frames while it is kept); 0 for a region of a frame
+    /// recovered with one given ξ, or of no material.
+    pub id: u32,
+    /// Its ξ estimate.
+    pub xi: XiEstimate,
+    /// Its pixels.
+    pub pixels: usize,
+    /// The data say it is opaque ([`XiEstimate::is_opaque`]): its readings are kept and
+    /// it is not in the mask.
+    pub opaque: bool,
 }
 
 /// The outputs of one frame.
@@ -372,9 +412,11 @@ pub struct FrameOutput {
     /// Corrected z-depth, mm: recovered at translucent pixels (NaN where recovery
     /// failed), the input elsewhere.
     pub corrected_z_mm: ImageBuf<f32>,
-    /// ξ used.
+    /// ξ of the frame's largest translucent region (of its largest region when none is).
     pub xi: XiEstimate,
-    /// Segmented pixels.
+    /// Every region's estimate, in the order of [`Observed::regions`].
+    pub regions: Vec<RegionOutput>,
+    /// Segmented pixels, opaque regions not counted.
     pub translucent_pixels: usize,
     /// Pixels with a recovered depth.
     pub recovered_pixels: usize,
@@ -401,8 +443,11 @@ pub struct Pipeline {
     /// The noise of `d - db` per pixel, mm: the pixel's own (measured over the latch) and
     /// the latched mean's. `None` without a background or with fewer than 3 frames latched.
     change_noise: Option<ImageBuf<f64>>,
-    profiles: Vec<FrameProfile>,
-    estimate: Option<XiEstimate>,
+    /// The inversion's bounds for this background ([`Pipeline::bounds`]).
+    bounds: InversionBounds,
+    materials: Materials,
+    /// Frames whose ξ evidence was added since the latch.
+    evidence_frames: u64,
 }
 
 impl Pipeline {
@@ -411,14 +456,15 @@ impl Pipeline {
         let rays = intrinsics.unit_ray_map();
         let scale = intrinsics.ray_scale_map();
         Self {
-            config,
             intrinsics,
             rays,
             scale,
+            bounds: config.bounds,
+            config,
             background: None,
             change_noise: None,
-            profiles: vec![],
-            estimate: None,
+            materials: Materials::default(),
+            evidence_frames: 0,
         }
     }
 
@@ -449,17 +495,30 @@ impl Pipeline {
             height: bg.noise_mm.height,
             data: bg.noise_mm.data.iter().map(|s| s * with_mean).collect(),
         });
+        // Without a calibrated Lin the albedo is known up to the background's: bounded allowing
+        // for one as dark as MIN_BACKGROUND_ALBEDO.
+        self.bounds = self.config.bounds;
+        if !bg.lin_calibrated {
+            self.bounds.max_albedo_cos *=
+                self.config.background_albedo.max(MIN_BACKGROUND_ALBEDO) / MIN_BACKGROUND_ALBEDO;
+        }
         self.background = Some(bg);
-        self.profiles.clear();
-        self.estimate = None;
+        self.materials.clear();
+        self.evidence_frames = 0;
+    }
+
+    /// The inversion's bounds: the configured ones, with the bound on `X` widened when
+    /// `Lin` was derived from the background ([`MIN_BACKGROUND_ALBEDO`]).
+    pub fn bounds(&self) -> &InversionBounds {
+        &self.bounds
     }
 
     /// Forgets the background.
     pub fn clear_background(&mut self) {
         self.background = None;
         self.change_noise = None;
-        self.profiles.clear();
-        self.estimate = None;
+        self.materials.clear();
+        self.evidence_frames = 0;
     }
 
     /// Unit rays of the camera's pixels.
@@ -518,78 +577,234 @@ impl Pipeline {
             height: k.height,
         })?;
         let translucent_pixels = mask.data.iter().filter(|&&m| m).count();
+        // A pixel's reading noise: the latch's, grown as shot noise where less light returns.
+        let fallback = self.config.threshold_mm / NOISE_SIGMAS;
+        let noise = |i: usize| {
+            let latch = self.change_noise.as_ref().map_or(fallback, |n| n.data[i]);
+            let light = frame.ir.data[i] as f64 / bg.ir.data[i];
+            if light > 0.0 && latch.is_finite() {
+                latch / light.min(1.0).sqrt()
+            } else {
+                fallback
+            }
+        };
+        let (labels, sizes) = label_regions(&mask, &d, noise, range, self.config.min_region_pixels);
+        let regions = sizes
+            .into_iter()
+            .map(|pixels| ObservedRegion { pixels, material: None })
+            .collect();
         Ok(Observed {
             stamp_ns: frame.stamp_ns,
             distance_mm: d,
             mask,
             observations,
             translucent_pixels,
+            labels,
+            regions,
         })
     }
 
-    /// Adds a frame's evidence about ξ (no-op for a fixed ξ) and re-estimates.
-    pub fn add_xi_evidence(&mut self, obs: &Observed) {
+    /// Adds a frame's evidence about ξ (no-op for a fixed ξ), region by region: each
+    /// region's evidence joins the material it is consistent with, or starts one, and
+    /// that material's estimate is renewed. Records the material in `obs.regions`.
+    pub fn add_xi_evidence(&mut self, obs: &mut Observed) {
         let XiChoice::Estimate(method) = self.config.xi else {
             return;
         };
-        let sample = FrameSample::from_image(
-            &obs.observations,
-            &self.rays,
-            None,
-            self.config.xi_settings.max_pixels_per_frame,
-        );
-        if sample.pixel_count() < self.config.xi_settings.min_group_pixels {
-            return;
-        }
-        let profile = translucency::frame_profile(
-            &self.config.model,
-            &self.config.bounds,
-            &sample,
-            &self.config.xi_settings,
-            translucency::ProfileUse::Estimation,
-        );
-        if self.profiles.len() >= self.config.xi_settings.max_frames_pooled.max(1) {
-            self.profiles.remove(0);
-        }
-        self.profiles.push(profile);
-        let est = match method {
-            XiMethod::Eq12Residual => translucency::eq12_residual(&self.profiles),
-            _ => translucency::one_material(&self.profiles),
-        };
-        if est.is_some() {
-            self.estimate = est;
+        self.evidence_frames += 1;
+        let settings = self.config.xi_settings;
+        let single = obs.regions.len() == 1;
+        for k in 0..obs.regions.len() {
+            let observations = if single {
+                std::borrow::Cow::Borrowed(&obs.observations)
+            } else {
+                match region_observations(obs, k as u32 + 1) {
+                    Some(o) => std::borrow::Cow::Owned(o),
+                    None => continue,
+                }
+            };
+            let sample = FrameSample::from_image(&observations, &self.rays, None, settings.max_pixels_per_frame);
+            if sample.pixel_count() < settings.min_group_pixels {
+                continue;
+            }
+            let profile = translucency::frame_profile(
+                &self.config.model,
+                &self.bounds,
+                &sample,
+                &settings,
+                translucency::ProfileUse::Estimation,
+            );
+            obs.regions[k].material = Some(self.materials.add(profile, self.evidence_frames, method, &settings));
         }
     }
 
-    /// The current ξ: the fixed one, or the pooled estimate so far.
+    /// The estimate ξ of the material with the most evidence, or the given ξ.
+    /// `None` when ξ is to be estimated and no region has carried evidence yet.
     pub fn xi(&self) -> Option<XiEstimate> {
         match self.config.xi {
             XiChoice::Fixed(x) => Some(XiEstimate::fixed(x)),
-            XiChoice::Estimate(_) => self.estimate.clone(),
+            XiChoice::Estimate(_) => self.main_material().and_then(|m| m.estimate.clone()),
         }
     }
 
-    /// Per-pixel inversion at `xi`, then the smooth-surface prior.
+    /// The materials seen since the latch, each with its pooled estimate.
+    pub fn materials(&self) -> impl Iterator<Item = &Material> {
+        self.materials.iter()
+    }
+
+    fn main_material(&self) -> Option<&Material> {
+        self.materials
+            .iter()
+            .filter(|m| m.estimate.is_some())
+            .max_by_key(|m| m.pixels())
+    }
+
+    /// Each region's ξ: its material's estimate (the given ξ when fixed). A region that
+    /// carried no evidence of its own (too small) takes the largest material's.
+    /// `None` when ξ is to be estimated and there is no estimate at all yet.
+    pub fn region_estimates(&self, obs: &Observed) -> Option<Vec<RegionOutput>> {
+        let fallback = self.xi()?;
+        Some(
+            obs.regions
+                .iter()
+                .map(|r| {
+                    let material = r.material.and_then(|id| self.materials.get(id));
+                    let (id, xi) = match (
+                        self.config.xi,
+                        material.and_then(|m| m.estimate.as_ref().map(|e| (m.id, e))),
+                    ) {
+                        (XiChoice::Estimate(_), Some((id, e))) => (id, e.clone()),
+                        _ => (0, fallback.clone()),
+                    };
+                    RegionOutput {
+                        id,
+                        opaque: xi.is_opaque(),
+                        xi,
+                        pixels: r.pixels,
+                    }
+                })
+                .collect(),
+        )
+    }
+
+    /// Recovery with each region's own ξ ([`Self::region_estimates`]): opaque regions keep
+    /// their readings and leave the mask. `None` when there is no estimate yet.
+    pub fn recover_regions(&self, frame: &DepthFrame, obs: &Observed) -> Option<FrameOutput> {
+        let fallback = self.xi()?;
+        let regions = self.region_estimates(obs)?;
+        Some(self.recover_with(frame, obs, regions, &fallback))
+    }
+
+    /// Per-pixel inversion at one given `xi` for every region, then the smooth-surface prior.
     pub fn recover(&self, frame: &DepthFrame, obs: &Observed, xi: &XiEstimate) -> FrameOutput {
+        let regions = obs
+            .regions
+            .iter()
+            .map(|r| RegionOutput {
+                id: 0,
+                xi: xi.clone(),
+                pixels: r.pixels,
+                opaque: xi.is_opaque(),
+            })
+            .collect();
+        self.recover_with(frame, obs, regions, xi)
+    }
+
+    /// Recovery with each region's ξ: the regions of one material together (the prior's
+    /// windows never mix two materials), opaque regions left as read and out of the mask.
+    /// `fallback` is the frame's ξ when it has no region.
+    fn recover_with(
+        &self,
+        frame: &DepthFrame,
+        obs: &Observed,
+        regions: Vec<RegionOutput>,
+        fallback: &XiEstimate,
+    ) -> FrameOutput {
+        let main = regions
+            .iter()
+            .filter(|r| !r.opaque)
+            .max_by_key(|r| r.pixels)
+            .or_else(|| regions.iter().max_by_key(|r| r.pixels))
+            .map_or_else(|| fallback.clone(), |r| r.xi.clone());
         let mut out = FrameOutput {
             stamp_ns: frame.stamp_ns,
             mask: obs.mask.clone(),
             corrected_z_mm: frame.z_mm.clone(),
-            xi: xi.clone(),
-            translucent_pixels: obs.translucent_pixels,
+            xi: main,
+            regions,
+            translucent_pixels: 0,
             recovered_pixels: 0,
             pinned_pixels: 0,
             unresolved_pixels: 0,
             fit_residual_mm: f64::NAN,
         };
+        // Groups of regions recovered together: one per material and ξ.
+        let mut groups: Vec<(u32, f64, Vec<u32>)> = vec![];
+        for (k, r) in out.regions.iter().enumerate() {
+            let label = k as u32 + 1;
+            if r.opaque {
+                continue;
+            }
+            out.translucent_pixels += r.pixels;
+            match groups.iter_mut().find(|g| g.0 == r.id && g.1 == r.xi.xi) {
+                Some(g) => g.2.push(label),
+                None => groups.push((r.id, r.xi.xi, vec![label])),
+            }
+        }
+        for (k, r) in out.regions.iter().enumerate() {
+            if r.opaque {
+                let label = k as u32 + 1;
+                for (m, l) in out.mask.data.iter_mut().zip(&obs.labels.data) {
+                    if *l == label {
+                        *m = false;
+                    }
+                }
+            }
+        }
+        let mut tally = Tally::default();
+        for (_, xi, labels) in &groups {
+            if labels.len() == obs.regions.len() {
+                // Every region: the frame's own mask and observations, no copy.
+                self.recover_layer(&obs.mask, &obs.observations, *xi, &mut tally, &mut out.corrected_z_mm);
+            } else {
+                let mask = ImageBuf {
+                    width: obs.labels.width,
+                    height: obs.labels.height,
+                    data: obs.labels.data.iter().map(|l| labels.contains(l)).collect(),
+                };
+                let Some(observations) = restrict(&obs.observations, &mask) else {
+                    continue;
+                };
+                self.recover_layer(&mask, &observations, *xi, &mut tally, &mut out.corrected_z_mm);
+            }
+        }
+        out.recovered_pixels = tally.recovered;
+        out.pinned_pixels = tally.pinned;
+        out.unresolved_pixels = tally.unresolved;
+        if tally.fitted > 0 {
+            out.fit_residual_mm = (tally.res2 / tally.fitted as f64).sqrt();
+        }
+        out
+    }
+
+    /// The layer at the `mask` pixels at one ξ, written into `corrected` (z, mm; NaN where
+    /// nothing was recovered), with the counts added to `tally`.
+    fn recover_layer(
+        &self,
+        obs_mask: &ImageBuf<bool>,
+        observations: &SparseImage<PixelObservation>,
+        xi: f64,
+        tally: &mut Tally,
+        corrected: &mut ImageBuf<f32>,
+    ) {
         // The work is done on the rectangle around the translucent pixels (on the prior's
         // block grid, so its windows are those of the whole image): often a small part of it.
-        let Some(region) = Region::around(&obs.mask, self.config.prior_stride_px) else {
-            return out;
+        let Some(region) = Region::around(obs_mask, self.config.prior_stride_px) else {
+            return;
         };
         let n = region.len();
         let rays = region.crop(&self.rays);
-        let mask = region.crop(&obs.mask);
+        let mask = region.crop(obs_mask);
         let nan = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
         let mut points = ImageBuf::filled(region.width, region.height, nan);
         let mut df = vec![f64::NAN; n];
@@ -603,10 +818,10 @@ impl Pipeline {
         // rectangle and in the image (walking the rectangle's rows: no division per pixel), with
         // their observations: inverted in batches (in parallel over the current rayon pool
         // when there are enough of them), then the counts in pixel order.
-        let mut observed: Vec<(usize, usize)> = Vec::with_capacity(obs.observations.count());
+        let mut observed: Vec<(usize, usize)> = Vec::with_capacity(observations.count());
         let (mut row, mut row_start) = (0, 0);
         let full = region.full_width.max(1);
-        for fi in obs.observations.pixels() {
+        for fi in observations.pixels() {
             while fi >= row_start + full {
                 (row, row_start) = (row + 1, row_start + full);
             }
@@ -619,12 +834,12 @@ impl Pipeline {
         }
         // Every observation lies in the rectangle (both come from the frame's mask), so the
         // observations are the frame's own list, not a copy (unless that ever fails).
-        let held: std::borrow::Cow<[PixelObservation]> = if observed.len() == obs.observations.count() {
-            std::borrow::Cow::Borrowed(obs.observations.values())
+        let held: std::borrow::Cow<[PixelObservation]> = if observed.len() == observations.count() {
+            std::borrow::Cow::Borrowed(observations.values())
         } else {
             observed
                 .iter()
-                .filter_map(|&(_, fi)| obs.observations.get(fi).copied())
+                .filter_map(|&(_, fi)| observations.get(fi).copied())
                 .collect()
         };
         let per_pixel: Vec<Option<PixelSolve>> = map_chunks_ordered(
@@ -633,8 +848,7 @@ impl Pipeline {
             MIN_PARALLEL_PIXELS,
             |start: usize, batch: &[(usize, usize)]| {
                 let observations = &held[start..start + batch.len()];
-                let estimates =
-                    foreground_distances(&self.config.model, observations, xi.xi, &self.config.bounds, true);
+                let estimates = foreground_distances(&self.config.model, observations, xi, &self.bounds, true);
                 batch
                     .iter()
                     .zip(observations.iter().zip(estimates))
@@ -694,15 +908,9 @@ impl Pipeline {
             // (the first pass took the one nearest the reading); then the surface again.
             let repicks: Vec<Option<f64>> =
                 map_ordered(&several_roots, MIN_PARALLEL_PIXELS, 64, |&(i, fi): &(usize, usize)| {
-                    let o = *obs.observations.get(fi)?;
+                    let o = *observations.get(fi)?;
                     let t = surfaces.ray_distance(i, &rays)?;
-                    let est = foreground_distance_without_slopes(
-                        &self.config.model,
-                        &o,
-                        xi.xi,
-                        &self.config.bounds,
-                        Some(t),
-                    )?;
+                    let est = foreground_distance_without_slopes(&self.config.model, &o, xi, &self.bounds, Some(t))?;
                     (!est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5)
                         .then_some(est.foreground_distance_mm)
                 });
@@ -724,34 +932,32 @@ impl Pipeline {
                         .and_then(|p| p.ray_distance(&rays.data[i]))
                 });
                 if let Some(t) = t {
-                    if t > self.config.bounds.min_distance_mm && t < o.background_distance_mm {
+                    if t > self.bounds.min_distance_mm && t < o.background_distance_mm {
                         df[i] = t;
                     }
                 }
             }
         }
         for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
-            out.corrected_z_mm.data[fi] = if df[i].is_finite() {
-                out.recovered_pixels += 1;
+            corrected.data[fi] = if df[i].is_finite() {
+                tally.recovered += 1;
                 (df[i] / self.scale.data[fi]) as f32
             } else {
                 f32::NAN
             };
         }
-        out.pinned_pixels = pinned;
-        out.unresolved_pixels = unresolved;
-        if fitted > 0 {
-            out.fit_residual_mm = (res2 / fitted as f64).sqrt();
-        }
-        out
+        tally.pinned += pinned;
+        tally.unresolved += unresolved;
+        tally.res2 += res2;
+        tally.fitted += fitted;
     }
 
     /// Online processing (the node): observe, add ξ evidence, recover with the pooled ξ.
     /// `None` for ξ when it is to be estimated and no frame has carried evidence yet.
     pub fn process(&mut self, frame: &DepthFrame) -> Result<Option<FrameOutput>, PipelineError> {
-        let obs = self.observe(frame)?;
-        self.add_xi_evidence(&obs);
-        Ok(self.xi().map(|xi| self.recover(frame, &obs, &xi)))
+        let mut obs = self.observe(frame)?;
+        self.add_xi_evidence(&mut obs);
+        Ok(self.recover_regions(frame, &obs))
     }
 
     /// A frame's calibration evidence (paper Sec. V-A): the model's error at the
@@ -805,18 +1011,45 @@ impl Pipeline {
 
     /// Frames of ξ evidence pooled.
     pub fn xi_frames(&self) -> usize {
-        self.profiles.len()
+        self.main_material().map_or(0, |m| m.frames())
     }
 
     /// The Eq. 12 comparison over the pooled frames: its RMS profile (mm) and
     /// the ξ range over which it stays within 1 mm of its minimum.
     pub fn eq12_comparison(&self) -> Option<(Profile, [f64; 2])> {
-        let est = translucency::eq12_residual(&self.profiles)?;
+        let profiles = self.main_material()?.profiles();
+        let est = translucency::eq12_residual(profiles)?;
         let r: Vec<f64> = (0..translucency::xi_grid().len())
-            .map(|k| self.profiles.iter().map(|p| p.eq12[k]).sum())
+            .map(|k| profiles.iter().map(|p| p.eq12[k]).sum())
             .collect();
         Some((est.profile, translucency::eq12_flat_range(&r, est.pixels)))
     }
+}
+
+/// Counts of a frame's recovery, summed over its materials.
+#[derive(Debug, Clone, Copy, Default)]
+struct Tally {
+    recovered: usize,
+    pinned: usize,
+    unresolved: usize,
+    res2: f64,
+    fitted: usize,
+}
+
+/// The observations of `all` at the `mask` pixels (`None` only for an image too large
+/// to index, which `observe` has already refused).
+fn restrict(all: &SparseImage<PixelObservation>, mask: &ImageBuf<bool>) -> Option<SparseImage<PixelObservation>> {
+    SparseImage::from_mask(mask, |i| all.get(i).copied())
+}
+
+/// The observations of the region labelled `label`.
+fn region_observations(obs: &Observed, label: u32) -> Option<SparseImage<PixelObservation>> {
+    let mask = ImageBuf {
+        width: obs.labels.width,
+        height: obs.labels.height,
+        data: obs.labels.data.iter().map(|&l| l == label).collect(),
+    };
+    restrict(&obs.observations, &mask)
 }
 
 /// What recovery keeps of a pixel's inversion ([`crate::physics::LayerEstimate`]'s fields it

@@ -139,7 +139,7 @@ pub fn run(a: AuditArgs) -> Result<()> {
     }
     if let Some(out) = &a.physics_out {
         let text = format!(
-            "# Written by translucent_tof audit: the effects the recording supports past the paper's model.\n# Fitted with xi = {:.4}: replay --physics {} --xi {:.3}\n{}",
+            "# Written by translucent_tof audit: the baseline's physics and the effects the recording supports past it.\n# Fitted with xi = {:.4}: replay --physics {} --xi {:.3}\n{}",
             fin.xi,
             out.display(),
             fin.xi,
@@ -197,9 +197,14 @@ fn params_json(fit: &Fit, with_xi: bool) -> Value {
 fn physics_file(result: &AuditResult, base: &crate::physics::ForwardModel) -> PhysicsFile {
     let fin = result.final_fit();
     let m = fin.model(base);
-    let mut f = PhysicsFile::default();
-    // What the baseline already modelled (a --physics file given to the audit) stays.
-    let d = crate::physics::ModelOptions::default();
+    // Written against the paper's model, whatever the baseline: every key that departs from
+    // it is in the file, so the file reads the same whatever the tools' default becomes.
+    let mut f = PhysicsFile {
+        preset: Some(crate::physics::Preset::Paper),
+        ..PhysicsFile::default()
+    };
+    // What the baseline already modelled (the default physics, or a --physics given to the audit) stays.
+    let d = crate::physics::ModelOptions::paper();
     let o = &base.options;
     f.bounces = (o.bounces != d.bounces).then_some(o.bounces);
     f.ir_mode = (o.ir_mode != d.ir_mode).then_some(o.ir_mode);

@@ -1,7 +1,7 @@
 //! `bench`: times the real-time path on simulated frames (a document holder
 //! before a wall) and prints a table; `--json` for the rows.
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
 
@@ -302,11 +302,13 @@ fn node_latency_run(a: &BenchArgs) -> Result<crate::node::latency::LatencyReport
             a.node_frames, a.node_rate_hz
         );
     }
+    let bag = match &a.node_bag {
+        Some(b) => b.clone(),
+        None => super::demo::bundled(super::demo::DEMO_BAG)
+            .with_context(|| format!("{} not found: give --node-bag BAG", super::demo::DEMO_BAG))?,
+    };
     crate::node::latency::measure(&crate::node::latency::LatencyConfig {
-        bag: a
-            .node_bag
-            .clone()
-            .unwrap_or_else(|| super::demo::bundled_bags().join("document_holder.mcap")),
+        bag,
         background: 10,
         frames: a.node_frames.max(1),
         rate_hz: a.node_rate_hz,

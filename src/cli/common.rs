@@ -9,7 +9,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde::{Deserialize, Serialize};
 
 use crate::bag::TopicOverrides;
-use crate::physics::{ForwardModel, ImageBuf, IrMode, ModelOptions, Sensor, Waveform};
+use crate::physics::{ForwardModel, ImageBuf, IrMode, ModelOptions, Preset, Sensor, Waveform};
 use crate::pipeline::PipelineConfig;
 
 /// Topic overrides (`--depth-topic`, `--ir-topic`, `--info-topic`).
@@ -89,8 +89,10 @@ impl PipelineArgs {
 /// The sensor and the physics (`--physics`, `--waveform`, ...).
 #[derive(Debug, Clone, Args)]
 pub struct ModelArgs {
-    /// Extra effects to model (a physics TOML file, as `audit` writes).
-    #[arg(long)]
+    /// The physics: `physical` (default: the second return crosses the layer twice, IR is the
+    /// demodulated amplitude), `paper` (the paper's Eq. 2 and 7, for replication), or a physics
+    /// TOML file (as `audit --physics-out` writes).
+    #[arg(long, value_name = "physical|paper|FILE")]
     pub physics: Option<PathBuf>,
     /// Modulation frequency, Hz.
     #[arg(long, default_value_t = 30.0e6)]
@@ -103,11 +105,13 @@ pub struct ModelArgs {
     pub ir_mode: Option<String>,
 }
 
-/// A physics file: the forward model's options beyond the paper's baseline.
-/// Every key is optional; absent keys keep the paper's value.
+/// A physics file: the forward model's options on top of a preset.
+/// Every key is optional; absent keys keep the preset's value.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PhysicsFile {
+    /// The options the file starts from: `physical` (default) or `paper`.
+    pub preset: Option<Preset>,
     /// Returns kept from Eq. 3 (2 = the paper).
     pub bounces: Option<usize>,
     /// `sum` or `amplitude`.
@@ -166,10 +170,16 @@ impl ModelArgs {
             );
         }
         let file = match &self.physics {
-            Some(p) => PhysicsFile::load(p)?,
+            Some(p) => match p.to_str().and_then(Preset::from_name) {
+                Some(preset) => PhysicsFile {
+                    preset: Some(preset),
+                    ..PhysicsFile::default()
+                },
+                None => PhysicsFile::load(p)?,
+            },
             None => PhysicsFile::default(),
         };
-        let d = ModelOptions::default();
+        let d = file.preset.unwrap_or_default().options();
         let mut options = ModelOptions {
             bounces: file.bounces.unwrap_or(d.bounces),
             ir_mode: file.ir_mode.unwrap_or(d.ir_mode),

@@ -25,7 +25,7 @@ use super::recording::load;
 /// Arguments of `demo`.
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// The bag to play (default: the bundled document holder).
+    /// The bag to play (default: the bundled, physically rendered document holder).
     #[arg(long)]
     pub bag: Option<PathBuf>,
     /// Where the output bag, the Rerun recording and the node's log go.
@@ -51,9 +51,18 @@ pub struct DemoArgs {
     pub output: OutputArgs,
 }
 
-/// The bundled bags' folder (next to the crate's sources).
-pub fn bundled_bags() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("bags")
+/// The demo's bag: the physically rendered document holder of the paper's Fig. 5a.
+pub const DEMO_BAG: &str = "bags/rendered/paper_document_holder.mcap";
+
+/// Where a bundled file is: under the working directory, else under a folder above the
+/// running binary (a checkout's `target/release/..`). `None` when neither has it.
+pub fn bundled(relative: &str) -> Option<PathBuf> {
+    let here = PathBuf::from(relative);
+    if here.is_file() {
+        return Some(here);
+    }
+    let exe = std::env::current_exe().ok()?;
+    exe.ancestors().skip(1).map(|d| d.join(relative)).find(|p| p.is_file())
 }
 
 fn now_ns() -> u64 {
@@ -96,10 +105,12 @@ impl Drop for NodeProcess {
 
 /// Runs `demo`.
 pub fn run(a: DemoArgs) -> Result<()> {
-    let bag = a
-        .bag
-        .clone()
-        .unwrap_or_else(|| bundled_bags().join("document_holder.mcap"));
+    let bag = match &a.bag {
+        Some(b) => b.clone(),
+        None => bundled(DEMO_BAG).with_context(|| {
+            format!("the demo's bag {DEMO_BAG} is neither under the working directory nor above the binary: run the demo from the repository, or give --bag BAG")
+        })?,
+    };
     if !(a.speed.is_finite() && a.speed > 0.0) {
         bail!("--speed must be positive, got {}", a.speed);
     }

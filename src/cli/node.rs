@@ -44,7 +44,10 @@ pub const PARAMETERS: &[(&str, &str)] = &[
         "background_albedo",
         "albedo assumed for the background without a Lin file (1.0)",
     ),
-    ("physics", "physics TOML (extra effects, as audit writes)"),
+    (
+        "physics",
+        "physical (default: L2 = Ib xi^2, amplitude IR), paper (Eq. 2 and 7), or a physics TOML as audit writes",
+    ),
     ("rerun", "off (default), a .rrd path, or a viewer address"),
     (
         "service_mapping",

@@ -10,7 +10,7 @@ use crate::bag::BagWriter;
 use crate::msgs::Header;
 use crate::outputs::output_messages;
 use crate::physics::{ImageBuf, XiEstimate, XiMethod};
-use crate::pipeline::{rmse_against_truth, FrameOutput, Pipeline, XiChoice};
+use crate::pipeline::{rmse_against_truth, FrameOutput, XiChoice};
 
 use super::common::{OutputArgs, PipelineArgs};
 use super::recording::{load, Recording};
@@ -87,9 +87,9 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let mut observed = Vec::with_capacity(objects.len());
     let pb = a.output.progress(objects.len() as u64, "segmenting");
     for f in objects {
-        let obs = pipe.observe(f)?;
+        let mut obs = pipe.observe(f)?;
         if !online {
-            pipe.add_xi_evidence(&obs);
+            pipe.add_xi_evidence(&mut obs);
         }
         observed.push(obs);
         pb.inc(1);
@@ -104,19 +104,19 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let (mut sum_e2, mut sum_raw2, mut n_err) = (0.0, 0.0, 0usize);
     let mut seg_truth = 0usize;
     let mut total_px = 0usize;
-    for (j, (f, obs)) in objects.iter().zip(&observed).enumerate() {
+    for (j, (f, obs)) in objects.iter().zip(&mut observed).enumerate() {
         if online {
             pipe.add_xi_evidence(obs);
         }
-        let Some(xi) = pipe.xi() else {
+        let Some(out) = pipe.recover_regions(f, obs) else {
             per_frame.push(json!({"stamp": f.stamp_ns as f64 * 1e-9, "xi": null, "translucent_pixels": obs.translucent_pixels, "note": "no xi yet"}));
             pb.inc(1);
             continue;
         };
-        let out = pipe.recover(f, obs, &xi);
+        let xi = out.xi.clone();
         total_px += out.translucent_pixels;
         let header = &rec.headers[bg.count + j];
-        write_outputs(&mut writer, header, &rec, &out, &f.ir, &pipe)?;
+        write_outputs(&mut writer, header, &rec, &out, &f.ir, &obs.labels)?;
         let mut row = json!({
             "stamp": f.stamp_ns as f64 * 1e-9,
             "xi": xi.xi,
@@ -126,6 +126,13 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             "pinned_pixels": out.pinned_pixels,
             "unresolved_pixels": out.unresolved_pixels,
             "fit_residual_mm": out.fit_residual_mm,
+            "regions": out.regions.iter().map(|r| json!({
+                "id": r.id,
+                "xi": r.xi.xi,
+                "xi_interval": r.xi.interval,
+                "pixels": r.pixels,
+                "opaque": r.opaque,
+            })).collect::<Vec<_>>(),
         });
         if let Some(truth) = rec.truth.get(&f.stamp_ns) {
             // Raw and recovered over the same pixels: segmented, with truth, recovered.
@@ -160,7 +167,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         .with_context(|| format!("finishing {}", out_path.display()))?;
 
     let bgd = pipe.background().context("background")?;
-    let xi = last.or_else(|| pipe.xi());
+    // The material with the most evidence (the last frame's when ξ is given or nothing pooled).
+    let xi = pipe.xi().filter(|_| pipe.xi_frames() > 0).or(last);
     let mut report = json!({
         "bag": a.bag.display().to_string(),
         "out": out_path.display().to_string(),
@@ -194,6 +202,18 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         }),
         "xi_profile": xi.as_ref().map(|x| x.profile.clone()),
         "translucent_pixels": total_px,
+        "materials": pipe.materials().filter_map(|m| {
+            let e = m.estimate.as_ref()?;
+            Some(json!({
+                "id": m.id,
+                "xi": e.xi,
+                "xi_interval": e.interval,
+                "opaque": e.is_opaque(),
+                "frames": m.frames(),
+                "pixels": m.pixels(),
+                "note": e.note,
+            }))
+        }).collect::<Vec<_>>(),
         "per_frame": per_frame,
     });
     if let Some((profile, flat)) = pipe.eq12_comparison() {
@@ -244,14 +264,37 @@ fn write_outputs(
     rec: &Recording,
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
-    pipe: &Pipeline,
+    labels: &ImageBuf<u32>,
 ) -> Result<()> {
     let t = out.stamp_ns;
-    let m = output_messages(header, &rec.intrinsics, out, ir, &rec.depth_encoding, pipe.xi_frames())?;
+    let m = output_messages(header, &rec.intrinsics, out, ir, &rec.depth_encoding)?;
     writer.write("/translucent_tof/depth/corrected", t, &m.corrected)?;
     writer.write("/translucent_tof/translucent_mask", t, &m.mask)?;
     writer.write("/translucent_tof/points", t, &m.points)?;
-    writer.write("/translucent_tof/translucency", t, &m.estimate)?;
+    for e in &m.estimates {
+        writer.write("/translucent_tof/translucency", t, e)?;
+    }
+    // Offline only: which material each pixel's region joined (for checking against truth).
+    let ids = ImageBuf {
+        width: labels.width,
+        height: labels.height,
+        data: labels
+            .data
+            .iter()
+            .map(|&l| match l {
+                0 => 0,
+                l => out
+                    .regions
+                    .get(l as usize - 1)
+                    .map_or(0, |r| u16::try_from(r.id).unwrap_or(u16::MAX)),
+            })
+            .collect(),
+    };
+    writer.write(
+        "/translucent_tof/regions",
+        t,
+        &crate::image::region_image(header, &ids)?,
+    )?;
     Ok(())
 }
 
@@ -284,6 +327,25 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         ));
     } else {
         s.push_str("xi: not determined (no translucent pixels)\n");
+    }
+    let materials = r["materials"].as_array().map(|v| v.as_slice()).unwrap_or(&[]);
+    if materials.len() > 1 || materials.iter().any(|m| m["opaque"].as_bool() == Some(true)) {
+        for m in materials {
+            let iv = |i: usize| m["xi_interval"][i].as_f64().unwrap_or(f64::NAN);
+            s.push_str(&format!(
+                "  material {}: xi = {:.3} [{:.3}, {:.3}]{} over {} frame(s)\n",
+                m["id"],
+                m["xi"].as_f64().unwrap_or(f64::NAN),
+                iv(0),
+                iv(1),
+                if m["opaque"].as_bool() == Some(true) {
+                    ", opaque: depth kept"
+                } else {
+                    ""
+                },
+                m["frames"]
+            ));
+        }
     }
     let e = &r["eq12"];
     if let (Some(x), Some(rms), Some(flat)) = (

@@ -24,6 +24,12 @@ pub struct TranslucencyEstimate {
     pub fit_residual_mm: f64,
     /// Frames the estimate pools.
     pub frames_pooled: u32,
+    /// The region's material (stable over frames while it is kept); 0: one ξ for the frame.
+    pub region_id: u32,
+    /// Pixels of this region in the frame.
+    pub region_pixels: u32,
+    /// The data say this region is opaque: its depth is kept and it is not in the mask.
+    pub opaque: bool,
 }
 
 impl RosMessage for TranslucencyEstimate {
@@ -54,6 +60,9 @@ mod tests {
             translucent_pixels: 1234,
             fit_residual_mm: 0.5,
             frames_pooled: 8,
+            region_id: 2,
+            region_pixels: 900,
+            opaque: false,
         };
         let back: TranslucencyEstimate = from_cdr(&to_cdr(&m).unwrap()).unwrap();
         assert_eq!(back, m);

@@ -99,19 +99,12 @@ pub struct NodeOutputs {
     header: crate::msgs::Header,
     intrinsics: Intrinsics,
     ir: crate::physics::ImageBuf<f32>,
-    frames_pooled: usize,
 }
 
 impl NodeOutputs {
     /// The mask, cloud and estimate (the same as `replay` writes).
     pub fn companions(&self) -> Companions {
-        companion_messages(
-            &self.header,
-            &self.intrinsics,
-            &self.frame,
-            &self.ir,
-            self.frames_pooled,
-        )
+        companion_messages(&self.header, &self.intrinsics, &self.frame, &self.ir)
     }
 }
 
@@ -354,11 +347,11 @@ impl<T> NodeCore<T> {
                 format!("frame at stamp {stamp} ns dropped: no background latched"),
             ));
         }
-        let obs = pipe
+        let mut obs = pipe
             .observe(&frame)
             .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns dropped: {e}")))?;
-        pipe.add_xi_evidence(&obs);
-        let Some(xi) = pipe.xi() else {
+        pipe.add_xi_evidence(&mut obs);
+        let Some(out) = pipe.recover_regions(&frame, &obs) else {
             return Err((
                 DropCause::NoXiYet,
                 format!(
@@ -367,7 +360,6 @@ impl<T> NodeCore<T> {
                 ),
             ));
         };
-        let out = pipe.recover(&frame, &obs, &xi);
         let corrected = corrected_message(&depth.header, &out, &depth.encoding)
             .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns: {e}")))?;
         self.processed += 1;
@@ -377,7 +369,6 @@ impl<T> NodeCore<T> {
             header: depth.header.clone(),
             intrinsics: k,
             ir: frame.ir,
-            frames_pooled: pipe.xi_frames(),
         });
         Ok(())
     }

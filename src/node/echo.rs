@@ -145,6 +145,9 @@ pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
                 translucent_pixels: 0,
                 fit_residual_mm: 0.0,
                 frames_pooled: 0,
+                region_id: 0,
+                region_pixels: 0,
+                opaque: false,
             };
             let _ = p_out.publish(img);
             let _ = p_mask.publish(m_img);

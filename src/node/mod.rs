@@ -596,18 +596,20 @@ fn worker(
                     // rest is made and published.
                     let first = out.corrected.publish(std::mem::take(&mut o.corrected)).err();
                     let c = o.companions();
-                    let est = c.estimate.clone();
-                    let results = [
+                    let mut results = vec![
                         first.map(|e| format!("{e:?}")),
                         out.mask.publish(c.mask).err().map(|e| format!("{e:?}")),
                         out.points.publish(c.points).err().map(|e| format!("{e:?}")),
-                        out.estimate.publish(c.estimate).err().map(|e| format!("{e:?}")),
                     ];
+                    for e in c.estimates {
+                        results.push(out.estimate.publish(e).err().map(|e| format!("{e:?}")));
+                    }
                     if let Some(e) = results.into_iter().flatten().next() {
                         error!("publishing: {e}");
                     }
                     stats.published += 1;
-                    stats.xi = Some([est.xi, est.xi_lower, est.xi_upper]);
+                    let xi = &o.frame.xi;
+                    stats.xi = Some([xi.xi, xi.interval[0], xi.interval[1]]);
                     if latencies.len() == LATENCY_WINDOW {
                         latencies.remove(0);
                     }

@@ -220,6 +220,9 @@ pub struct CandidateScore {
     pub xi: f64,
     /// Accepted.
     pub accepted: bool,
+    /// Why it was not accepted though its loss gain passed (held-out depth error worse,
+    /// a parameter outside its physical range); empty otherwise.
+    pub rejected: String,
 }
 
 /// A quantity residuals are tested against.
@@ -1128,6 +1131,13 @@ pub fn run_audit_with_progress(
     if base.sensor.waveform != Waveform::Sinusoid {
         remaining.retain(|e| *e != Effect::WaveformHarmonics);
     }
+    // What the baseline already models is no candidate.
+    if base.options.ir_mode == IrMode::Amplitude {
+        remaining.retain(|e| *e != Effect::IrAmplitude);
+    }
+    if base.options.bounces > 2 {
+        remaining.retain(|e| *e != Effect::HigherOrderBounces);
+    }
     for round in 0..settings.max_effects {
         let mut best: Option<(Fit, usize)> = None;
         let mut round_scores = vec![];
@@ -1139,7 +1149,20 @@ pub fn run_audit_with_progress(
             let (gain, z, _) = paired_gain(&current, &fit);
             let threshold = (settings.penalty_per_param_ln_n * e.penalty_params() as f64 * n.ln())
                 .max(settings.min_relative_gain * current.heldout_score * n);
-            let ok = gain > threshold && z > settings.min_gain_z;
+            let passes = gain > threshold && z > settings.min_gain_z;
+            // An effect is claimed only where it also predicts the held-out depths no worse and its
+            // parameters are physical; otherwise the loss gain is the fit bending to something else.
+            let rejected = if !passes {
+                String::new()
+            } else if !(fit.heldout_rmse_mm <= current.heldout_rmse_mm) {
+                format!(
+                    "held-out depth error {:.1} mm against {:.1} without it",
+                    fit.heldout_rmse_mm, current.heldout_rmse_mm
+                )
+            } else {
+                unphysical(&fit.params).unwrap_or_default()
+            };
+            let ok = passes && rejected.is_empty();
             round_scores.push(CandidateScore {
                 round,
                 effect: *e,
@@ -1151,6 +1174,7 @@ pub fn run_audit_with_progress(
                 params: fit.params.clone(),
                 xi: fit.xi,
                 accepted: false,
+                rejected,
             });
             if ok && best.as_ref().is_none_or(|(b, _)| fit.heldout_score < b.heldout_score) {
                 best = Some((fit, ci));
@@ -1194,6 +1218,28 @@ pub fn run_audit_with_progress(
         pixels: data.pixels.len(),
         frames: data.frames,
         final_noise_ratio,
+    })
+}
+
+/// Physical ranges of the effects' parameters: a fit outside them is not claimed.
+/// The harmonics' bounds are a square wave's correlation (the triangle: 1/9 and 1/25 of the
+/// fundamental), the richest a CW sensor's waveform is; `L2 = Ib xi^2 X^p` with `p` from 0
+/// (light crossing the layer) to 2 (the paper's Eq. 2); a delay and an offset are not negative.
+pub const PHYSICAL_RANGES: &[(&str, f64, f64)] = &[
+    ("third", -1.0 / 9.0, 1.0 / 9.0),
+    ("fifth", -1.0 / 25.0, 1.0 / 25.0),
+    ("transmission_albedo_power", 0.0, 2.0),
+    ("subsurface_delay_mm", 0.0, 200.0),
+    ("ambient_offset", 0.0, f64::INFINITY),
+    ("shift_columns_px", -20.0, 20.0),
+    ("shift_rows_px", -20.0, 20.0),
+];
+
+/// The first parameter outside its [`PHYSICAL_RANGES`] entry, in words.
+fn unphysical(params: &[(String, f64)]) -> Option<String> {
+    params.iter().find_map(|(name, v)| {
+        let (_, lo, hi) = PHYSICAL_RANGES.iter().find(|(n, _, _)| n == name)?;
+        (!(v >= lo && v <= hi)).then(|| format!("{name} = {v:.3} is outside its physical range [{lo:.3}, {hi:.3}]"))
     })
 }
 

@@ -88,6 +88,50 @@ pub fn emitted_light_from_plane(
     ))
 }
 
+/// Fills the pixels of `lin` that are NaN (off the calibration plane: a box on
+/// the wall, a corner) from a smooth fit of the rest: an emitter's light is a
+/// smooth function of direction, so `ln Lin` is fitted by a quadratic in the
+/// ray's slopes `(x/z, y/z)`, twice, the second time without the pixels beyond
+/// three times the first fit's RMS. Returns the pixels filled; `lin` is left as
+/// it is when fewer than 20 pixels are known.
+pub fn fill_off_plane(lin: &mut ImageBuf<f64>, unit_rays: &ImageBuf<Vector3<f64>>) -> usize {
+    let basis = |u: &Vector3<f64>| {
+        let (x, y) = (u.x / u.z, u.y / u.z);
+        nalgebra::SVector::<f64, 6>::new(1.0, x, y, x * x, x * y, y * y)
+    };
+    let known: Vec<(nalgebra::SVector<f64, 6>, f64)> = lin
+        .data
+        .iter()
+        .zip(&unit_rays.data)
+        .filter(|(v, u)| v.is_finite() && **v > 0.0 && u.z > 0.0)
+        .map(|(v, u)| (basis(u), v.ln()))
+        .collect();
+    if known.len() < 20 || known.len() == lin.len() {
+        return 0;
+    }
+    let fit = |keep: &dyn Fn(&nalgebra::SVector<f64, 6>, f64) -> bool| {
+        let mut ata = nalgebra::SMatrix::<f64, 6, 6>::zeros();
+        let mut atb = nalgebra::SVector::<f64, 6>::zeros();
+        for (b, y) in known.iter().filter(|(b, y)| keep(b, *y)) {
+            ata += b * b.transpose();
+            atb += b * *y;
+        }
+        ata.cholesky().map(|c| c.solve(&atb))
+    };
+    let Some(first) = fit(&|_, _| true) else { return 0 };
+    let rms = (known.iter().map(|(b, y)| (first.dot(b) - y).powi(2)).sum::<f64>() / known.len() as f64).sqrt();
+    let cut = 3.0 * rms.max(1e-3);
+    let coef = fit(&|b, y| (first.dot(b) - y).abs() <= cut).unwrap_or(first);
+    let mut filled = 0;
+    for (v, u) in lin.data.iter_mut().zip(&unit_rays.data) {
+        if !(v.is_finite() && *v > 0.0) && u.z > 0.0 {
+            *v = coef.dot(&basis(u)).exp();
+            filled += 1;
+        }
+    }
+    filled
+}
+
 /// Eq. 14: `Lin` scales linearly with exposure time.
 pub fn scale_for_exposure(lin: &ImageBuf<f64>, calibrated_exposure_s: f64, exposure_s: f64) -> ImageBuf<f64> {
     let k = exposure_s / calibrated_exposure_s;
@@ -128,6 +172,25 @@ mod tests {
         assert!((half.data[0] / lin.data[0] - 2.0).abs() < 1e-12);
         let doubled = scale_for_exposure(&lin, 1.5e-3, 3.0e-3);
         assert!((doubled.data[5] / lin.data[5] - 2.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn off_plane_pixels_are_filled_from_the_emitters_smooth_pattern() {
+        let k = Intrinsics::from_fov(40, 30, 44.0, 35.0);
+        let rays = k.unit_ray_map();
+        // A spot-like emitter: brightest on the axis, falling off with the angle.
+        let truth: Vec<f64> = rays.data.iter().map(|u| 1e10 * (1.0 - 0.8 * (1.0 - u.z))).collect();
+        let mut lin = ImageBuf::from_vec(40, 30, truth.clone()).unwrap();
+        // A box on the wall: its pixels are off the plane.
+        for r in 5..15 {
+            for c in 20..32 {
+                lin.data[r * 40 + c] = f64::NAN;
+            }
+        }
+        assert_eq!(fill_off_plane(&mut lin, &rays), 120);
+        for (v, t) in lin.data.iter().zip(&truth) {
+            assert!((v / t - 1.0).abs() < 2e-3, "{v} {t}");
+        }
     }
 
     #[test]

@@ -9,7 +9,9 @@ use super::sensor::Waveform;
 use super::trig::sin_cos;
 
 mod lanes;
+mod phasor;
 pub use lanes::foreground_distances;
+use phasor::PhasorModel;
 
 /// What is known at one translucent pixel (physics.md §3).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -109,6 +111,9 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
     let ir = obs.ir - o.ambient_offset;
     if ir <= 0.0 {
         return None;
+    }
+    if let Some(p) = PhasorModel::new(model) {
+        return p.albedo_cos(obs, df, xi, x_max);
     }
     if o.bounces == 2 && o.ir_mode == IrMode::Sum {
         // I = b X + a X^p with a = xi^2 Ib, b = (1 - xi) Lin / df^2 (Eq. 7).
@@ -336,6 +341,9 @@ fn invert(
 ) -> Option<LayerEstimate> {
     let (lo, hi) = search_range(obs, bounds)?;
     let search = Search { lo, hi, slopes };
+    if let Some(p) = PhasorModel::new(model) {
+        return p.invert(model, obs, xi, bounds.max_albedo_cos, search);
+    }
     match FastPixel::new(model, obs, xi, bounds.max_albedo_cos) {
         Some(fast) => foreground_distance_fast(&fast, model, obs, bounds, prefer_mm, search),
         None => foreground_distance_generic(model, obs, xi, bounds, prefer_mm, search),

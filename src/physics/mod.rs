@@ -12,7 +12,7 @@ pub use buffer::{ImageBuf, Region, SparseImage};
 pub mod model;
 pub mod sensor;
 
-pub use model::{ForwardModel, IrMode, LayerScene, Measurement, ModelOptions, Return};
+pub use model::{ForwardModel, IrMode, LayerScene, Measurement, ModelOptions, Preset, Return};
 pub use sensor::{Sensor, Waveform};
 pub mod inversion;
 pub use inversion::{
@@ -25,6 +25,7 @@ pub mod segmentation;
 pub mod stats;
 pub mod surface;
 pub use camera::Intrinsics;
+pub mod materials;
 pub mod translucency;
 pub use translucency::{XiEstimate, XiMethod};
 pub mod audit;

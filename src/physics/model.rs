@@ -23,7 +23,9 @@ pub enum IrMode {
     Amplitude,
 }
 
-/// Options of the forward model. `Default` is the paper's model.
+/// Options of the forward model. `Default` is the paper's model (what scene
+/// files and the audit's effects are written against); [`ModelOptions::physical`]
+/// is what the tools and the node use unless told otherwise.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ModelOptions {
@@ -50,6 +52,53 @@ pub struct ModelOptions {
 
 impl Default for ModelOptions {
     fn default() -> Self {
+        Self::paper()
+    }
+}
+
+/// A named set of model options (`--physics NAME`, parameter `physics:=NAME`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Preset {
+    /// What physics and the evidence support (physics.md §5-6): the second
+    /// return crosses the layer twice (`L2 = Ib xi^2`) and the IR image is the
+    /// demodulated amplitude, as CW-ToF cameras report it.
+    #[default]
+    Physical,
+    /// The paper's model as published: `L2 = Ib xi^2 X^2` (Eq. 2), IR the sum
+    /// of the returns (Eq. 7). For replicating the paper.
+    Paper,
+}
+
+impl Preset {
+    /// Every preset, for help texts.
+    pub const ALL: [Preset; 2] = [Preset::Physical, Preset::Paper];
+
+    /// The preset's name.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Preset::Physical => "physical",
+            Preset::Paper => "paper",
+        }
+    }
+
+    /// The preset named `name`, if any.
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|p| p.name() == name)
+    }
+
+    /// Its model options.
+    pub fn options(&self) -> ModelOptions {
+        match self {
+            Preset::Physical => ModelOptions::physical(),
+            Preset::Paper => ModelOptions::paper(),
+        }
+    }
+}
+
+impl ModelOptions {
+    /// The paper's model: L1 and L2 (Eq. 1-2), IR the sum of the returns (Eq. 7).
+    pub fn paper() -> Self {
         Self {
             bounces: 2,
             ir_mode: IrMode::Sum,
@@ -59,9 +108,17 @@ impl Default for ModelOptions {
             refraction_shift_px: [0.0, 0.0],
         }
     }
-}
 
-impl ModelOptions {
+    /// The default physics ([`Preset::Physical`]): the paper's returns with the
+    /// second one crossing the layer twice (`L2 = Ib xi^2`) and IR the demodulated amplitude.
+    pub fn physical() -> Self {
+        Self {
+            ir_mode: IrMode::Amplitude,
+            transmission_albedo_power: 0.0,
+            ..Self::paper()
+        }
+    }
+
     /// True for the paper's model, whose IR equation has a closed-form root (Eq. 10).
     pub fn is_paper_baseline(&self) -> bool {
         self.bounces == 2
@@ -69,9 +126,7 @@ impl ModelOptions {
             && self.transmission_albedo_power == 2.0
             && self.ambient_offset == 0.0
     }
-}
 
-impl ModelOptions {
     /// True when the background behind the layer is displaced (refraction).
     pub fn refracts(&self) -> bool {
         self.refraction_shift_px != [0.0, 0.0]
@@ -177,7 +232,15 @@ impl ForwardModel {
     pub fn paper(sensor: Sensor) -> Self {
         Self {
             sensor,
-            options: ModelOptions::default(),
+            options: ModelOptions::paper(),
+        }
+    }
+
+    /// The default physics ([`ModelOptions::physical`]) on `sensor`.
+    pub fn physical(sensor: Sensor) -> Self {
+        Self {
+            sensor,
+            options: ModelOptions::physical(),
         }
     }
 

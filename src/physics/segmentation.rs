@@ -142,6 +142,153 @@ pub fn remove_small_regions(mask: &ImageBuf<bool>, min_pixels: usize) -> (ImageB
     (out, kept)
 }
 
+/// Neighbours whose readings differ by more than this many noise sigmas (and
+/// [`EDGE_FLOOR_MM`]) belong to different objects: a layer's readings are smooth.
+pub const EDGE_SIGMAS: f64 = 5.0;
+
+/// Least reading step between neighbours that separates two regions, mm: what a
+/// surface tilted by 60 degrees steps over one pixel at 3 m.
+pub const EDGE_FLOOR_MM: f64 = 25.0;
+
+/// The regions of a mask: 4-connected pixels whose readings do not step by more
+/// than their noise allows (two objects side by side touch in the image but not
+/// in depth). `noise_mm` gives each pixel's reading noise (1 sigma, mm).
+///
+/// Returns each pixel's region (0 off the mask, else 1-based) and each region's
+/// pixel count. Pieces smaller than `min_pixels` join the region they touch most
+/// (a noisy pixel must not cut a layer in two); pieces that touch none keep their own label.
+pub fn label_regions(
+    mask: &ImageBuf<bool>,
+    distance_mm: &ImageBuf<f64>,
+    noise_mm: impl Fn(usize) -> f64,
+    range_mm: f64,
+    min_pixels: usize,
+) -> (ImageBuf<u32>, Vec<usize>) {
+    let (w, h) = (mask.width, mask.height);
+    let mut labels = ImageBuf::filled(w, h, 0u32);
+    let mut sizes: Vec<usize> = vec![0];
+    let mut stack = Vec::new();
+    let joined = |i: usize, j: usize| {
+        let step = wrapped_difference(distance_mm.data[i], distance_mm.data[j], range_mm).abs();
+        let (a, b) = (noise_mm(i), noise_mm(j));
+        let sigma = (a * a + b * b).sqrt();
+        step <= EDGE_FLOOR_MM.max(if sigma.is_finite() { EDGE_SIGMAS * sigma } else { 0.0 })
+    };
+    for start in 0..w * h {
+        if !mask.data[start] || labels.data[start] != 0 {
+            continue;
+        }
+        let id = sizes.len() as u32;
+        sizes.push(0);
+        labels.data[start] = id;
+        stack.push(start);
+        while let Some(i) = stack.pop() {
+            sizes[id as usize] += 1;
+            let c = i % w;
+            let mut visit = |j: usize| {
+                if mask.data[j] && labels.data[j] == 0 && joined(i, j) {
+                    labels.data[j] = id;
+                    stack.push(j);
+                }
+            };
+            if c > 0 {
+                visit(i - 1);
+            }
+            if c + 1 < w {
+                visit(i + 1);
+            }
+            if i >= w {
+                visit(i - w);
+            }
+            if i + w < w * h {
+                visit(i + w);
+            }
+        }
+    }
+    merge_small_pieces(&mut labels, &mut sizes, min_pixels);
+    renumber(labels, &sizes)
+}
+
+/// A piece this small beside a region (a share of that region's pixels) is its fringe: the
+/// pixels at a layer's edge mix the layer with what is behind it and step away from it.
+pub const FRINGE_SHARE: f64 = 0.1;
+
+/// Pieces under `min_pixels`, or under [`FRINGE_SHARE`] of the larger region they share most
+/// borders with, take that region's label.
+fn merge_small_pieces(labels: &mut ImageBuf<u32>, sizes: &mut [usize], min_pixels: usize) {
+    let (w, h) = (labels.width, labels.height);
+    // Repeated: a piece that touches only other small pieces joins once they have joined.
+    for _ in 0..4 {
+        let mut votes: std::collections::HashMap<u32, std::collections::HashMap<u32, usize>> = Default::default();
+        for i in 0..w * h {
+            let a = labels.data[i];
+            if a == 0 {
+                continue;
+            }
+            let c = i % w;
+            let neighbours = [
+                (c > 0).then(|| i - 1),
+                (c + 1 < w).then(|| i + 1),
+                (i >= w).then(|| i - w),
+                (i + w < w * h).then(|| i + w),
+            ];
+            for j in neighbours.into_iter().flatten() {
+                let b = labels.data[j];
+                if b != 0 && b != a {
+                    *votes.entry(a).or_default().entry(b).or_default() += 1;
+                }
+            }
+        }
+        let small = |a: u32, b: u32| {
+            let (sa, sb) = (sizes[a as usize], sizes[b as usize]);
+            (sa, a) < (sb, b) && (sa < min_pixels || (sa as f64) < FRINGE_SHARE * sb as f64)
+        };
+        let target: std::collections::HashMap<u32, u32> = votes
+            .into_iter()
+            .filter_map(|(a, v)| {
+                let (b, _) = v.into_iter().max_by_key(|&(b, n)| (n, std::cmp::Reverse(b)))?;
+                small(a, b).then_some((a, b))
+            })
+            .collect();
+        if target.is_empty() {
+            return;
+        }
+        // A chain a -> b -> c ends where it ends: follow it (sizes strictly grow along it).
+        let end = |mut a: u32| {
+            while let Some(&b) = target.get(&a) {
+                a = b;
+            }
+            a
+        };
+        for l in labels.data.iter_mut() {
+            if target.contains_key(l) {
+                let b = end(*l);
+                sizes[b as usize] += 1;
+                sizes[*l as usize] -= 1;
+                *l = b;
+            }
+        }
+    }
+}
+
+/// Labels 1.. in order of first appearance, empty labels dropped; the sizes with them.
+fn renumber(mut labels: ImageBuf<u32>, sizes: &[usize]) -> (ImageBuf<u32>, Vec<usize>) {
+    let mut new_id = vec![0u32; sizes.len()];
+    let mut out_sizes = vec![];
+    for l in labels.data.iter_mut() {
+        if *l == 0 {
+            continue;
+        }
+        let old = *l as usize;
+        if new_id[old] == 0 {
+            out_sizes.push(sizes[old]);
+            new_id[old] = out_sizes.len() as u32;
+        }
+        *l = new_id[old];
+    }
+    (labels, out_sizes)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -285,5 +432,32 @@ mod tests {
         assert_eq!(kept, 1);
         assert_eq!(out.data.iter().filter(|&&x| x).count(), 16);
         assert!(!out.data[99]);
+    }
+
+    #[test]
+    fn regions_split_where_the_readings_step_and_small_pieces_join() {
+        // Two touching patches at 1000 and 1500 mm, and a single noisy pixel inside the first.
+        let (w, h) = (10, 4);
+        let mut d = ImageBuf::filled(w, h, 1000.0);
+        for r in 0..h {
+            for c in 5..w {
+                d.data[r * w + c] = 1500.0 + c as f64;
+            }
+        }
+        d.data[w + 2] = 1100.0;
+        let mask = ImageBuf::filled(w, h, true);
+        let (labels, sizes) = label_regions(&mask, &d, |_| 5.0, 4996.5, 3);
+        assert_eq!(sizes, vec![20, 20]);
+        assert_eq!(labels.data[0], 1);
+        assert_eq!(labels.data[w + 2], 1, "the noisy pixel joins its region");
+        assert_eq!(labels.data[w - 1], 2);
+        // With a noise that allows the step, one region.
+        let (_, sizes) = label_regions(&mask, &d, |_| 200.0, 4996.5, 3);
+        assert_eq!(sizes, vec![40]);
+        // Off the mask: 0.
+        let mut m = mask.clone();
+        m.data[0] = false;
+        let (labels, _) = label_regions(&m, &d, |_| 5.0, 4996.5, 3);
+        assert_eq!(labels.data[0], 0);
     }
 }

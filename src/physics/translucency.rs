@@ -86,7 +86,16 @@ impl XiEstimate {
     pub fn half_width(&self) -> f64 {
         0.5 * (self.interval[1] - self.interval[0])
     }
+
+    /// The data say the material is opaque: its whole interval lies below [`OPAQUE_XI`].
+    pub fn is_opaque(&self) -> bool {
+        self.interval[1] <= OPAQUE_XI
+    }
 }
+
+/// Largest ξ treated as opaque: a layer passing less light than this changes its
+/// reading by under a few millimetres (the second return is `xi^2` of the background's).
+pub const OPAQUE_XI: f64 = 0.1;
 
 /// The ξ hypotheses every profile is evaluated on: 0.02 steps to 0.8, then
 /// 0.01 steps to 0.99 (highly translucent materials need the finer steps).
@@ -199,10 +208,12 @@ const MIN_INCIDENCE_COS: f64 = 0.3;
 /// Least scatter of `log rho` within a group of pixels.
 const MIN_ALBEDO_SCATTER: f64 = 0.02;
 
-/// The value a pixel that fits no physical albedo enters the statistics with.
+/// The value a pixel that fits no physical albedo enters the statistics with,
+/// relative to the largest albedo the bounds admit.
 const CENSORED_ALBEDO: f64 = 2.0;
 
-/// Largest albedo a surface can have, with room for the noise of one pixel's estimate.
+/// Largest albedo a surface can have, relative to the bound on `X`, with room for
+/// the noise of one pixel's estimate.
 const MAX_ALBEDO: f64 = 1.1;
 
 /// Robust summary of `log rho` in one group of pixels at one ξ.
@@ -266,6 +277,9 @@ pub fn frame_profile(
     let grid = xi_grid();
     let obs = &sample.observations;
     let (w, h) = (obs.width, obs.height);
+    // Albedos are known up to Lin's scale: the bound on X (1 with a calibrated Lin) sets both.
+    let max_albedo = MAX_ALBEDO * bounds.max_albedo_cos;
+    let censored_albedo = CENSORED_ALBEDO * bounds.max_albedo_cos;
     // Groups: quantile bins of the measured distance averaged over a neighbourhood. Not ξ's
     // doing, and not the pixel's own noise either: bins of the raw reading would sort pixels
     // by their noise, and the recovered layer with them.
@@ -359,7 +373,7 @@ pub fn frame_profile(
             }
             if !xs[i].is_finite() {
                 // Pinned by the inversion (counted above): censored too.
-                per_group[group_of(i)].push(CENSORED_ALBEDO.ln());
+                per_group[group_of(i)].push(censored_albedo.ln());
                 continue;
             }
             // Every pixel stays in its group at every ξ (so no ξ wins by dropping pixels): one
@@ -371,12 +385,12 @@ pub fn frame_profile(
             let rho = if cos > MIN_INCIDENCE_COS {
                 xs[i] / cos
             } else {
-                CENSORED_ALBEDO
+                censored_albedo
             };
-            if rho > MAX_ALBEDO && cos > MIN_INCIDENCE_COS {
+            if rho > max_albedo && cos > MIN_INCIDENCE_COS {
                 pinned += 1;
             }
-            per_group[group_of(i)].push(rho.min(CENSORED_ALBEDO).ln());
+            per_group[group_of(i)].push(rho.min(censored_albedo).ln());
         }
         // A group whose median is censored carries no albedo at this ξ: out of the objective
         // (with its pixels counted as pinned, so such a ξ cannot win by it).
@@ -384,7 +398,7 @@ pub fn frame_profile(
             .into_iter()
             .map(|v| {
                 let g = group_stat(v, settings.min_group_pixels);
-                if g.median >= MAX_ALBEDO.ln() {
+                if g.median >= max_albedo.ln() {
                     pinned += g.count;
                     GroupStat {
                         median: f64::NAN,
@@ -523,6 +537,12 @@ fn eligible(profiles: &[FrameProfile]) -> Vec<bool> {
 /// (`Q = sum_g (m_g - m)^2 / se_g^2`, about chi-square with G - 1 degrees of
 /// freedom at the true ξ). Returns `(Q, groups)` per ξ.
 fn one_material_objective(profiles: &[FrameProfile]) -> Vec<(f64, usize)> {
+    one_material_objective_with(profiles, 0.0)
+}
+
+/// [`one_material_objective`] with `systematic` (log albedo) added in quadrature to every
+/// group's standard error.
+fn one_material_objective_with(profiles: &[FrameProfile], systematic: f64) -> Vec<(f64, usize)> {
     let grid = xi_grid();
     (0..grid.len())
         .map(|k| {
@@ -530,6 +550,10 @@ fn one_material_objective(profiles: &[FrameProfile]) -> Vec<(f64, usize)> {
                 .iter()
                 .flat_map(|p| p.groups[k].iter().copied())
                 .filter(|g| g.median.is_finite())
+                .map(|g| GroupStat {
+                    std_error: g.std_error.hypot(systematic),
+                    ..g
+                })
                 .collect();
             if gs.len() < 2 {
                 return (f64::NAN, gs.len());
@@ -540,6 +564,47 @@ fn one_material_objective(profiles: &[FrameProfile]) -> Vec<(f64, usize)> {
             (q, gs.len())
         })
         .collect()
+}
+
+/// The least one-material objective over the ξ values a method may pick, with the
+/// groups it compares and its overdispersion: how well `profiles` are explained as
+/// one material. `None` with fewer than two groups.
+///
+/// `systematic` (log albedo) is added in quadrature to each group's standard error: how far
+/// two groups of one material may differ beyond their noise (texture, what the model leaves out).
+pub fn one_material_misfit(profiles: &[FrameProfile], systematic: f64) -> Option<Misfit> {
+    let ok = eligible(profiles);
+    let obj = one_material_objective_with(profiles, systematic);
+    let q: Vec<f64> = obj
+        .iter()
+        .zip(&ok)
+        .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
+        .collect();
+    let (k, q_min) = argmin(&q)?;
+    Some(Misfit {
+        q_min,
+        groups: obj[k].1,
+    })
+}
+
+/// [`one_material_misfit`]'s answer.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Misfit {
+    /// The objective's minimum (about chi-square with `groups - 2` degrees of freedom).
+    pub q_min: f64,
+    /// Groups compared there.
+    pub groups: usize,
+}
+
+impl Misfit {
+    /// `Q_min / (groups - 2)`, at least 1: how much more the groups scatter than their errors say.
+    pub fn overdispersion(&self) -> f64 {
+        if self.groups > 2 {
+            (self.q_min / (self.groups as f64 - 2.0)).max(1.0)
+        } else {
+            1.0
+        }
+    }
 }
 
 /// Poses among the frames: their median distances, clustered with a gap of

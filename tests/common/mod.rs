@@ -157,8 +157,8 @@ pub fn run_scene_with(scene: &Scene, xi: XiChoice, prior_radius_px: usize, backg
     };
     let (mut pipe, frames) = latched(scene, config);
     let objects: Vec<_> = frames.iter().filter(|f| !f.background_only).collect();
-    let observed: Vec<_> = objects.iter().map(|f| pipe.observe(&df(f)).unwrap()).collect();
-    for o in &observed {
+    let mut observed: Vec<_> = objects.iter().map(|f| pipe.observe(&df(f)).unwrap()).collect();
+    for o in &mut observed {
         pipe.add_xi_evidence(o);
     }
     let est = pipe.xi().expect("an estimate");

@@ -1,0 +1,213 @@
+//! The inversion in closed form for the default physics ([`ModelOptions::physical`]):
+//! two returns, the second crossing the layer twice (`L2 = Ib xi^2`, no `X`)
+//! and the IR image the demodulated amplitude, on a sinusoidal sensor.
+//!
+//! There the reading and the IR together are the measured phasor
+//! `M = I e^{i k d}` (`k = 2 pi / R`), and the second return's phasor
+//! `xi^2 Ib e^{i k db}` is known for a hypothesised ξ. What is left is the
+//! layer's own return (Eq. 1): `z = M - xi^2 Ib e^{i k db}`, whose phase is the
+//! layer's distance and whose length gives `X` (Eq. 1 solved for `X`). One
+//! exact root or none: no scan.
+
+use super::*;
+
+/// The constants of the closed form for one model, or `None` when the model is not
+/// the one it solves (the generic scan then runs).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct PhasorModel {
+    k: f64,
+    range_mm: f64,
+    offset: f64,
+    delay_mm: f64,
+}
+
+impl PhasorModel {
+    /// `None` unless `model` is two returns, `L2 = Ib xi^2`, amplitude IR, a sinusoid and
+    /// no refraction (an IR offset and a subsurface delay are allowed).
+    pub(super) fn new(model: &ForwardModel) -> Option<Self> {
+        let o = &model.options;
+        let known = ModelOptions {
+            ambient_offset: o.ambient_offset,
+            subsurface_delay_mm: o.subsurface_delay_mm,
+            ..ModelOptions::physical()
+        };
+        if *o != known || model.sensor.waveform != Waveform::Sinusoid {
+            return None;
+        }
+        let range_mm = model.sensor.unambiguous_range_mm();
+        Some(Self {
+            k: std::f64::consts::TAU / range_mm,
+            range_mm,
+            offset: o.ambient_offset,
+            delay_mm: o.subsurface_delay_mm,
+        })
+    }
+
+    /// The layer's return `z` for a hypothesised ξ (its real and imaginary parts) and the
+    /// measured amplitude `|M|`; `None` where the IR is not above the offset.
+    fn layer_phasor(&self, obs: &PixelObservation, xi: f64) -> Option<(f64, f64, f64)> {
+        let m = obs.ir - self.offset;
+        let ib = (obs.background_ir - self.offset).max(0.0);
+        if !(m > 0.0) {
+            return None;
+        }
+        let (sd, cd) = (self.k * obs.distance_mm).sin_cos();
+        let (sb, cb) = (self.k * obs.background_distance_mm).sin_cos();
+        let l2 = xi * xi * ib;
+        Some((m * cd - l2 * cb, m * sd - l2 * sb, m))
+    }
+
+    /// `X` for a layer at `df` (the first crossing of the IR equation from `X = 0`, as
+    /// the generic path finds it): the non-negative root of `|a X e^{i alpha} + c| = I`.
+    pub(super) fn albedo_cos(&self, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> Option<f64> {
+        let m = obs.ir - self.offset;
+        let c = xi * xi * (obs.background_ir - self.offset).max(0.0);
+        if !(m > 0.0) || c >= m {
+            return None;
+        }
+        let a = (1.0 - xi) * obs.emitted_light / (df * df);
+        // a^2 X^2 + 2 a c cos(beta) X + c^2 - m^2 = 0, beta the angle between the two returns.
+        let cos_beta = (self.k * (df + self.delay_mm - obs.background_distance_mm)).cos();
+        let b = c * cos_beta;
+        let x = (-b + (b * b + m * m - c * c).sqrt()) / a;
+        (x.is_finite() && x >= 0.0 && x <= x_max).then_some(x)
+    }
+
+    /// The layer at one pixel for a hypothesised ξ within `[lo, hi]`.
+    pub(super) fn invert(
+        &self,
+        model: &ForwardModel,
+        obs: &PixelObservation,
+        xi: f64,
+        x_max: f64,
+        Search { lo, hi, slopes }: Search,
+    ) -> Option<LayerEstimate> {
+        let (re, im, m) = self.layer_phasor(obs, xi)?;
+        let len = re.hypot(im);
+        let x_scale = (1.0 - xi) * obs.emitted_light;
+        if !(len > 0.0 && x_scale > 0.0) {
+            return None;
+        }
+        // The layer's distance: the phase's, less the delay, in the search range if a period allows.
+        let at = im.atan2(re) / self.k - self.delay_mm;
+        let df = lo + (at - lo).rem_euclid(self.range_mm);
+        let x = len * df * df / x_scale;
+        let exact = df <= hi && x <= x_max;
+        // Phase noise of the reading moves z's angle by |M| / |z| times as much; an IR error moves
+        // it by the sine of the angle between M and z over |z| (per radian, over k).
+        let (slope, reading_per_ir) = if slopes {
+            let (sd, cd) = (self.k * obs.distance_mm).sin_cos();
+            let sin_psi = (cd * im - sd * re) / len;
+            (len / m, sin_psi / (self.k * m))
+        } else {
+            (f64::NAN, f64::NAN)
+        };
+        if exact {
+            return Some(LayerEstimate {
+                foreground_distance_mm: df,
+                albedo_cos: x,
+                residual_mm: 0.0,
+                roots: 1,
+                pinned: false,
+                slope,
+                reading_per_ir,
+            });
+        }
+        // No admissible root: the nearest admissible layer, flagged pinned.
+        let df = df.min(hi);
+        let x = self.albedo_cos(obs, df, xi, x_max).unwrap_or(x_max);
+        let pred = predicted_reading(model, obs, df, xi, x);
+        Some(LayerEstimate {
+            foreground_distance_mm: df,
+            albedo_cos: x,
+            residual_mm: model.sensor.wrapped_difference_mm(pred, obs.distance_mm),
+            roots: 0,
+            pinned: true,
+            slope,
+            reading_per_ir,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::physics::Sensor;
+
+    fn obs_of(model: &ForwardModel, df: f64, db: f64, xi: f64, x: f64, xb: f64) -> PixelObservation {
+        let lin = 4.0e9;
+        let s = LayerScene {
+            foreground_distance_mm: df,
+            background_distance_mm: db,
+            translucency: xi,
+            foreground_albedo_cos: x,
+            background_albedo_cos: xb,
+            emitted_light: lin,
+        };
+        let m = model.measure_layer(&s);
+        let bg = model.measure(&[ForwardModel::opaque_return(db, xb, lin)]);
+        PixelObservation {
+            distance_mm: m.distance_mm,
+            ir: m.ir,
+            background_distance_mm: db,
+            background_ir: bg.ir,
+            emitted_light: lin,
+        }
+    }
+
+    #[test]
+    fn recovers_the_layer_of_the_forward_model_exactly() {
+        let model = ForwardModel::physical(Sensor::sr4000());
+        let p = PhasorModel::new(&model).expect("the default physics has the closed form");
+        let bounds = InversionBounds::default();
+        for &(df, db, xi, x, xb) in &[
+            (1000.0, 2000.0, 0.65, 0.6, 1.0),
+            (500.0, 2000.0, 0.94, 0.5, 0.4),
+            (800.0, 3300.0, 0.91, 0.3, 1.0),
+            (1750.0, 2000.0, 0.3, 0.7, 0.6),
+            (2600.0, 4800.0, 0.8, 0.4, 0.9),
+        ] {
+            let o = obs_of(&model, df, db, xi, x, xb);
+            let (lo, hi) = search_range(&o, &bounds).expect("range");
+            let est = p
+                .invert(&model, &o, xi, 1.0, Search { lo, hi, slopes: true })
+                .expect("estimate");
+            assert!(!est.pinned, "{df} {db} {xi}");
+            assert!((est.foreground_distance_mm - df).abs() < 1e-6, "{df}: {est:?}");
+            assert!((est.albedo_cos - x).abs() < 1e-9, "{x}: {est:?}");
+            // The same layer as the generic scan finds, and the same X from the IR equation.
+            let generic = foreground_distance_generic(&model, &o, xi, &bounds, None, Search { lo, hi, slopes: true })
+                .expect("generic");
+            assert!((generic.foreground_distance_mm - df).abs() < 0.05, "{generic:?}");
+            assert!(
+                (generic.slope.abs() - est.slope.abs()).abs() < 0.02 * est.slope.abs(),
+                "{generic:?} {est:?}"
+            );
+            let ax = p.albedo_cos(&o, df, xi, 1.0).expect("albedo");
+            assert!((ax - x).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn a_layer_too_bright_for_any_albedo_is_pinned() {
+        let model = ForwardModel::physical(Sensor::sr4000());
+        let p = PhasorModel::new(&model).expect("closed form");
+        // At a much smaller ξ than the truth the layer must be brighter than X = 1 allows.
+        let o = obs_of(&model, 1000.0, 2000.0, 0.9, 0.9, 1.0);
+        let (lo, hi) = search_range(&o, &InversionBounds::default()).expect("range");
+        let est = p
+            .invert(&model, &o, 0.0, 0.05, Search { lo, hi, slopes: false })
+            .expect("estimate");
+        assert!(est.pinned && est.albedo_cos <= 0.05);
+    }
+
+    #[test]
+    fn only_the_model_it_solves() {
+        assert!(PhasorModel::new(&ForwardModel::paper(Sensor::sr4000())).is_none());
+        let mut m = ForwardModel::physical(Sensor::sr4000());
+        m.options.bounces = 3;
+        assert!(PhasorModel::new(&m).is_none());
+        let t = ForwardModel::physical(Sensor::new(30e6, Waveform::Triangle));
+        assert!(PhasorModel::new(&t).is_none());
+    }
+}
