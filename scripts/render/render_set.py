@@ -128,7 +128,7 @@ def write_bag(spec, out_dir, cache):
     frame = 0
     stage_rows = []
     os.makedirs(out_dir, exist_ok=True)
-    tmp = os.path.join(out_dir, name + ".mcap.tmp")
+    tmp = os.path.join(cache, name + ".mcap.tmp")  # moved into out_dir when complete
     with open(tmp, "wb") as out:
         w = Writer(out, compression=CompressionType.ZSTD)
         img_s = w.register_msgdef("sensor_msgs/msg/Image", IMAGE)

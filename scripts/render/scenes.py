@@ -251,6 +251,24 @@ def difftrans_sheet(seed=91):
 
 # ---------------------------------------------------------- coverage set ---
 
+def bg_depth(bg):
+    import tofcore as tc
+    z, _ = tc.ground_truth(bg, {o["material"]: 1 for o in bg})
+    return z.astype(np.float64) * 1000.0
+
+
+def fits(obj, bgz, margin=200.0):
+    """The object is in view (>= 300 px), everywhere at least `margin` mm
+    before the background and at least 500 mm from the camera."""
+    import tofcore as tc
+    z, m = tc.ground_truth([obj], {obj["material"]: 1})
+    px = m > 0
+    if px.sum() < 300:
+        return False
+    zz = z[px].astype(np.float64) * 1000.0
+    return bool(zz.min() > 500 and np.all(bgz[px] - zz > margin))
+
+
 def draw(i):
     seed = 1000 + i
     rng = np.random.default_rng(seed)
@@ -263,7 +281,8 @@ def draw(i):
         bg, bgm, bgd = bg_corner(rng)
     else:
         bg, bgm, bgd = bg_table(rng)
-    zmax = near_wall(bg) - 350
+    bgz = bg_depth(bg)
+    zmax = float(np.nanmin(bgz[30:114, 35:141])) - 300
     n_mat = int(rng.integers(1, 4))
     use_dt = rng.uniform() < 0.2
     mats = {}
@@ -283,13 +302,17 @@ def draw(i):
         rng.shuffle(keys)
         objs = []
         for j, k in enumerate(keys):
-            zlo = 700 + 400 * (len(keys) - 1)
-            zs = rng.uniform(min(zlo, zmax - 100), zmax)
-            slot = (-0.55 + 1.1 * j / (len(keys) - 1)) if len(keys) > 1 else rng.uniform(-0.2, 0.2)
-            if k == "box":
-                objs.append(opaque_box(rng, zs, slot, k))
-            else:
-                objs.append(sheet(rng, zs, slot, k, rng.uniform() < 0.5))
+            zlo = min(700 + 400 * (len(keys) - 1), zmax - 200)
+            for attempt in range(40):
+                zs = rng.uniform(zlo, max(zlo + 50, zmax - 25 * attempt))
+                slot = (-0.55 + 1.1 * j / (len(keys) - 1)) if len(keys) > 1 else rng.uniform(-0.2, 0.2)
+                if k == "box":
+                    o = opaque_box(rng, zs, slot, k)
+                else:
+                    o = sheet(rng, zs, slot, k, rng.uniform() < 0.5)
+                if fits(o, bgz):
+                    objs.append(o)
+                    break
         stages.append({"frames": int(rng.integers(1, 3)), "objects": objs})
     model = "mixed" if use_dt else "mask"
     return dict(name=f"draw_{i:02d}", seed=seed, model=model, spp=COVERAGE_SPP, background=bg,
