@@ -1,25 +1,50 @@
 //! The materials a scene shows, each with its own ξ (physics.md §3, "one
 //! material"): every region of a frame brings its evidence (a [`FrameProfile`]),
-//! which joins the material it is consistent with or starts a new one.
+//! which joins the material of the object it continues, or starts a new one.
 //!
-//! A region joins a material when one ξ and one albedo explain both: the
-//! one-material objective of the pooled evidence rises above the two apart by
-//! no more than chance allows (chi-square with two degrees of freedom, one ξ
-//! and one albedo fewer, scaled by the overdispersion). A region with too
-//! little evidence to tell starts its own material rather than bias another's.
+//! A region continues a material when it covers much of the image that the
+//! material's region covered in an earlier frame: an object moves, it does not
+//! jump. Regions are never joined on albedo alone: two objects seen in one pose
+//! each can nearly always be given one ξ at which their albedos agree, and
+//! pooling them would make an undetermined ξ look determined (and on rendered
+//! scenes, the same object in two frames of one pose failed a chi-square test
+//! of its albedos at high ξ, where the implied albedo is noisiest).
 
-use super::translucency::{self, FrameProfile, Misfit, XiEstimate, XiMethod, XiSettings};
+use super::translucency::{self, FrameProfile, XiEstimate, XiMethod, XiSettings};
 
-/// 95 % quantile of chi-square with two degrees of freedom.
-const JOIN_CHI2: f64 = 5.99;
-
-/// How far in albedo (log) two groups of one material may differ beyond their noise in the
-/// test that joins them: texture and what the model leaves out vary a material's albedo
-/// by a few per cent from place to place, while thousands of pixels make the noise tiny.
-const MATERIAL_SPREAD: f64 = 0.03;
+/// Least share of the smaller of two regions that the other must cover for the later to
+/// continue the earlier's object.
+const MIN_OVERLAP: f64 = 0.3;
 
 /// Most materials kept: past it the one seen longest ago is forgotten.
 pub const MAX_MATERIALS: usize = 16;
+
+/// The pixels a material's regions covered in one frame.
+#[derive(Debug, Clone, Default)]
+struct Footprint {
+    frame: u64,
+    /// Pixel indices, ascending.
+    pixels: Vec<u32>,
+}
+
+impl Footprint {
+    /// Pixels of `region` (ascending) that this footprint covers too.
+    fn overlap(&self, region: &[u32]) -> usize {
+        let (mut i, mut j, mut n) = (0, 0, 0);
+        while i < self.pixels.len() && j < region.len() {
+            match self.pixels[i].cmp(&region[j]) {
+                std::cmp::Ordering::Less => i += 1,
+                std::cmp::Ordering::Greater => j += 1,
+                std::cmp::Ordering::Equal => {
+                    n += 1;
+                    i += 1;
+                    j += 1;
+                }
+            }
+        }
+        n
+    }
+}
 
 /// One material: its pooled evidence and the estimate from it.
 #[derive(Debug, Clone)]
@@ -27,15 +52,15 @@ pub struct Material {
     /// Its id, stable while it is kept (1, 2, ...).
     pub id: u32,
     profiles: Vec<FrameProfile>,
-    misfit: Misfit,
     /// The estimate from its pooled evidence (`None` until one exists).
     pub estimate: Option<XiEstimate>,
-    /// The frame count when a region last joined it.
-    pub last_seen: u64,
+    /// Where its regions were in the latest frame that had one, and in the one before.
+    latest: Footprint,
+    before: Footprint,
 }
 
 impl Material {
-    /// Frames of evidence pooled.
+    /// Frames of evidence pooled (a frame counts once for each of its regions).
     pub fn frames(&self) -> usize {
         self.profiles.len()
     }
@@ -48,6 +73,31 @@ impl Material {
     /// Pixels of evidence pooled.
     pub fn pixels(&self) -> usize {
         self.profiles.iter().map(|p| p.pixels).sum()
+    }
+
+    /// The frame count when a region last joined it.
+    pub fn last_seen(&self) -> u64 {
+        self.latest.frame
+    }
+
+    /// Its footprint from a frame before `frame`.
+    fn earlier_than(&self, frame: u64) -> Option<&Footprint> {
+        [&self.latest, &self.before]
+            .into_iter()
+            .find(|f| f.frame < frame && !f.pixels.is_empty())
+    }
+
+    fn record(&mut self, frame: u64, pixels: &[u32]) {
+        if self.latest.frame == frame {
+            self.latest.pixels.extend_from_slice(pixels);
+            self.latest.pixels.sort_unstable();
+        } else {
+            self.before = std::mem::take(&mut self.latest);
+            self.latest = Footprint {
+                frame,
+                pixels: pixels.to_vec(),
+            };
+        }
     }
 }
 
@@ -75,80 +125,76 @@ impl Materials {
         self.materials.iter().find(|m| m.id == id)
     }
 
-    /// Adds a region's evidence of frame `frame` (a running count): it joins the
-    /// material it is consistent with, or starts one. Returns the material's id.
-    pub fn add(&mut self, profile: FrameProfile, frame: u64, method: XiMethod, settings: &XiSettings) -> u32 {
-        // A region of fewer than two groups is one group's albedo: no spread of its own.
-        let own = translucency::one_material_misfit(std::slice::from_ref(&profile), MATERIAL_SPREAD)
-            .unwrap_or(Misfit { q_min: 0.0, groups: 1 });
-        let joined = self.best_match(&profile, own);
-        let index = match joined {
-            Some((i, misfit)) => {
+    /// Adds a region of frame `frame` (a running count, from 1), its `pixels` ascending, with
+    /// its evidence if it carries any: it joins the material of the object it continues, or
+    /// (with evidence) starts one. Returns the material's id; `None` for a region without
+    /// evidence that continues nothing.
+    pub fn add(
+        &mut self,
+        pixels: &[u32],
+        profile: Option<FrameProfile>,
+        frame: u64,
+        method: XiMethod,
+        settings: &XiSettings,
+    ) -> Option<u32> {
+        let index = match (self.continued(pixels, frame), profile) {
+            (Some(i), Some(p)) => {
                 let m = &mut self.materials[i];
                 if m.profiles.len() >= settings.max_frames_pooled.max(1) {
                     m.profiles.remove(0);
                 }
-                m.profiles.push(profile);
-                m.misfit = misfit;
+                m.profiles.push(p);
+                m.estimate = estimate(&m.profiles, method).or(m.estimate.take());
                 i
             }
-            None => self.start(profile, own),
+            (Some(i), None) => i,
+            (None, Some(p)) => self.start(p, method),
+            (None, None) => return None,
         };
         let m = &mut self.materials[index];
-        m.last_seen = frame;
-        let est = match method {
-            XiMethod::Eq12Residual => translucency::eq12_residual(&m.profiles),
-            _ => translucency::one_material(&m.profiles),
-        };
-        if est.is_some() {
-            m.estimate = est;
-        }
-        m.id
+        m.record(frame, pixels);
+        Some(m.id)
     }
 
-    /// The material `profile` fits best, if one fits within chance, with the pooled misfit.
-    fn best_match(&self, profile: &FrameProfile, own: Misfit) -> Option<(usize, Misfit)> {
-        let mut best: Option<(usize, Misfit, f64)> = None;
-        for (i, m) in self.materials.iter().enumerate() {
-            let alone = m.misfit;
-            let mut pooled = m.profiles.clone();
-            pooled.push(profile.clone());
-            let Some(joint) = translucency::one_material_misfit(&pooled, MATERIAL_SPREAD) else {
-                continue;
-            };
-            // Apart, each has its own ξ and albedo: the joint fit has two parameters fewer.
-            let apart = Misfit {
-                q_min: alone.q_min + own.q_min,
-                groups: alone.groups + own.groups,
-            };
-            let phi = if apart.groups > 4 {
-                (apart.q_min / (apart.groups as f64 - 4.0)).max(1.0)
-            } else {
-                1.0
-            };
-            let rise = (joint.q_min - apart.q_min).max(0.0) / phi;
-            if rise <= JOIN_CHI2 && best.is_none_or(|(_, _, r)| rise < r) {
-                best = Some((i, joint, rise));
-            }
-        }
-        best.map(|(i, joint, _)| (i, joint))
+    /// The material whose earlier region this one covers most (at least [`MIN_OVERLAP`] of
+    /// the smaller of the two).
+    fn continued(&self, pixels: &[u32], frame: u64) -> Option<usize> {
+        self.materials
+            .iter()
+            .enumerate()
+            .filter_map(|(i, m)| {
+                let before = m.earlier_than(frame)?;
+                let shared = before.overlap(pixels) as f64;
+                let smaller = before.pixels.len().min(pixels.len()).max(1) as f64;
+                (shared / smaller >= MIN_OVERLAP).then_some((i, shared))
+            })
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(i, _)| i)
     }
 
     /// A new material of this evidence; the one seen longest ago goes if there are too many.
-    fn start(&mut self, profile: FrameProfile, misfit: Misfit) -> usize {
+    fn start(&mut self, profile: FrameProfile, method: XiMethod) -> usize {
         if self.materials.len() >= MAX_MATERIALS {
-            if let Some(oldest) = (0..self.materials.len()).min_by_key(|&i| self.materials[i].last_seen) {
+            if let Some(oldest) = (0..self.materials.len()).min_by_key(|&i| self.materials[i].last_seen()) {
                 self.materials.remove(oldest);
             }
         }
         self.next_id = self.next_id.wrapping_add(1).max(1);
+        let profiles = vec![profile];
         self.materials.push(Material {
             id: self.next_id,
-            profiles: vec![profile],
-            misfit,
-            estimate: None,
-            last_seen: 0,
+            estimate: estimate(&profiles, method),
+            profiles,
+            latest: Footprint::default(),
+            before: Footprint::default(),
         });
         self.materials.len() - 1
+    }
+}
+
+fn estimate(profiles: &[FrameProfile], method: XiMethod) -> Option<XiEstimate> {
+    match method {
+        XiMethod::Eq12Residual => translucency::eq12_residual(profiles),
+        _ => translucency::one_material(profiles),
     }
 }

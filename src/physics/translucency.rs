@@ -537,12 +537,6 @@ fn eligible(profiles: &[FrameProfile]) -> Vec<bool> {
 /// (`Q = sum_g (m_g - m)^2 / se_g^2`, about chi-square with G - 1 degrees of
 /// freedom at the true ξ). Returns `(Q, groups)` per ξ.
 fn one_material_objective(profiles: &[FrameProfile]) -> Vec<(f64, usize)> {
-    one_material_objective_with(profiles, 0.0)
-}
-
-/// [`one_material_objective`] with `systematic` (log albedo) added in quadrature to every
-/// group's standard error.
-fn one_material_objective_with(profiles: &[FrameProfile], systematic: f64) -> Vec<(f64, usize)> {
     let grid = xi_grid();
     (0..grid.len())
         .map(|k| {
@@ -550,10 +544,6 @@ fn one_material_objective_with(profiles: &[FrameProfile], systematic: f64) -> Ve
                 .iter()
                 .flat_map(|p| p.groups[k].iter().copied())
                 .filter(|g| g.median.is_finite())
-                .map(|g| GroupStat {
-                    std_error: g.std_error.hypot(systematic),
-                    ..g
-                })
                 .collect();
             if gs.len() < 2 {
                 return (f64::NAN, gs.len());
@@ -564,47 +554,6 @@ fn one_material_objective_with(profiles: &[FrameProfile], systematic: f64) -> Ve
             (q, gs.len())
         })
         .collect()
-}
-
-/// The least one-material objective over the ξ values a method may pick, with the
-/// groups it compares and its overdispersion: how well `profiles` are explained as
-/// one material. `None` with fewer than two groups.
-///
-/// `systematic` (log albedo) is added in quadrature to each group's standard error: how far
-/// two groups of one material may differ beyond their noise (texture, what the model leaves out).
-pub fn one_material_misfit(profiles: &[FrameProfile], systematic: f64) -> Option<Misfit> {
-    let ok = eligible(profiles);
-    let obj = one_material_objective_with(profiles, systematic);
-    let q: Vec<f64> = obj
-        .iter()
-        .zip(&ok)
-        .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
-        .collect();
-    let (k, q_min) = argmin(&q)?;
-    Some(Misfit {
-        q_min,
-        groups: obj[k].1,
-    })
-}
-
-/// [`one_material_misfit`]'s answer.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Misfit {
-    /// The objective's minimum (about chi-square with `groups - 2` degrees of freedom).
-    pub q_min: f64,
-    /// Groups compared there.
-    pub groups: usize,
-}
-
-impl Misfit {
-    /// `Q_min / (groups - 2)`, at least 1: how much more the groups scatter than their errors say.
-    pub fn overdispersion(&self) -> f64 {
-        if self.groups > 2 {
-            (self.q_min / (self.groups as f64 - 2.0)).max(1.0)
-        } else {
-            1.0
-        }
-    }
 }
 
 /// Poses among the frames: their median distances, clustered with a gap of
