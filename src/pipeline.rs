@@ -614,27 +614,34 @@ impl Pipeline {
         self.evidence_frames += 1;
         let settings = self.config.xi_settings;
         let single = obs.regions.len() == 1;
-        for k in 0..obs.regions.len() {
-            let observations = if single {
-                std::borrow::Cow::Borrowed(&obs.observations)
-            } else {
-                match region_observations(obs, k as u32 + 1) {
-                    Some(o) => std::borrow::Cow::Owned(o),
-                    None => continue,
-                }
-            };
-            let sample = FrameSample::from_image(&observations, &self.rays, None, settings.max_pixels_per_frame);
-            if sample.pixel_count() < settings.min_group_pixels {
-                continue;
+        let mut pixels: Vec<Vec<u32>> = vec![vec![]; obs.regions.len()];
+        for (i, &l) in obs.labels.data.iter().enumerate() {
+            if let Some(p) = (l as usize).checked_sub(1).and_then(|k| pixels.get_mut(k)) {
+                // `observe` refused images with more pixels than u32 indexes.
+                p.push(i as u32);
             }
-            let profile = translucency::frame_profile(
-                &self.config.model,
-                &self.bounds,
-                &sample,
-                &settings,
-                translucency::ProfileUse::Estimation,
-            );
-            obs.regions[k].material = Some(self.materials.add(profile, self.evidence_frames, method, &settings));
+        }
+        for (k, pixels) in pixels.iter().enumerate() {
+            let observations = if single {
+                Some(std::borrow::Cow::Borrowed(&obs.observations))
+            } else {
+                region_observations(obs, k as u32 + 1).map(std::borrow::Cow::Owned)
+            };
+            let profile = observations.and_then(|observations| {
+                let sample = FrameSample::from_image(&observations, &self.rays, None, settings.max_pixels_per_frame);
+                (sample.pixel_count() >= settings.min_group_pixels).then(|| {
+                    translucency::frame_profile(
+                        &self.config.model,
+                        &self.bounds,
+                        &sample,
+                        &settings,
+                        translucency::ProfileUse::Estimation,
+                    )
+                })
+            });
+            obs.regions[k].material = self
+                .materials
+                .add(pixels, profile, self.evidence_frames, method, &settings);
         }
     }
 

@@ -144,7 +144,7 @@ pub fn remove_small_regions(mask: &ImageBuf<bool>, min_pixels: usize) -> (ImageB
 
 /// Neighbours whose readings differ by more than this many noise sigmas (and
 /// [`EDGE_FLOOR_MM`]) belong to different objects: a layer's readings are smooth.
-pub const EDGE_SIGMAS: f64 = 5.0;
+pub const EDGE_SIGMAS: f64 = 3.0;
 
 /// Least reading step between neighbours that separates two regions, mm: what a
 /// surface tilted by 60 degrees steps over one pixel at 3 m.
@@ -165,46 +165,78 @@ pub fn label_regions(
     min_pixels: usize,
 ) -> (ImageBuf<u32>, Vec<usize>) {
     let (w, h) = (mask.width, mask.height);
+    let step = |i: usize, j: usize| wrapped_difference(distance_mm.data[i], distance_mm.data[j], range_mm).abs();
+    let joined = |i: usize, j: usize| {
+        let (a, b) = (noise_mm(i), noise_mm(j));
+        let sigma = (a * a + b * b).sqrt();
+        step(i, j) <= EDGE_FLOOR_MM.max(if sigma.is_finite() { EDGE_SIGMAS * sigma } else { 0.0 })
+    };
+    let neighbours = |i: usize| {
+        let c = i % w;
+        [
+            (c > 0).then(|| i - 1),
+            (c + 1 < w).then(|| i + 1),
+            (i >= w).then(|| i - w),
+            (i + w < w * h).then(|| i + w),
+        ]
+        .into_iter()
+        .flatten()
+        .filter(|&j| mask.data[j])
+    };
+    // Core pixels: joined to every neighbour on the mask. The pixels along an edge between two
+    // objects mix both and their readings ramp from one to the other along a slanted edge, so
+    // regions grow over core pixels only, and the edge's pixels join the region nearest in reading.
+    let core: Vec<bool> = (0..w * h)
+        .map(|i| mask.data[i] && neighbours(i).all(|j| joined(i, j)))
+        .collect();
     let mut labels = ImageBuf::filled(w, h, 0u32);
     let mut sizes: Vec<usize> = vec![0];
     let mut stack = Vec::new();
-    let joined = |i: usize, j: usize| {
-        let step = wrapped_difference(distance_mm.data[i], distance_mm.data[j], range_mm).abs();
-        let (a, b) = (noise_mm(i), noise_mm(j));
-        let sigma = (a * a + b * b).sqrt();
-        step <= EDGE_FLOOR_MM.max(if sigma.is_finite() { EDGE_SIGMAS * sigma } else { 0.0 })
-    };
-    for start in 0..w * h {
-        if !mask.data[start] || labels.data[start] != 0 {
-            continue;
-        }
-        let id = sizes.len() as u32;
-        sizes.push(0);
-        labels.data[start] = id;
-        stack.push(start);
-        while let Some(i) = stack.pop() {
-            sizes[id as usize] += 1;
-            let c = i % w;
-            let mut visit = |j: usize| {
-                if mask.data[j] && labels.data[j] == 0 && joined(i, j) {
-                    labels.data[j] = id;
-                    stack.push(j);
+    let mut grow = |labels: &mut ImageBuf<u32>, sizes: &mut Vec<usize>, eligible: &dyn Fn(usize) -> bool| {
+        for start in 0..w * h {
+            if !eligible(start) || labels.data[start] != 0 {
+                continue;
+            }
+            let id = sizes.len() as u32;
+            sizes.push(0);
+            labels.data[start] = id;
+            stack.push(start);
+            while let Some(i) = stack.pop() {
+                sizes[id as usize] += 1;
+                for j in neighbours(i) {
+                    if eligible(j) && labels.data[j] == 0 && joined(i, j) {
+                        labels.data[j] = id;
+                        stack.push(j);
+                    }
                 }
-            };
-            if c > 0 {
-                visit(i - 1);
             }
-            if c + 1 < w {
-                visit(i + 1);
+        }
+    };
+    grow(&mut labels, &mut sizes, &|i| core[i]);
+    // Edge pixels, ring by ring from the cores: the neighbouring region nearest in reading.
+    loop {
+        let mut assigned = vec![];
+        for i in 0..w * h {
+            if !mask.data[i] || labels.data[i] != 0 {
+                continue;
             }
-            if i >= w {
-                visit(i - w);
+            let best = neighbours(i)
+                .filter(|&j| labels.data[j] != 0)
+                .min_by(|&a, &b| step(i, a).total_cmp(&step(i, b)));
+            if let Some(j) = best {
+                assigned.push((i, labels.data[j]));
             }
-            if i + w < w * h {
-                visit(i + w);
-            }
+        }
+        if assigned.is_empty() {
+            break;
+        }
+        for (i, l) in assigned {
+            labels.data[i] = l;
+            sizes[l as usize] += 1;
         }
     }
+    // Whatever touches no core (isolated noisy pixels): pieces of their own.
+    grow(&mut labels, &mut sizes, &|i| mask.data[i]);
     merge_small_pieces(&mut labels, &mut sizes, min_pixels);
     renumber(labels, &sizes)
 }
