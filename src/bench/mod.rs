@@ -48,7 +48,8 @@ pub fn document_holder_scene(width: usize, height: usize, background_frames: usi
         },
         emitter: Default::default(),
         noise: Default::default(),
-        physics: Default::default(),
+        // The physics the pipeline assumes by default, so the bench times what users run.
+        physics: crate::physics::ModelOptions::physical(),
         background: BackgroundSpec {
             distance_mm: 2000.0,
             albedo: 1.0,

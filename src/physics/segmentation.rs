@@ -468,24 +468,31 @@ mod tests {
 
     #[test]
     fn regions_split_where_the_readings_step_and_small_pieces_join() {
-        // Two touching patches at 1000 and 1500 mm, and a single noisy pixel inside the first.
-        let (w, h) = (10, 4);
+        // Two touching 20x10 patches at 1000 and 1500 mm, and one noisy pixel inside the first.
+        let (w, h) = (40, 10);
         let mut d = ImageBuf::filled(w, h, 1000.0);
         for r in 0..h {
-            for c in 5..w {
+            for c in 20..w {
                 d.data[r * w + c] = 1500.0 + c as f64;
             }
         }
-        d.data[w + 2] = 1100.0;
+        d.data[4 * w + 7] = 1100.0;
         let mask = ImageBuf::filled(w, h, true);
         let (labels, sizes) = label_regions(&mask, &d, |_| 5.0, 4996.5, 3);
-        assert_eq!(sizes, vec![20, 20]);
-        assert_eq!(labels.data[0], 1);
-        assert_eq!(labels.data[w + 2], 1, "the noisy pixel joins its region");
-        assert_eq!(labels.data[w - 1], 2);
+        assert_eq!(sizes, vec![200, 200]);
+        assert!((0..h).all(|r| labels.data[r * w] == 1 && labels.data[r * w + 19] == 1));
+        assert_eq!(labels.data[4 * w + 7], 1, "the noisy pixel joins its region");
+        assert!((0..h).all(|r| labels.data[r * w + 20] == 2 && labels.data[r * w + w - 1] == 2));
+        // A ramp of mixed pixels along the edge does not bridge the two.
+        for r in 0..h {
+            d.data[r * w + 19] = 1000.0 + 50.0 * r as f64;
+            d.data[r * w + 20] = 1050.0 + 50.0 * r as f64;
+        }
+        let (_, sizes) = label_regions(&mask, &d, |_| 5.0, 4996.5, 3);
+        assert_eq!(sizes.len(), 2, "{sizes:?}");
         // With a noise that allows the step, one region.
         let (_, sizes) = label_regions(&mask, &d, |_| 200.0, 4996.5, 3);
-        assert_eq!(sizes, vec![40]);
+        assert_eq!(sizes, vec![400]);
         // Off the mask: 0.
         let mut m = mask.clone();
         m.data[0] = false;

@@ -93,12 +93,12 @@ impl PhasorModel {
         let df = lo + (at - lo).rem_euclid(self.range_mm);
         let x = len * df * df / x_scale;
         let exact = df <= hi && x <= x_max;
-        // Phase noise of the reading moves z's angle by |M| / |z| times as much; an IR error moves
-        // it by the sine of the angle between M and z over |z| (per radian, over k).
+        // The slopes as the generic path defines them (the predicted reading per mm of layer, the
+        // IR held; per count of IR, the layer held), from the angle psi between M and z.
         let (slope, reading_per_ir) = if slopes {
             let (sd, cd) = (self.k * obs.distance_mm).sin_cos();
-            let sin_psi = (cd * im - sd * re) / len;
-            (len / m, sin_psi / (self.k * m))
+            let (sin_psi, cos_psi) = ((cd * im - sd * re) / len, (cd * re + sd * im) / len);
+            (len * cos_psi / m, sin_psi * cos_psi / (self.k * m))
         } else {
             (f64::NAN, f64::NAN)
         };
