@@ -598,6 +598,9 @@ fn all_cdr_mutants(per_type: usize) {
         translucent_pixels: 1234,
         fit_residual_mm: 0.5,
         frames_pooled: 8,
+        region_id: 2,
+        region_pixels: 900,
+        opaque: false,
     };
     let image_after = |m: &Image| {
         let _ = depth_mm(m);
