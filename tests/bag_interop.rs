@@ -344,17 +344,41 @@ fn our_bag_round_trips_through_our_reader() {
 }
 
 #[test]
-fn truncated_file_is_a_clear_error() {
+fn a_truncated_file_is_read_to_its_cut_or_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let bag = dir.path().join("ours.mcap");
     write_test_bag(&bag);
     let bytes = std::fs::read(&bag).unwrap();
+    let whole = BagReader::open(&bag).unwrap().messages().count();
     let cut = dir.path().join("cut.mcap");
-    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
-    let err = BagReader::open(&cut).err().expect("a truncated bag must not open");
-    assert!(matches!(err, BagError::Truncated { .. }), "{err}");
-    let msg = err.to_string();
-    assert!(msg.contains("cut.mcap") && msg.contains("truncated"), "{msg}");
+    let (mut refused, mut partial) = (0, 0);
+    for eighth in 1..8 {
+        let len = bytes.len() * eighth / 8;
+        std::fs::write(&cut, &bytes[..len]).unwrap();
+        match BagReader::open(&cut) {
+            // Cut before its first message: nothing to read.
+            Err(err) => {
+                assert!(matches!(err, BagError::Truncated { .. }), "{err}");
+                let msg = err.to_string();
+                assert!(msg.contains("cut.mcap") && msg.contains("truncated"), "{msg}");
+                refused += 1;
+            }
+            // Cut later: the messages before the cut, and where it is.
+            Ok(r) => {
+                let [stop] = r.stops() else {
+                    panic!("cut at {len} of {} read without a stop", bytes.len())
+                };
+                assert_eq!((stop.len, stop.offset), (len as u64, len as u64), "{stop}");
+                let n = r.messages().count();
+                assert!(n > 0 && n <= whole && stop.messages_kept == n as u64, "{stop}");
+                let msg = stop.to_string();
+                assert!(msg.contains("cut.mcap") && msg.contains("cut short"), "{msg}");
+                partial += 1;
+            }
+        }
+    }
+    assert_eq!(refused + partial, 7);
+    assert!(refused > 0, "every cut read something");
 }
 
 #[test]

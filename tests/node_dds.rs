@@ -96,6 +96,7 @@ fn demo_runs_the_graph_and_recovers_the_document_holder() {
 struct NodeChild {
     child: Child,
     stats: PathBuf,
+    log: PathBuf,
     _dir: tempfile::TempDir,
 }
 
@@ -103,21 +104,32 @@ impl NodeChild {
     fn start(params: &[&str]) -> Self {
         let dir = tempfile::tempdir().unwrap();
         let stats = dir.path().join("stats.json");
+        let log = dir.path().join("node.log");
         let mut cmd = Command::new(exe());
         cmd.arg("node").arg("--stats-json").arg(&stats);
         cmd.args(["--ros-args", "-r", "__ns:=/tof"]);
         for p in params {
             cmd.args(["-p", p]);
         }
-        let child = cmd.stdin(Stdio::null()).spawn().unwrap();
+        let child = cmd
+            .stdin(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
         NodeChild {
             child,
             stats,
+            log,
             _dir: dir,
         }
     }
 
-    fn stop(mut self) -> serde_json::Value {
+    fn stop(self) -> serde_json::Value {
+        self.stop_with_log().0
+    }
+
+    /// Stops the node; its counters and its log (also shown on stderr).
+    fn stop_with_log(mut self) -> (serde_json::Value, String) {
         let pid = self.child.id().to_string();
         Command::new("kill").args(["-INT", &pid]).status().unwrap();
         let t0 = Instant::now();
@@ -128,8 +140,11 @@ impl NodeChild {
             assert!(t0.elapsed() < Duration::from_secs(20), "node did not stop on SIGINT");
             std::thread::sleep(Duration::from_millis(20));
         };
+        let log = std::fs::read_to_string(&self.log).unwrap_or_default();
+        eprint!("{log}");
         assert!(status.success(), "node exited with {status}");
-        serde_json::from_str(&std::fs::read_to_string(&self.stats).unwrap()).unwrap()
+        let stats = serde_json::from_str(&std::fs::read_to_string(&self.stats).unwrap()).unwrap();
+        (stats, log)
     }
 }
 
@@ -157,6 +172,66 @@ fn rt() -> tokio::runtime::Runtime {
         .enable_all()
         .build()
         .unwrap()
+}
+
+/// A sample's CDR body sent as it is (RustDDS puts the `CDR_LE` header in front).
+#[derive(Debug)]
+struct RawCdr(Vec<u8>);
+
+struct RawCdrAdapter;
+
+impl rustdds::no_key::SerializerAdapter<RawCdr> for RawCdrAdapter {
+    type Error = std::io::Error;
+    fn output_encoding() -> rustdds::RepresentationIdentifier {
+        rustdds::RepresentationIdentifier::CDR_LE
+    }
+    fn to_bytes(value: &RawCdr) -> Result<rustdds::bytes::Bytes, Self::Error> {
+        Ok(rustdds::bytes::Bytes::copy_from_slice(&value.0))
+    }
+}
+
+type RawWriter = rustdds::no_key::DataWriter<RawCdr, RawCdrAdapter>;
+
+/// A writer of arbitrary bytes on one of the node's input topics (`rt/tof/...`).
+fn raw_writer(ctx: &ros2_client::Context, topic: &str, ty: &str) -> RawWriter {
+    let qos = rustdds::QosPolicies::from(
+        &ros2_client::QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 64 }),
+    );
+    let dp = ctx.domain_participant();
+    let t = dp
+        .create_topic(
+            format!("rt/tof/{topic}"),
+            format!("sensor_msgs::msg::dds_::{ty}_"),
+            &qos,
+            rustdds::TopicKind::NoKey,
+        )
+        .unwrap();
+    dp.create_publisher(&qos)
+        .unwrap()
+        .create_datawriter_no_key::<RawCdr, RawCdrAdapter>(&t, None)
+        .unwrap()
+}
+
+/// Malformed CDR bodies made from a real message's: cut short, a sequence
+/// length past the end, absurd lengths, nothing at all.
+fn malformed_bodies(body: &[u8], data_len: usize) -> Vec<Vec<u8>> {
+    // The last field of an Image is `data`: its u32 length, then the bytes.
+    let len_at = body.len() - data_len - 4;
+    let with_len = |v: u32| {
+        let mut b = body.to_vec();
+        b[len_at..len_at + 4].copy_from_slice(&v.to_le_bytes());
+        b
+    };
+    let mut frame_id_len = body.to_vec();
+    frame_id_len[8..12].copy_from_slice(&0x7fff_fff0u32.to_le_bytes());
+    vec![
+        body[..body.len() / 2].to_vec(),
+        body[..6].to_vec(),
+        with_len(data_len as u32 + 1000),
+        with_len(u32::MAX),
+        frame_id_len,
+        Vec::new(),
+    ]
 }
 
 #[test]
@@ -244,7 +319,57 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
             peer.wait_for(last, Duration::from_secs(20)).await,
             "no output for the last frame"
         );
-        // 9. Clear: frames are dropped again, and a second clear says so.
+        // 9. A burst of malformed samples (raw bytes on the inputs' topics), and images
+        //    larger than the camera, each dropped and counted; then frames come back again.
+        let raw_ctx = translucent_tof::node::context(0, false).unwrap();
+        let raw_depth = raw_writer(&raw_ctx, "depth/image_raw", "Image");
+        let raw_info = raw_writer(&raw_ctx, "depth/camera_info", "CameraInfo");
+        // Discovery of the new writers.
+        tokio::time::sleep(Duration::from_secs(2)).await;
+        let image_cdr = translucent_tof::msgs::to_cdr(d0).unwrap();
+        let image_body = &image_cdr[4..];
+        let info_body = translucent_tof::msgs::to_cdr(&info).unwrap()[4..].to_vec();
+        let mut sent_malformed = 0;
+        for _ in 0..4 {
+            for body in malformed_bodies(image_body, d0.data.len()) {
+                raw_depth.write(RawCdr(body), None).unwrap();
+                sent_malformed += 1;
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+            raw_info
+                .write(RawCdr(info_body[..info_body.len() / 3].to_vec()), None)
+                .unwrap();
+            sent_malformed += 1;
+        }
+        let s = next();
+        let mut wide = stamped(d0, s);
+        wide.width *= 2;
+        wide.height *= 2;
+        wide.step *= 2;
+        wide.data = vec![0; wide.data.len() * 4];
+        peer.publish_one(true, &wide).unwrap();
+        let mut padded = stamped(i0, s);
+        padded.data.extend(std::iter::repeat_n(0, 100_000));
+        peer.publish_one(false, &padded).unwrap();
+        let mut absurd = stamped(d0, next());
+        (absurd.width, absurd.height, absurd.step) = (u32::MAX, u32::MAX, u32::MAX);
+        absurd.data.truncate(10);
+        peer.publish_one(true, &absurd).unwrap();
+        let mut vast_camera = info.clone();
+        (vast_camera.width, vast_camera.height) = (100_000, 100_000);
+        peer.publish_info(&vast_camera).unwrap();
+        pause();
+        for (d, i) in pairs.iter().skip(bg).take(4) {
+            last = next();
+            peer.publish(&info, &stamped(d, last), &stamped(i, last)).unwrap();
+            pause();
+        }
+        assert!(
+            peer.wait_for(last, Duration::from_secs(20)).await,
+            "no output after the malformed burst"
+        );
+        eprintln!("sent {sent_malformed} malformed samples");
+        // 10. Clear: frames are dropped again, and a second clear says so.
         let r = peer.call(false, Duration::from_secs(10)).await.unwrap();
         assert!(r.success && r.message.contains("cleared"), "{r:?}");
         let s = next();
@@ -253,7 +378,7 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
         let r = peer.call(false, Duration::from_secs(10)).await.unwrap();
         assert!(r.message.contains("no background"), "{r:?}");
     });
-    let st = node.stop();
+    let (st, log) = node.stop_with_log();
     eprintln!("{}", serde_json::to_string_pretty(&st).unwrap());
     let dropped = &st["dropped"];
     for cause in [
@@ -262,6 +387,8 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
         "bad_image",
         "size_mismatch",
         "unpaired",
+        "malformed",
+        "oversized",
     ] {
         assert!(
             dropped[cause].as_u64().unwrap_or(0) >= 1,
@@ -270,7 +397,20 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
     }
     assert!(dropped["no_background"].as_u64().unwrap() >= 3);
     assert!(dropped["unpaired"].as_u64().unwrap() >= 3);
-    assert!(st["published"].as_u64().unwrap() >= 4);
+    // 28 malformed samples went out best-effort on loopback; the oversized: a wide image, a
+    // padded one, an absurd one and a camera_info of a 100000 x 100000 camera.
+    let malformed = dropped["malformed"].as_u64().unwrap();
+    assert!((14..=28).contains(&malformed), "{malformed} malformed of 28 sent");
+    assert_eq!(dropped["oversized"].as_u64(), Some(4), "{dropped}");
+    // Logged once per cause.
+    for cause in ["Malformed", "Oversized"] {
+        let lines = log
+            .lines()
+            .filter(|l| l.contains(&format!("further {cause} drops")))
+            .count();
+        assert_eq!(lines, 1, "{cause} logged {lines} times");
+    }
+    assert!(st["published"].as_u64().unwrap() >= 8);
     assert_eq!(st["services"], serde_json::json!([2, 2]));
 }
 

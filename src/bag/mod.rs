@@ -16,7 +16,7 @@ mod writer;
 use std::path::PathBuf;
 
 pub use discover::{select_topics, SelectedTopics, TopicOverrides};
-pub use reader::{BagReader, RawMessage, TopicInfo};
+pub use reader::{record_length_limit, BagReader, McapProblem, RawMessage, ReadStop, TopicInfo};
 pub use writer::{BagWriter, DEFAULT_QOS_PROFILES};
 
 use crate::msgs::MsgError;
@@ -40,20 +40,26 @@ pub enum BagError {
         /// File concerned.
         path: PathBuf,
     },
-    /// The file starts as MCAP but its end is missing (e.g. the recorder
-    /// was killed).
-    #[error("{}: truncated MCAP file (no footer and closing magic at its end); the recording was not finished", path.display())]
+    /// The file starts as MCAP but ends before its first message (e.g. the
+    /// recorder was killed); a file cut later is read up to the cut
+    /// ([`BagReader::stops`]).
+    #[error("{}: truncated MCAP file (it ends in the middle of a record, before any message); the recording was not finished", path.display())]
     Truncated {
         /// File concerned.
         path: PathBuf,
     },
-    /// MCAP records that do not parse (bad CRC, bad lengths, bad compression...).
-    #[error("{}: corrupt MCAP", path.display())]
+    /// MCAP records that do not parse (bad CRC, bad lengths, bad
+    /// compression...) before any message could be read.
+    #[error("{}: corrupt MCAP (reading stopped at byte {offset} of {len})", path.display())]
     Corrupt {
         /// File concerned.
         path: PathBuf,
+        /// Bytes read when the parser stopped.
+        offset: u64,
+        /// The file's length.
+        len: u64,
         /// What the MCAP parser said.
-        source: mcap::McapError,
+        source: reader::McapProblem,
     },
     /// A directory with no `.mcap` file to read.
     #[error("{}: no .mcap file in this directory (a rosbag2 bag recorded with the sqlite3 storage must be converted to MCAP first)", path.display())]

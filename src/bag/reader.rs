@@ -52,6 +52,222 @@ pub struct BagReader {
     topics: Vec<Topic>,
     entries: Vec<Entry>,
     arena: Vec<u8>,
+    stops: Vec<ReadStop>,
+}
+
+/// The longest record (or chunk, compressed or not) a file of `file_len`
+/// bytes is allowed to declare: 32 times the file (zstd rarely packs ROS
+/// messages tighter), at least 64 MiB, at most 4 GiB. A corrupt length past it
+/// is an error before anything is allocated for it.
+pub fn record_length_limit(file_len: usize) -> usize {
+    const FLOOR: usize = 64 << 20;
+    const CEILING: u64 = 4 << 30;
+    let limit = file_len.saturating_mul(32).max(FLOOR);
+    usize::try_from(CEILING).map_or(limit, |c| limit.min(c))
+}
+
+/// Why a file's records could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum McapProblem {
+    /// What the MCAP parser said.
+    #[error(transparent)]
+    Mcap(#[from] mcap::McapError),
+    /// A schema, channel or message record whose fields do not fit it.
+    #[error("{0}")]
+    Record(String),
+}
+
+/// A message record's fields, borrowing its data.
+struct MessageRecord<'a> {
+    channel_id: u16,
+    log_time: u64,
+    data: &'a [u8],
+}
+
+/// Little-endian fields off the front of a record, each checked against what is left.
+struct Fields<'a> {
+    what: &'static str,
+    rest: &'a [u8],
+}
+
+impl<'a> Fields<'a> {
+    fn take(&mut self, n: usize, field: &str) -> Result<&'a [u8], McapProblem> {
+        if n > self.rest.len() {
+            return Err(McapProblem::Record(format!(
+                "{} record: {field} needs {n} bytes, {} left in the record",
+                self.what,
+                self.rest.len()
+            )));
+        }
+        let (head, tail) = self.rest.split_at(n);
+        self.rest = tail;
+        Ok(head)
+    }
+
+    fn array<const N: usize>(&mut self, field: &str) -> Result<[u8; N], McapProblem> {
+        let mut a = [0u8; N];
+        a.copy_from_slice(self.take(N, field)?);
+        Ok(a)
+    }
+
+    fn u16(&mut self, field: &str) -> Result<u16, McapProblem> {
+        self.array(field).map(u16::from_le_bytes)
+    }
+
+    fn u64(&mut self, field: &str) -> Result<u64, McapProblem> {
+        self.array(field).map(u64::from_le_bytes)
+    }
+
+    /// A `u32` byte length and that many bytes.
+    fn prefixed(&mut self, field: &str) -> Result<&'a [u8], McapProblem> {
+        let n = u32::from_le_bytes(self.array(field)?);
+        self.take(usize::try_from(n).unwrap_or(usize::MAX), field)
+    }
+
+    fn string(&mut self, field: &str) -> Result<String, McapProblem> {
+        let b = self.prefixed(field)?;
+        std::str::from_utf8(b)
+            .map(str::to_string)
+            .map_err(|_| McapProblem::Record(format!("{} record: {field} is not UTF-8", self.what)))
+    }
+}
+
+/// Takes what the reader needs from one record: schemas' type names and
+/// channels into the maps, a message out; other records are skipped.
+fn parse_record<'a>(
+    opcode: u8,
+    data: &'a [u8],
+    schemas: &mut HashMap<u16, String>,
+    channels: &mut HashMap<u16, (String, String, String)>,
+) -> Result<Option<MessageRecord<'a>>, McapProblem> {
+    use mcap::records::op;
+    match opcode {
+        op::SCHEMA => {
+            let mut f = Fields {
+                what: "schema",
+                rest: data,
+            };
+            let id = f.u16("id")?;
+            let name = f.string("name")?;
+            f.string("encoding")?;
+            f.prefixed("data")?;
+            if id == 0 {
+                return Err(McapProblem::Mcap(mcap::McapError::InvalidSchemaId));
+            }
+            match schemas.get(&id) {
+                Some(known) if *known != name => Err(McapProblem::Mcap(mcap::McapError::ConflictingSchemas(name))),
+                _ => {
+                    schemas.insert(id, name);
+                    Ok(None)
+                }
+            }
+        }
+        op::CHANNEL => {
+            let mut f = Fields {
+                what: "channel",
+                rest: data,
+            };
+            let id = f.u16("id")?;
+            let schema_id = f.u16("schema id")?;
+            let topic = f.string("topic")?;
+            let encoding = f.string("message encoding")?;
+            f.prefixed("metadata")?;
+            let schema = match schema_id {
+                0 => String::new(),
+                s => schemas
+                    .get(&s)
+                    .cloned()
+                    .ok_or_else(|| McapProblem::Mcap(mcap::McapError::UnknownSchema(topic.clone(), s)))?,
+            };
+            let channel = (topic, encoding, schema);
+            match channels.get(&id) {
+                Some(known) if *known != channel => {
+                    Err(McapProblem::Mcap(mcap::McapError::ConflictingChannels(channel.0)))
+                }
+                _ => {
+                    channels.insert(id, channel);
+                    Ok(None)
+                }
+            }
+        }
+        op::MESSAGE => {
+            let mut f = Fields {
+                what: "message",
+                rest: data,
+            };
+            let channel_id = f.u16("channel id")?;
+            f.take(4, "sequence")?;
+            let log_time = f.u64("log time")?;
+            f.u64("publish time")?;
+            if !channels.contains_key(&channel_id) {
+                return Err(McapProblem::Record(format!(
+                    "message record on channel {channel_id}, which no channel record defined"
+                )));
+            }
+            Ok(Some(MessageRecord {
+                channel_id,
+                log_time,
+                data: f.rest,
+            }))
+        }
+        _ => Ok(None),
+    }
+}
+
+/// Where a file's reading stopped before its end (a recording cut short by a
+/// crash, or damaged), and why.
+#[derive(Debug)]
+pub struct ReadStop {
+    /// File concerned.
+    pub file: PathBuf,
+    /// Bytes of the file read when the reader stopped.
+    pub offset: u64,
+    /// The file's length.
+    pub len: u64,
+    /// Messages read from this file before the stop.
+    pub messages_kept: u64,
+    /// Latest log time among them, ns.
+    pub last_log_time_ns: Option<u64>,
+    /// What stopped it.
+    pub source: McapProblem,
+}
+
+impl ReadStop {
+    fn into_error(self) -> BagError {
+        if matches!(self.source, McapProblem::Mcap(mcap::McapError::UnexpectedEof)) {
+            BagError::Truncated { path: self.file }
+        } else {
+            BagError::Corrupt {
+                path: self.file,
+                offset: self.offset,
+                len: self.len,
+                source: self.source,
+            }
+        }
+    }
+}
+
+impl std::fmt::Display for ReadStop {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let why = match self.source {
+            McapProblem::Mcap(mcap::McapError::UnexpectedEof) => {
+                "the file ends in the middle of a record (cut short)".to_string()
+            }
+            ref e => e.to_string(),
+        };
+        write!(
+            f,
+            "{}: read stopped at byte {} of {}: {why}; kept the {} messages before it",
+            self.file.display(),
+            self.offset,
+            self.len,
+            self.messages_kept
+        )?;
+        if let Some(t) = self.last_log_time_ns {
+            write!(f, " (up to log time {t} ns)")?;
+        }
+        Ok(())
+    }
 }
 
 /// The `.mcap` files of a rosbag2 directory: those `metadata.yaml` lists
@@ -118,6 +334,7 @@ impl BagReader {
             topics: Vec::new(),
             entries: Vec::new(),
             arena: Vec::new(),
+            stops: Vec::new(),
         };
         for file in &files {
             reader.load(file)?;
@@ -138,50 +355,82 @@ impl BagReader {
                 path: file.to_path_buf(),
             });
         }
-        if bytes.len() < 2 * mcap::MAGIC.len() || !bytes.ends_with(mcap::MAGIC) {
-            return Err(BagError::Truncated {
-                path: file.to_path_buf(),
-            });
-        }
-        let corrupt = |source| BagError::Corrupt {
-            path: file.to_path_buf(),
-            source,
-        };
-        let stream = mcap::MessageStream::new(&bytes).map_err(corrupt)?;
+        let options = mcap::sans_io::LinearReaderOptions::default()
+            .with_record_length_limit(record_length_limit(bytes.len()))
+            // A chunk's records are checked against its CRC before any is taken.
+            .with_prevalidate_chunk_crcs(true);
+        let mut stream = mcap::sans_io::LinearReader::new_with_options(options);
+        let mut rest: &[u8] = &bytes;
+        let first_entry = self.entries.len();
+        // The records this reader needs are parsed here, every length checked against the
+        // record's own (mcap 0.26's parser reserves a string's declared length first).
+        let mut schemas: HashMap<u16, String> = HashMap::new();
+        let mut channels: HashMap<u16, (String, String, String)> = HashMap::new();
         // (channel id) -> topic index, for this file.
         let mut by_channel: HashMap<u16, usize> = HashMap::new();
-        for message in stream {
-            let message = message.map_err(corrupt)?;
-            let channel = &message.channel;
-            let topic = match by_channel.get(&channel.id) {
+        while let Some(event) = stream.next_event() {
+            let record = match event {
+                Ok(mcap::sans_io::LinearReadEvent::ReadRequest(need)) => {
+                    // Never more than the file has left: a corrupt length asks for no more.
+                    let n = need.min(rest.len());
+                    let (head, tail) = rest.split_at(n);
+                    stream.insert(n).copy_from_slice(head);
+                    stream.notify_read(n);
+                    rest = tail;
+                    continue;
+                }
+                Ok(mcap::sans_io::LinearReadEvent::Record { opcode, data }) => {
+                    parse_record(opcode, data, &mut schemas, &mut channels)
+                }
+                Err(e) => Err(McapProblem::Mcap(e)),
+            };
+            let message = match record {
+                Ok(Some(m)) => m,
+                Ok(None) => continue,
+                Err(source) => {
+                    let offset = (bytes.len() - rest.len()) as u64;
+                    let kept = (self.entries.len() - first_entry) as u64;
+                    let stop = ReadStop {
+                        file: file.to_path_buf(),
+                        offset,
+                        len: bytes.len() as u64,
+                        messages_kept: kept,
+                        last_log_time_ns: self.entries[first_entry..].iter().map(|e| e.log_time_ns).max(),
+                        source,
+                    };
+                    if kept == 0 {
+                        return Err(stop.into_error());
+                    }
+                    self.stops.push(stop);
+                    return Ok(());
+                }
+            };
+            let Some((topic_name, encoding, schema_name)) = channels.get(&message.channel_id) else {
+                continue;
+            };
+            let topic = match by_channel.get(&message.channel_id) {
                 Some(&t) => t,
                 None => {
-                    let type_name = channel
-                        .schema
-                        .as_ref()
-                        .map(|s| normalize_type_name(&s.name))
-                        .unwrap_or_default();
+                    let type_name = normalize_type_name(schema_name);
                     let found = self.topics.iter().position(|t| {
-                        t.info.name == channel.topic
-                            && t.info.type_name == type_name
-                            && t.encoding == channel.message_encoding
+                        t.info.name == *topic_name && t.info.type_name == type_name && t.encoding == *encoding
                     });
                     let t = match found {
                         Some(t) => t,
                         None => {
                             self.topics.push(Topic {
                                 info: TopicInfo {
-                                    name: channel.topic.clone(),
+                                    name: topic_name.clone(),
                                     type_name,
                                     message_count: 0,
                                 },
-                                encoding: channel.message_encoding.clone(),
+                                encoding: encoding.clone(),
                                 file: file.to_path_buf(),
                             });
                             self.topics.len() - 1
                         }
                     };
-                    by_channel.insert(channel.id, t);
+                    by_channel.insert(message.channel_id, t);
                     t
                 }
             };
@@ -189,7 +438,7 @@ impl BagReader {
                 t.info.message_count += 1;
             }
             let start = self.arena.len();
-            self.arena.extend_from_slice(&message.data);
+            self.arena.extend_from_slice(message.data);
             self.entries.push(Entry {
                 topic,
                 log_time_ns: message.log_time,
@@ -197,6 +446,13 @@ impl BagReader {
             });
         }
         Ok(())
+    }
+
+    /// Where reading stopped short of a file's end, one entry per such file:
+    /// the messages before that point are read, the rest of the file is not.
+    /// Empty when every file was read to its end magic.
+    pub fn stops(&self) -> &[ReadStop] {
+        &self.stops
     }
 
     /// The path opened.
@@ -352,8 +608,13 @@ mod tests {
         w.finish().unwrap();
         let bytes = std::fs::read(&path).unwrap();
 
+        // Cut after its one message (in the index and summary): the message, and a stop.
         let cut = dir.path().join("cut.mcap");
         std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+        let r = BagReader::open(&cut).unwrap();
+        assert_eq!((r.messages().count(), r.stops().len()), (1, 1));
+        // Cut before it: an error.
+        std::fs::write(&cut, &bytes[..20]).unwrap();
         let err = BagReader::open(&cut).err().unwrap();
         assert!(matches!(err, BagError::Truncated { .. }), "{err}");
         assert!(err.to_string().contains("cut.mcap"), "{err}");
@@ -368,6 +629,107 @@ mod tests {
             matches!(err, BagError::Io { .. }) && err.to_string().contains("none.mcap"),
             "{err}"
         );
+    }
+
+    /// A bag of `n` incompressible 64 KiB images (several zstd chunks).
+    fn big_bag(path: &Path, n: u64) {
+        let mut w = BagWriter::create(path).unwrap();
+        let mut x = 0x2545_f491_4f6c_dd1du64;
+        for s in 0..n {
+            let data = (0..65_536)
+                .map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 7;
+                    x ^= x << 17;
+                    x as u8
+                })
+                .collect();
+            let img = Image {
+                width: 65_536,
+                step: 65_536,
+                data,
+                ..image(s + 1, 0)
+            };
+            w.write("/a", s + 1, &img).unwrap();
+        }
+        w.finish().unwrap();
+    }
+
+    #[test]
+    fn a_bag_cut_short_keeps_its_complete_chunks_and_says_where_it_stopped() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.mcap");
+        big_bag(&path, 40);
+        let bytes = std::fs::read(&path).unwrap();
+        let whole = BagReader::open(&path).unwrap();
+        assert!(whole.stops().is_empty());
+        assert_eq!(whole.messages().count(), 40);
+
+        let cut = dir.path().join("cut.mcap");
+        std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+        let r = BagReader::open(&cut).unwrap();
+        let kept: Vec<u64> = r.messages().map(|m| m.unwrap().log_time_ns).collect();
+        assert!(!kept.is_empty() && kept.len() < 40, "{} messages", kept.len());
+        // A prefix of the recording, each message whole.
+        assert_eq!(kept, (1..=kept.len() as u64).collect::<Vec<_>>());
+        for m in r.messages() {
+            assert_eq!(BagReader::decode::<Image>(&m.unwrap()).unwrap().data.len(), 65_536);
+        }
+        let [stop] = r.stops() else {
+            panic!("one stop expected: {:?}", r.stops())
+        };
+        assert!(
+            matches!(stop.source, McapProblem::Mcap(mcap::McapError::UnexpectedEof)),
+            "{stop}"
+        );
+        assert_eq!(stop.len, (bytes.len() * 2 / 3) as u64);
+        assert_eq!(stop.messages_kept, kept.len() as u64);
+        let text = stop.to_string();
+        assert!(
+            text.contains("cut.mcap")
+                && text.contains("cut short")
+                && text.contains(&format!("kept the {} messages", kept.len())),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn a_damaged_chunk_stops_the_read_before_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.mcap");
+        big_bag(&path, 40);
+        let mut bytes = std::fs::read(&path).unwrap();
+        // One byte in the middle of the file: inside a chunk after the first.
+        let at = bytes.len() / 2;
+        bytes[at] ^= 0x40;
+        let bad = dir.path().join("bad.mcap");
+        std::fs::write(&bad, &bytes).unwrap();
+        let r = BagReader::open(&bad).unwrap();
+        let [stop] = r.stops() else {
+            panic!("one stop expected: {:?}", r.stops())
+        };
+        assert!(stop.offset > at as u64 && stop.messages_kept > 0, "{stop}");
+        assert_eq!(r.messages().count() as u64, stop.messages_kept);
+        // Damage before the first message is an error naming the place.
+        let mut early = std::fs::read(&path).unwrap();
+        // Past the magic and the header record: the first chunk, which holds the schema,
+        // the channel and the first messages.
+        let header_len = u64::from_le_bytes(early[9..17].try_into().unwrap()) as usize;
+        early[17 + header_len + 200] ^= 0x40;
+        std::fs::write(&bad, &early).unwrap();
+        let err = BagReader::open(&bad).err().unwrap();
+        assert!(matches!(err, BagError::Corrupt { .. }), "{err}");
+        assert!(
+            err.to_string().contains("bad.mcap") && err.to_string().contains("at byte"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn the_record_length_limit_follows_the_file() {
+        assert_eq!(record_length_limit(0), 64 << 20);
+        assert_eq!(record_length_limit(10 << 20), 320 << 20);
+        assert_eq!(record_length_limit(usize::MAX), 4 << 30);
     }
 
     #[test]

@@ -12,7 +12,8 @@ mod simulate;
 
 use clap::{Parser, Subcommand};
 
-pub use common::{write_atomic, PhysicsFile};
+pub use common::{write_atomic, PhysicsFile, TopicArgs};
+pub use recording::{load as load_recording, Recording};
 
 /// Recovers the true depth of translucent objects seen by a continuous-wave
 /// Time-of-Flight camera (Shim & Lee's two-layer model).

@@ -30,11 +30,15 @@ pub struct Recording {
     pub truth: BTreeMap<u64, ImageBuf<f32>>,
     /// Depth messages with no IR at the same stamp, and IR with no depth.
     pub unpaired: (usize, usize),
+    /// Where reading stopped short of a file's end (a recording cut short or
+    /// damaged), in words; the frames before it are read. Empty for a whole bag.
+    pub read_stops: Vec<String>,
 }
 
 /// Reads a bag: picks topics, pairs depth and IR by exact stamp, decodes.
 pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
     let reader = BagReader::open(path).with_context(|| format!("opening bag {}", path.display()))?;
+    let read_stops: Vec<String> = reader.stops().iter().map(|s| s.to_string()).collect();
     let infos = reader.topics();
     let sel = select_topics(&infos, &topics.overrides()).with_context(|| format!("bag {}", path.display()))?;
     let mut depth: BTreeMap<u64, Image> = BTreeMap::new();
@@ -130,6 +134,7 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
         depth_encoding,
         truth,
         unpaired,
+        read_stops,
     })
 }
 

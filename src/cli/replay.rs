@@ -177,7 +177,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "background_choice": bg.how,
         "background_noise_mm": bgd.median_noise_mm,
         "lin_source": bgd.lin_source,
-        "warnings": bgd.warnings,
+        "warnings": rec.read_stops.iter().chain(&bgd.warnings).collect::<Vec<_>>(),
+        "read_stops": rec.read_stops,
         "sensor": {
             "modulation_frequency_hz": pipe.config.model.sensor.modulation_frequency_hz,
             "unambiguous_range_mm": pipe.config.model.sensor.unambiguous_range_mm(),

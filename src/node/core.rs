@@ -16,6 +16,11 @@ use crate::pipeline::{Background, BackgroundLatch, DepthFrame, FrameOutput, Pipe
 pub enum DropCause {
     /// Depth or IR in an encoding the node does not read, or a malformed buffer.
     BadImage,
+    /// A sample whose CDR did not decode (truncated, a length past its end, an absurd size).
+    Malformed,
+    /// An image with more pixels than camera_info says, more data than its
+    /// `step x height`, or more than the node takes at all.
+    Oversized,
     /// Depth and IR, or images and camera_info, of different sizes.
     SizeMismatch,
     /// A depth or IR image whose partner with the same stamp never came.
@@ -42,6 +47,8 @@ impl DropCause {
             DropCause::SizeMismatch => {
                 "depth, IR and camera_info must come from the same sensor at the same resolution"
             }
+            DropCause::Malformed => "the publisher sent a sample that is not a valid message of the topic's type",
+            DropCause::Oversized => "images must be the size camera_info gives, with data of step x height bytes",
             DropCause::Unpaired => "depth and IR are paired by exact header stamp; check the driver stamps both alike",
             DropCause::NoCameraInfo => "waiting for depth/camera_info (remap it if the driver uses another name)",
             DropCause::BadCameraInfo => "camera_info K must have positive fx, fy",

@@ -1,13 +1,138 @@
-//! Between the DDS callbacks and the processing thread: depth and IR paired
-//! by exact stamp, then a bounded queue that drops the oldest frame when the
-//! processing falls behind, and an unbounded lane for service commands
-//! (never dropped).
+//! Between the DDS callbacks and the processing thread: samples that did not
+//! decode and images too large for the camera dropped and counted
+//! ([`Intake`]), depth and IR paired by exact stamp, then a bounded queue that
+//! drops the oldest frame when the processing falls behind, and an unbounded
+//! lane for service commands (never dropped).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::{Condvar, Mutex};
 use std::time::Duration;
 
+use super::core::{DropCause, DropCounters};
 use crate::msgs::{CameraInfo, Image};
+
+/// Most pixels of a camera the node takes (2048 x 2048): the background
+/// latch and the pipeline hold some 50 bytes a pixel, allocated when the
+/// camera_info comes, before any image has shown that size.
+pub const MAX_CAMERA_PIXELS: u64 = 2048 * 2048;
+
+/// Most bytes of image data the node takes before any camera_info has come
+/// (a 2048 x 2048 `32FC1` image with rows padded to twice their length);
+/// once one has, an image may not have more pixels than it says, nor more
+/// data than its own `step x height`.
+pub const MAX_IMAGE_BYTES: usize = 32 << 20;
+
+/// Why an input was refused before pairing, for the log line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Refused {
+    /// The cause it is counted under.
+    pub cause: DropCause,
+    /// What was wrong with it.
+    pub detail: String,
+}
+
+/// The first check of every sample the node receives, before pairing: a
+/// sample that did not decode ([`DropCause::Malformed`]) or an image larger
+/// than the camera ([`DropCause::Oversized`]) is dropped here, counted by
+/// cause, and logged the first time its cause is seen.
+#[derive(Debug, Default)]
+pub struct Intake {
+    /// Samples dropped here, by cause.
+    pub drops: DropCounters,
+}
+
+impl Intake {
+    /// A sample on `topic` that could not be read (`error` as the DDS layer
+    /// gave it): counted as malformed; the first one is logged.
+    pub fn unreadable(&mut self, topic: &str, error: &dyn std::fmt::Display) {
+        self.refuse(
+            topic,
+            Refused {
+                cause: DropCause::Malformed,
+                detail: format!("sample did not decode: {error}"),
+            },
+        );
+    }
+
+    /// A camera_info on `topic`: `Some` to pass it on, `None` when it
+    /// describes a camera larger than [`MAX_CAMERA_PIXELS`] (counted as
+    /// oversized; the first logged).
+    pub fn camera_info(&mut self, topic: &str, info: CameraInfo) -> Option<CameraInfo> {
+        let pixels = u64::from(info.width) * u64::from(info.height);
+        if pixels <= MAX_CAMERA_PIXELS {
+            return Some(info);
+        }
+        self.refuse(
+            topic,
+            Refused {
+                cause: DropCause::Oversized,
+                detail: format!(
+                    "camera_info for a {}x{} camera ({pixels} pixels; the node takes at most {MAX_CAMERA_PIXELS})",
+                    info.width, info.height
+                ),
+            },
+        );
+        None
+    }
+
+    /// An image on `topic`: `Some` to pass it on, `None` when it was
+    /// dropped (counted; the first of its cause logged).
+    pub fn image(&mut self, topic: &str, img: Image, info: Option<&CameraInfo>) -> Option<Image> {
+        match check_size(&img, info) {
+            Ok(()) => Some(img),
+            Err(r) => {
+                self.refuse(topic, r);
+                None
+            }
+        }
+    }
+
+    fn refuse(&mut self, topic: &str, r: Refused) {
+        if self.drops.record(r.cause) {
+            log::warn!(
+                "{topic}: {}; dropped ({}); further {:?} drops are counted",
+                r.detail,
+                r.cause.advice(),
+                r.cause
+            );
+        }
+    }
+}
+
+/// Whether an image is within what the node takes: at most
+/// [`MAX_IMAGE_BYTES`] of data; with `info`, no more pixels than it says and
+/// no more data than the image's own `step x height`.
+pub fn check_size(img: &Image, info: Option<&CameraInfo>) -> Result<(), Refused> {
+    let oversized = |detail: String| Refused {
+        cause: DropCause::Oversized,
+        detail,
+    };
+    let (w, h) = (u64::from(img.width), u64::from(img.height));
+    if img.data.len() > MAX_IMAGE_BYTES {
+        return Err(oversized(format!(
+            "{}x{} image with {} bytes of data (the node takes at most {MAX_IMAGE_BYTES})",
+            w,
+            h,
+            img.data.len()
+        )));
+    }
+    if let Some(info) = info {
+        let (cw, ch) = (u64::from(info.width), u64::from(info.height));
+        if w * h > cw * ch {
+            return Err(oversized(format!(
+                "{w}x{h} image from a {cw}x{ch} camera (camera_info)"
+            )));
+        }
+        let declared = u64::from(img.step) * h;
+        if img.data.len() as u64 > declared {
+            return Err(oversized(format!(
+                "{w}x{h} image with {} bytes of data, more than its step x height = {declared}",
+                img.data.len()
+            )));
+        }
+    }
+    Ok(())
+}
 
 /// Pairs depth and IR images by exact header stamp. Each side keeps at most
 /// `capacity` images waiting; an image evicted without its partner is unpaired.
@@ -211,6 +336,53 @@ mod tests {
         assert_eq!(p.unpaired, 7);
         assert!(p.ir(img(9)).is_some());
         assert_eq!(p.unpaired, 9);
+    }
+
+    #[test]
+    fn intake_drops_oversized_images_and_unreadable_samples_by_cause() {
+        let info = CameraInfo {
+            width: 4,
+            height: 2,
+            ..CameraInfo::default()
+        };
+        let sized = |w: u32, h: u32, step: u32, bytes: usize| Image {
+            width: w,
+            height: h,
+            step,
+            encoding: "16UC1".into(),
+            data: vec![0; bytes],
+            ..img(1)
+        };
+        let mut intake = Intake::default();
+        // As the camera says, or smaller (a size mismatch, for the pipeline to report).
+        assert!(intake.image("/d", sized(4, 2, 8, 16), Some(&info)).is_some());
+        assert!(intake.image("/d", sized(2, 2, 4, 8), Some(&info)).is_some());
+        // More pixels than the camera has.
+        assert!(intake.image("/d", sized(8, 2, 16, 32), Some(&info)).is_none());
+        // More data than step x height.
+        assert!(intake.image("/d", sized(4, 2, 8, 17), Some(&info)).is_none());
+        // Before any camera_info only the absolute limit applies.
+        assert!(intake.image("/d", sized(8, 2, 16, 33), None).is_some());
+        assert!(intake.image("/d", sized(1, 1, 2, MAX_IMAGE_BYTES + 1), None).is_none());
+        intake.unreadable("/d", &"Deserialization error: Eof");
+        // A camera_info of an absurd camera (its latch would allocate for every pixel).
+        let vast = CameraInfo {
+            width: u32::MAX,
+            height: 3,
+            ..info.clone()
+        };
+        assert!(intake.camera_info("/i", vast).is_none());
+        assert!(intake.camera_info("/i", info.clone()).is_some());
+        assert_eq!(intake.drops.get(DropCause::Oversized), 4);
+        assert_eq!(intake.drops.get(DropCause::Malformed), 1);
+        assert_eq!(intake.drops.total(), 5);
+        // Absurd dimensions do not overflow.
+        let huge = sized(u32::MAX, u32::MAX, u32::MAX, 4);
+        assert_eq!(check_size(&huge, None), Ok(()));
+        assert_eq!(
+            check_size(&huge, Some(&info)).map_err(|r| r.cause),
+            Err(DropCause::Oversized)
+        );
     }
 
     #[test]

@@ -31,7 +31,7 @@ use crate::pipeline::PipelineConfig;
 use crate::viz::{FrameViz, RerunTarget, VizSink};
 
 use self::core::{DropCause, NodeCore};
-use self::inbox::{Command, Inbox, Next, StampPairer};
+use self::inbox::{Command, Inbox, Intake, Next, StampPairer};
 use self::ros_args::{NameResolver, ParamValue};
 
 impl ros2_client::Message for Image {}
@@ -403,7 +403,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     let mut pairer = StampPairer::new(s.queue_depth.max(4) * 2);
     let mut counts = NodeStats::default();
     let mut last_info: Option<CameraInfo> = None;
-    let mut read_errors = 0u64;
+    let mut intake = Intake::default();
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
     let mut final_stats = None;
     loop {
@@ -411,22 +411,25 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
             m = depth_stream.next() => match m {
                 Some(Ok((img, _))) => {
                     counts.depth_received += 1;
-                    if let Some(pair) = pairer.depth(img) { counts.pairs += 1; inbox.push_frame(pair); }
+                    let img = intake.image(&depth_t, img, last_info.as_ref());
+                    if let Some(pair) = img.and_then(|img| pairer.depth(img)) { counts.pairs += 1; inbox.push_frame(pair); }
                 }
-                Some(Err(e)) => { read_errors += 1; if read_errors == 1 { warn!("{depth_t}: unreadable message ({e:?}); further ones counted"); } }
+                Some(Err(e)) => intake.unreadable(&depth_t, &e),
                 None => break,
             },
             m = ir_stream.next() => match m {
                 Some(Ok((img, _))) => {
                     counts.ir_received += 1;
-                    if let Some(pair) = pairer.ir(img) { counts.pairs += 1; inbox.push_frame(pair); }
+                    let img = intake.image(&ir_t, img, last_info.as_ref());
+                    if let Some(pair) = img.and_then(|img| pairer.ir(img)) { counts.pairs += 1; inbox.push_frame(pair); }
                 }
-                Some(Err(e)) => { read_errors += 1; if read_errors == 1 { warn!("{ir_t}: unreadable message ({e:?}); further ones counted"); } }
+                Some(Err(e)) => intake.unreadable(&ir_t, &e),
                 None => break,
             },
             m = info_stream.next() => match m {
                 Some(Ok((ci, _))) => {
                     counts.info_received += 1;
+                    let Some(ci) = intake.camera_info(&info_t, ci) else { continue };
                     // Only a change of the camera concerns the pipeline.
                     let changed = last_info.as_ref().is_none_or(|l| l.k != ci.k || l.width != ci.width || l.height != ci.height || l.d != ci.d);
                     if changed {
@@ -434,7 +437,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
                         last_info = Some(ci);
                     }
                 }
-                Some(Err(e)) => { read_errors += 1; if read_errors == 1 { warn!("{info_t}: unreadable message ({e:?}); further ones counted"); } }
+                Some(Err(e)) => intake.unreadable(&info_t, &e),
                 None => break,
             },
             m = latch_stream.next() => match m {
@@ -476,11 +479,8 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     if queue > 0 {
         stats.dropped.insert(DropCause::QueueFull, queue);
     }
-    if read_errors > 0 {
-        stats.dropped.insert(
-            DropCause::BadImage,
-            stats.dropped.get(&DropCause::BadImage).copied().unwrap_or(0) + read_errors,
-        );
+    for (cause, n) in intake.drops.by_cause {
+        *stats.dropped.entry(cause).or_insert(0) += n;
     }
     info!("{}", summary(&stats));
     if let Some(p) = &s.stats_json {
