@@ -102,9 +102,9 @@ pub const PARAMETERS: &[ParamSpec] = &[
     spec(
         "ir_mode",
         "string",
-        Some("sum"),
+        None,
         false,
-        "what the IR image is: sum (paper Eq. 7) or amplitude",
+        "what the IR image is: sum (paper Eq. 7) or amplitude; unset: the physics' own",
     ),
     spec(
         "lin_calibration",

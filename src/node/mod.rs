@@ -152,6 +152,9 @@ pub struct NodeStats {
     pub services: [u64; 2],
     /// Frames Rerun could not take.
     pub rerun_dropped: u64,
+    /// Frames of which an output could not be handed to DDS (a reliable
+    /// writer's window full: a reader not acknowledging).
+    pub publish_failures: u64,
     /// Processing time per published frame, ms (from taking the pair off the
     /// queue to its four outputs handed to DDS): median, 95th percentile, max
     /// over the last 8192 frames.
@@ -276,11 +279,8 @@ struct ParamGate {
 
 impl ParamGate {
     fn new(s: &NodeSettings, inbox: Arc<Inbox<Token>>) -> Self {
-        let current = s
-            .declared
-            .iter()
-            .filter_map(|(k, v)| v.clone().map(|v| (k.clone(), v)))
-            .collect();
+        // The parameters as given: the settings read from them at start-up are the node's.
+        let current = s.params.iter().cloned().collect();
         Self {
             started: Arc::new(AtomicBool::new(false)),
             current: Arc::new(Mutex::new(current)),
@@ -546,7 +546,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     gate.start();
     rlog::attach_rosout(node.logging_handle());
     let spinner = node.spinner().map_err(|e| anyhow::anyhow!("node spinner: {e:?}"))?;
-    tokio::spawn(spinner.spin());
+    let spin_task = tokio::spawn(spinner.spin());
 
     // Every topic straight on the participant (as ros2-client's create_topic does), with
     // resource limits equal to its KeepLast depth: RustDDS otherwise keeps 64 whole messages
@@ -765,6 +765,12 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         None => done_rx.recv().await.unwrap_or_default(),
     };
     let _ = worker.join();
+    // The spinner's entities (parameter services, /rosout, /clock) go before the
+    // participant: dropped after it, RustDDS logs an error for each of them.
+    drop(node);
+    if tokio::time::timeout(Duration::from_secs(2), spin_task).await.is_err() {
+        warn!("the node's spinner did not stop within 2 s");
+    }
     stats.depth_received = counts.depth_received;
     stats.ir_received = counts.ir_received;
     stats.info_received = counts.info_received;
@@ -947,7 +953,12 @@ fn worker(
                         results.push(out.estimate.publish(e).err().map(|e| format!("{e:?}")));
                     }
                     if let Some(e) = results.into_iter().flatten().next() {
-                        error!("publishing: {e}");
+                        // The error's kind only: its Debug form carries the whole message.
+                        let kind = e.split([' ', '{', '(']).next().unwrap_or("").to_string();
+                        stats.publish_failures += 1;
+                        if stats.publish_failures == 1 {
+                            warn!("publishing an output failed ({kind}; a reliable reader is not keeping up?); further failures are counted (publish_failures)");
+                        }
                     }
                     stats.published += 1;
                     let xi = &o.frame.xi;
