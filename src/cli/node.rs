@@ -329,7 +329,7 @@ pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
         Some(other) => bail!("parameter service_mapping {other:?}: expected enhanced, cyclone or basic"),
     };
     let diagnostics_period_s = number(p, "diagnostics_period_s")?.unwrap_or(1.0);
-    if !(diagnostics_period_s >= 0.0 && diagnostics_period_s < 1e6) {
+    if !(0.0..1e6).contains(&diagnostics_period_s) {
         bail!("parameter diagnostics_period_s must be >= 0, got {diagnostics_period_s}");
     }
     let rerun = RerunTarget::parse(&text("rerun").unwrap_or_default()).map_err(|e| anyhow!("parameter {e}"))?;
