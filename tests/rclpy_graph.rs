@@ -117,7 +117,8 @@ fn rclpy_on_fast_dds_latches_early_receives_every_output_and_sets_parameters() {
         return;
     }
     let py = check_python();
-    let node = Node::start(&["-p", "background_frames:=4", "-p", "xi:=0.65"]);
+    // The bundled bag is rendered with the paper's model.
+    let node = Node::start(&["-p", "background_frames:=4", "-p", "xi:=0.65", "-p", "physics:=paper"]);
     let frames = 100;
     let r = peer(
         &py,
