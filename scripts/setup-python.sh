@@ -19,6 +19,12 @@ MCAP_VERSION="1.6.0"
 MCAP_ROS2_VERSION="0.6.0"
 # Eclipse Cyclone DDS: the independent DDS peer of tests/dds_peer.rs.
 CYCLONEDDS_VERSION="11.0.1"
+# rclpy on Fast DDS (rmw_fastrtps_cpp) without a ROS installation: the peer of
+# tests/rclpy_graph.rs (PyPI ros-* wheels, ROS 2 Kilted builds).
+RCLPY_VERSION="9.1.2"
+RMW_FASTRTPS_VERSION="9.3.3"
+ROS_MSGS_VERSION="5.5.1"       # sensor_msgs, std_srvs, diagnostic_msgs
+RCL_INTERFACES_VERSION="2.3.0"
 
 if [ ! -x "$venv/bin/python" ]; then
     echo "creating venv at $venv"
@@ -28,10 +34,16 @@ fi
     "rosbags==$ROSBAGS_VERSION" \
     "mcap==$MCAP_VERSION" \
     "mcap-ros2-support==$MCAP_ROS2_VERSION" \
-    "cyclonedds==$CYCLONEDDS_VERSION"
+    "cyclonedds==$CYCLONEDDS_VERSION" \
+    "ros-rclpy==$RCLPY_VERSION" \
+    "ros-rmw-fastrtps-cpp==$RMW_FASTRTPS_VERSION" \
+    "ros-sensor-msgs==$ROS_MSGS_VERSION" \
+    "ros-std-srvs==$ROS_MSGS_VERSION" \
+    "ros-diagnostic-msgs==$ROS_MSGS_VERSION" \
+    "ros-rcl-interfaces==$RCL_INTERFACES_VERSION"
 "$venv/bin/python" - <<'PY'
 import importlib.metadata as md
-for name in ("rosbags", "mcap", "mcap-ros2-support", "cyclonedds"):
+for name in ("rosbags", "mcap", "mcap-ros2-support", "cyclonedds", "ros-rclpy", "ros-rmw-fastrtps-cpp"):
     print(f"{name}=={md.version(name)}")
 PY
 echo "ok: run the interop tests with: cargo test --test bag_interop"

@@ -239,7 +239,7 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
     if !isolated("faults_are_dropped_counted_and_the_node_keeps_running") {
         return;
     }
-    let node = NodeChild::start(&["background_frames:=3", "xi:=0.65", "latch_timeout_s:=20"]);
+    let node = NodeChild::start(&["background_frames:=3", "xi:=0.65", "latch_timeout_s:=2"]);
     let (info, pairs, bg) = frames();
     let rt = rt();
     let clock = std::cell::Cell::new(1_000_000_000u64);
@@ -267,7 +267,7 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
             peer.publish_one(false, &stamped(i0, s)).unwrap();
             pause();
         }
-        // 2. A latch before camera_info fails with the reason.
+        // 2. A latch before camera_info waits for it, then (none coming) fails with the reason.
         let r = peer.call(true, Duration::from_secs(10)).await.unwrap();
         assert!(!r.success && r.message.contains("camera_info"), "{r:?}");
         peer.publish_info(&info).unwrap();

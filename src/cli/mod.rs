@@ -36,6 +36,7 @@ enum Command {
     CalibrateLin(calibrate::CalibrateLinArgs),
     /// The ROS 2 node: subscribes to a ToF camera, latches a background on
     /// ~/latch_background, publishes corrected depth, points, mask and ξ.
+    #[command(after_help = node::parameters_help())]
     Node(node::NodeArgs),
     /// The whole graph on loopback: a bundled bag played as a driver, the node, the latch service; a summary.
     Demo(demo::DemoArgs),

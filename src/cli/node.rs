@@ -8,7 +8,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 
 use crate::node::ros_args::{NameResolver, ParamValue, RosArgs};
-use crate::node::{NodeSettings, NodeStats};
+use crate::node::{NodeSettings, NodeStats, RuntimeSettings};
 use crate::physics::XiMethod;
 use crate::pipeline::XiChoice;
 use crate::viz::RerunTarget;
@@ -29,44 +29,198 @@ pub struct NodeArgs {
     pub ros_args: Vec<String>,
 }
 
-/// The parameters the node takes (`-p NAME:=VALUE`), with their defaults.
-pub const PARAMETERS: &[(&str, &str)] = &[
-    ("xi", "unset: estimate ξ; a number in [0, 1) fixes it"),
-    ("xi_method", "one_material (default) or eq12_residual"),
-    ("threshold_mm", "segmentation threshold |d - db|, mm (30)"),
-    ("background_frames", "frames averaged per latch (10)"),
-    ("modulation_frequency_hz", "sensor modulation frequency, Hz (30e6)"),
-    ("waveform", "sinusoid (default) or triangle"),
-    ("ir_mode", "what the IR image is: sum (paper Eq. 7) or amplitude"),
-    ("lin_calibration", "emitted-light file from calibrate-lin"),
-    ("exposure_s", "exposure now, s, to scale the Lin file (Eq. 14)"),
-    (
+/// One of the node's parameters: its name, ROS type, default (`None`: not
+/// set), whether it may change at run time, and what it means.
+#[derive(Debug, Clone, Copy)]
+pub struct ParamSpec {
+    /// `-p NAME:=VALUE`.
+    pub name: &'static str,
+    /// `double`, `integer`, `string` or `bool`.
+    pub kind: &'static str,
+    /// The default as `-p` would spell it; `None`: unset.
+    pub default: Option<&'static str>,
+    /// Takes effect from the next frame when set at run time.
+    pub runtime: bool,
+    /// What it means.
+    pub meaning: &'static str,
+}
+
+const fn spec(
+    name: &'static str,
+    kind: &'static str,
+    default: Option<&'static str>,
+    runtime: bool,
+    meaning: &'static str,
+) -> ParamSpec {
+    ParamSpec {
+        name,
+        kind,
+        default,
+        runtime,
+        meaning,
+    }
+}
+
+/// The parameters the node takes (`-p NAME:=VALUE`, `--params-file`), with their defaults.
+pub const PARAMETERS: &[ParamSpec] = &[
+    spec(
+        "xi",
+        "double",
+        None,
+        true,
+        "a number in [0, 1) fixes xi; unset: estimated (xi_method)",
+    ),
+    spec(
+        "xi_method",
+        "string",
+        Some("one_material"),
+        true,
+        "one_material or eq12_residual",
+    ),
+    spec(
+        "threshold_mm",
+        "double",
+        Some("30.0"),
+        true,
+        "segmentation threshold on |d - db|, mm",
+    ),
+    spec(
+        "background_frames",
+        "integer",
+        Some("10"),
+        true,
+        "frames averaged per latch",
+    ),
+    spec(
+        "modulation_frequency_hz",
+        "double",
+        Some("30000000.0"),
+        false,
+        "the camera's modulation frequency, Hz",
+    ),
+    spec("waveform", "string", Some("sinusoid"), false, "sinusoid or triangle"),
+    spec(
+        "ir_mode",
+        "string",
+        None,
+        false,
+        "what the IR image is: sum (paper Eq. 7) or amplitude; unset: the physics' own",
+    ),
+    spec(
+        "lin_calibration",
+        "string",
+        Some(""),
+        false,
+        "emitted-light file from calibrate-lin ('': none)",
+    ),
+    spec(
+        "exposure_s",
+        "double",
+        None,
+        false,
+        "exposure now, s, to scale the Lin file (Eq. 14)",
+    ),
+    spec(
         "background_albedo",
-        "albedo assumed for the background without a Lin file (1.0)",
+        "double",
+        Some("1.0"),
+        false,
+        "albedo assumed for the background without a Lin file",
     ),
-    (
+    spec(
         "physics",
-        "physical (default: L2 = Ib xi^2, amplitude IR), paper (Eq. 2 and 7), or a physics TOML as audit writes",
+        "string",
+        Some(""),
+        true,
+        "physical (L2 = Ib xi^2, amplitude IR), paper (Eq. 2 and 7), or a physics TOML as audit writes ('': physical)",
     ),
-    ("rerun", "off (default), a .rrd path, or a viewer address"),
-    (
+    spec(
+        "rerun",
+        "string",
+        Some("off"),
+        false,
+        "off, a .rrd path, or a viewer address",
+    ),
+    spec(
         "service_mapping",
-        "enhanced (Fast DDS, ROS 2's default; default), cyclone (rmw_cyclonedds) or basic",
+        "string",
+        Some("enhanced"),
+        false,
+        "enhanced (Fast DDS), cyclone (rmw_cyclonedds) or basic",
     ),
-    (
+    spec(
         "queue_depth",
-        "paired frames waiting; more and the oldest is dropped (2)",
+        "integer",
+        Some("2"),
+        false,
+        "paired frames waiting; beyond it the oldest is dropped",
     ),
-    (
+    spec(
         "latch_timeout_s",
-        "a latch that has not got its frames by then fails (10)",
+        "double",
+        Some("10.0"),
+        true,
+        "a latch waits this long for camera_info and frames",
     ),
-    ("prior_radius_px", "smooth-surface prior radius, px (4; 0 = off)"),
-    (
+    spec(
+        "latch_on_start",
+        "bool",
+        Some("false"),
+        false,
+        "latch the background as soon as frames flow",
+    ),
+    spec(
+        "prior_radius_px",
+        "integer",
+        Some("4"),
+        true,
+        "smooth-surface prior radius, px (0 = off)",
+    ),
+    spec(
         "pin_threads",
-        "pin the processing pool's workers one per CPU of the process's mask (false)",
+        "bool",
+        Some("false"),
+        false,
+        "pin the processing pool's workers one per CPU",
+    ),
+    spec(
+        "diagnostics_period_s",
+        "double",
+        Some("1.0"),
+        false,
+        "period of /diagnostics, s (0: none)",
+    ),
+    spec(
+        "use_sim_time",
+        "bool",
+        Some("false"),
+        true,
+        "stamp the node's own messages with /clock",
     ),
 ];
+
+/// The parameter table `node --help` prints.
+pub fn parameters_help() -> String {
+    let mut out = String::from(
+        "Parameters (--ros-args -p NAME:=VALUE or --params-file FILE; `ros2 param` at run time, * = takes effect from the next frame):\n",
+    );
+    for p in PARAMETERS {
+        out.push_str(&format!(
+            "  {:<24}{:<8}{:<14}{}{}\n",
+            p.name,
+            p.kind,
+            p.default
+                .map(|d| if d.is_empty() { "''" } else { d })
+                .unwrap_or("unset"),
+            if p.runtime { "* " } else { "  " },
+            p.meaning
+        ));
+    }
+    out.push_str(
+        "  qos_overrides./TOPIC.publisher.{reliability,durability,history,depth}: QoS of each output (TOPIC fully qualified)\n",
+    );
+    out
+}
 
 fn number(params: &std::collections::BTreeMap<String, ParamValue>, name: &str) -> Result<Option<f64>> {
     match params.get(name) {
@@ -86,19 +240,19 @@ fn count(params: &std::collections::BTreeMap<String, ParamValue>, name: &str, de
     }
 }
 
-/// The node's settings from its command line and environment.
-pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
-    let (ros, rest) = RosArgs::parse(a.ros_args.iter().cloned())?;
-    if !rest.is_empty() {
-        bail!("node: unexpected arguments {rest:?} (node options go before --ros-args; ROS options after it)");
+type Params = std::collections::BTreeMap<String, ParamValue>;
+
+fn flag(p: &Params, name: &str) -> Result<bool> {
+    match p.get(name) {
+        None => Ok(false),
+        Some(ParamValue::Bool(b)) => Ok(*b),
+        Some(v) => bail!("parameter {name}: expected true or false, got {:?}", v.as_text()),
     }
-    let p = &ros.params;
-    for k in p.keys() {
-        if !PARAMETERS.iter().any(|(n, _)| n == k) {
-            let known: Vec<&str> = PARAMETERS.iter().map(|(n, _)| *n).collect();
-            bail!("parameter {k:?} is not one of this node's: {}", known.join(", "));
-        }
-    }
+}
+
+/// What may change while the node runs (the parameters marked so in
+/// [`PARAMETERS`]), read from the whole parameter set.
+pub fn runtime_settings(p: &Params) -> Result<RuntimeSettings> {
     let text = |name: &str| p.get(name).map(|v| v.as_text());
     let xi = number(p, "xi")?;
     if let Some(x) = xi {
@@ -135,20 +289,48 @@ pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
     if background_frames == 0 {
         bail!("parameter background_frames must be at least 1");
     }
+    let latch_timeout_s = number(p, "latch_timeout_s")?.unwrap_or(10.0);
+    if !(latch_timeout_s > 0.0 && latch_timeout_s < 1e6) {
+        bail!("parameter latch_timeout_s must be positive, got {latch_timeout_s}");
+    }
+    flag(p, "use_sim_time")?;
+    Ok(RuntimeSettings {
+        config,
+        background_frames,
+        latch_timeout: Duration::from_secs_f64(latch_timeout_s),
+    })
+}
+
+fn runtime_settings_or_reason(p: &Params) -> Result<RuntimeSettings, String> {
+    runtime_settings(p).map_err(|e| format!("{e:#}"))
+}
+
+/// The node's settings from its command line and environment.
+pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
+    let (ros, rest) = RosArgs::parse(a.ros_args.iter().cloned())?;
+    if !rest.is_empty() {
+        bail!("node: unexpected arguments {rest:?} (node options go before --ros-args; ROS options after it)");
+    }
+    let names = NameResolver::new("translucent_tof", &ros)?;
+    let given = ros.resolved_params(&names.node_fqn())?;
+    let p = &given;
+    for k in p.keys() {
+        if !PARAMETERS.iter().any(|s| s.name == k) && !crate::node::qos_overrides::is_override(k) {
+            let known: Vec<&str> = PARAMETERS.iter().map(|s| s.name).collect();
+            bail!("parameter {k:?} is not one of this node's: {}", known.join(", "));
+        }
+    }
+    let text = |name: &str| p.get(name).map(|v| v.as_text());
+    let runtime = runtime_settings(p)?;
     let service_mapping = match text("service_mapping").as_deref() {
         None | Some("enhanced") => ros2_client::ServiceMapping::Enhanced,
         Some("cyclone") => ros2_client::ServiceMapping::Cyclone,
         Some("basic") => ros2_client::ServiceMapping::Basic,
         Some(other) => bail!("parameter service_mapping {other:?}: expected enhanced, cyclone or basic"),
     };
-    let pin_threads = match p.get("pin_threads") {
-        None => false,
-        Some(ParamValue::Bool(b)) => *b,
-        Some(v) => bail!("parameter pin_threads: expected true or false, got {:?}", v.as_text()),
-    };
-    let latch_timeout_s = number(p, "latch_timeout_s")?.unwrap_or(10.0);
-    if !(latch_timeout_s > 0.0 && latch_timeout_s < 1e6) {
-        bail!("parameter latch_timeout_s must be positive, got {latch_timeout_s}");
+    let diagnostics_period_s = number(p, "diagnostics_period_s")?.unwrap_or(1.0);
+    if !(0.0..1e6).contains(&diagnostics_period_s) {
+        bail!("parameter diagnostics_period_s must be >= 0, got {diagnostics_period_s}");
     }
     let rerun = RerunTarget::parse(&text("rerun").unwrap_or_default()).map_err(|e| anyhow!("parameter {e}"))?;
     let domain_id = match std::env::var("ROS_DOMAIN_ID") {
@@ -162,23 +344,49 @@ pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
     };
     let localhost_only = std::env::var("ROS_LOCALHOST_ONLY").is_ok_and(|v| v.trim() == "1")
         || std::env::var("ROS_AUTOMATIC_DISCOVERY_RANGE").is_ok_and(|v| v.trim().eq_ignore_ascii_case("localhost"));
-    let names = NameResolver::new("translucent_tof", &ros)?;
     crate::node::rlog::init(&names.node_fqn(), ros.log_level.as_deref().unwrap_or("info")).map_err(|e| anyhow!(e))?;
+    // Every parameter declared on the node: the value given, else its default, else unset.
+    let declared = PARAMETERS
+        .iter()
+        .map(|s| {
+            let v = p
+                .get(s.name)
+                .map(|v| typed(s.kind, v.clone()))
+                .or_else(|| s.default.map(|d| typed(s.kind, ParamValue::parse(d))));
+            (s.name.to_string(), v)
+        })
+        .collect();
     Ok(NodeSettings {
-        config,
-        background_frames,
-        latch_timeout: Duration::from_secs_f64(latch_timeout_s),
+        config: runtime.config,
+        background_frames: runtime.background_frames,
+        latch_timeout: runtime.latch_timeout,
+        latch_on_start: flag(p, "latch_on_start")?,
         queue_depth: count(p, "queue_depth", 2)?.max(1),
-        pin_threads,
+        pin_threads: flag(p, "pin_threads")?,
         service_mapping,
         names,
         domain_id,
         localhost_only,
         rerun,
         params: p.iter().map(|(k, v)| (k.clone(), v.clone())).collect(),
+        declared,
+        runtime_params: PARAMETERS.iter().filter(|s| s.runtime).map(|s| s.name).collect(),
+        reconfigure: runtime_settings_or_reason,
+        diagnostics_period: Duration::from_secs_f64(diagnostics_period_s),
         stats_json: a.stats_json.clone(),
         max_frames: a.max_frames,
     })
+}
+
+/// A value as its parameter's declared type (`-p threshold_mm:=25` is a double
+/// of 25, `-p physics:=''` an empty text), so that `ros2 param set` with the
+/// declared type is accepted later.
+fn typed(kind: &str, v: ParamValue) -> ParamValue {
+    match (kind, v) {
+        ("double", ParamValue::Integer(i)) => ParamValue::Double(i as f64),
+        ("string", v) => ParamValue::String(v.as_text()),
+        (_, v) => v,
+    }
 }
 
 /// Runs `node`.

@@ -7,6 +7,7 @@
 #![deny(missing_docs)]
 
 pub mod builtin_interfaces;
+pub mod diagnostic_msgs;
 pub mod sensor_msgs;
 pub mod std_msgs;
 pub mod std_srvs;

@@ -90,9 +90,18 @@ impl DropCounters {
 #[derive(Debug)]
 struct LatchInProgress<T> {
     token: T,
-    latch: BackgroundLatch,
-    intrinsics: Intrinsics,
+    /// The frames so far and the camera they are of; `None` while waiting for
+    /// the first camera_info.
+    latch: Option<(BackgroundLatch, Intrinsics)>,
     started: std::time::Instant,
+    /// Fails after `latch_timeout` (a latch on start-up waits as long as it takes).
+    expires: bool,
+}
+
+impl<T> LatchInProgress<T> {
+    fn frames(&self) -> usize {
+        self.latch.as_ref().map_or(0, |(l, _)| l.frames())
+    }
 }
 
 /// A recovered frame's outputs: the corrected depth made, the rest made when
@@ -101,6 +110,8 @@ struct LatchInProgress<T> {
 pub struct NodeOutputs {
     /// `~/depth/corrected`.
     pub corrected: Image,
+    /// `~/depth/camera_info`: the camera's, with the corrected depth's header.
+    pub camera_info: CameraInfo,
     /// The recovery it was made from.
     pub frame: FrameOutput,
     header: crate::msgs::Header,
@@ -188,11 +199,10 @@ impl<T> NodeCore<T> {
             Intrinsics::from_k(info.width as usize, info.height as usize, &info.k).ok_or(DropCause::BadCameraInfo)?;
         let had_background = self.background().is_some();
         let range_mm = self.config.model.sensor.unambiguous_range_mm();
-        let restarted = self.latch.as_mut().map(|l| {
-            let dropped = l.latch.frames();
-            l.latch = BackgroundLatch::new(k.width, k.height, range_mm);
-            l.intrinsics = k;
-            dropped
+        let restarted = self.latch.as_mut().and_then(|l| {
+            let had = l.latch.is_some().then(|| l.frames());
+            l.latch = Some((BackgroundLatch::new(k.width, k.height, range_mm), k));
+            had
         });
         let note = self.info.as_ref().map(|(old, _)| {
             format!(
@@ -216,24 +226,75 @@ impl<T> NodeCore<T> {
         Ok(note)
     }
 
-    /// Starts latching the next frames; replies at once if it cannot.
+    /// Starts latching the next frames (waiting for camera_info first if none
+    /// has come); replies at once if another latch is in progress. The latch
+    /// fails if its frames have not come within `latch_timeout`.
     pub fn start_latch(&mut self, token: T) -> Result<(), (T, TriggerResponse)> {
+        self.begin_latch(token, true)
+    }
+
+    /// [`Self::start_latch`] without the time limit (`latch_on_start`: the
+    /// node latches as soon as frames flow, however late that is).
+    pub fn start_latch_waiting(&mut self, token: T) -> Result<(), (T, TriggerResponse)> {
+        self.begin_latch(token, false)
+    }
+
+    fn begin_latch(&mut self, token: T, expires: bool) -> Result<(), (T, TriggerResponse)> {
         if self.latch.is_some() {
             return Err((token, failure("a latch is already in progress; wait for its reply")));
         }
-        let Some((_, k)) = &self.info else {
-            return Err((
-                token,
-                failure("no camera_info received yet: cannot latch without the intrinsics (is depth/camera_info remapped right?)"),
-            ));
-        };
+        let range_mm = self.config.model.sensor.unambiguous_range_mm();
         self.latch = Some(LatchInProgress {
             token,
-            latch: BackgroundLatch::new(k.width, k.height, self.config.model.sensor.unambiguous_range_mm()),
-            intrinsics: *k,
+            latch: self
+                .info
+                .as_ref()
+                .map(|(_, k)| (BackgroundLatch::new(k.width, k.height, range_mm), *k)),
             started: std::time::Instant::now(),
+            expires,
         });
         Ok(())
+    }
+
+    /// Frames averaged per latch.
+    pub fn background_frames(&self) -> usize {
+        self.background_frames
+    }
+
+    /// How ξ is chosen now: `fixed` or the estimation method.
+    pub fn xi_method(&self) -> &'static str {
+        match self.config.xi {
+            crate::pipeline::XiChoice::Fixed(_) => "fixed",
+            crate::pipeline::XiChoice::Estimate(m) => m.as_str(),
+        }
+    }
+
+    /// Whether a latch is in progress.
+    pub fn latching(&self) -> bool {
+        self.latch.is_some()
+    }
+
+    /// Takes the settings that may change at run time; they apply from the next
+    /// frame. `forget_evidence`: the ξ evidence pooled so far was gathered under
+    /// another model or method and is dropped (the background is kept).
+    pub fn reconfigure(
+        &mut self,
+        config: PipelineConfig,
+        background_frames: usize,
+        latch_timeout: std::time::Duration,
+        forget_evidence: bool,
+    ) {
+        self.background_frames = background_frames.max(1);
+        self.latch_timeout = latch_timeout;
+        if let Some(p) = &mut self.pipeline {
+            p.config = config.clone();
+            if forget_evidence {
+                if let Some(bg) = p.background().cloned() {
+                    p.set_background(bg);
+                }
+            }
+        }
+        self.config = config;
     }
 
     /// Forgets the background (and cancels a latch in progress).
@@ -266,20 +327,25 @@ impl<T> NodeCore<T> {
         let late = self
             .latch
             .as_ref()
-            .is_some_and(|l| l.started.elapsed() > self.latch_timeout);
+            .is_some_and(|l| l.expires && l.started.elapsed() > self.latch_timeout);
         if !late {
             return None;
         }
         let l = self.latch.take()?;
-        Some((
-            l.token,
-            failure(&format!(
+        let why = if l.latch.is_none() {
+            format!(
+                "no camera_info arrived in {:.1} s: cannot latch without the intrinsics (is depth/camera_info remapped right?)",
+                self.latch_timeout.as_secs_f64()
+            )
+        } else {
+            format!(
                 "only {} of {} background frames arrived in {:.1} s (are depth and IR being published with equal stamps?)",
-                l.latch.frames(),
+                l.frames(),
                 self.background_frames,
                 self.latch_timeout.as_secs_f64()
-            )),
-        ))
+            )
+        };
+        Some((l.token, failure(&why)))
     }
 
     /// Handles one depth + IR pair (same stamp).
@@ -329,13 +395,15 @@ impl<T> NodeCore<T> {
             ir: ir_buf,
         };
         if let Some(l) = &mut self.latch {
-            l.latch.push(&frame, &l.intrinsics).map_err(|e| {
-                (
-                    DropCause::Pipeline,
-                    format!("background frame at stamp {stamp} ns: {e}"),
-                )
-            })?;
-            if l.latch.frames() >= self.background_frames {
+            if let Some((latch, k)) = &mut l.latch {
+                latch.push(&frame, k).map_err(|e| {
+                    (
+                        DropCause::Pipeline,
+                        format!("background frame at stamp {stamp} ns: {e}"),
+                    )
+                })?;
+            }
+            if l.frames() >= self.background_frames {
                 if let Some(l) = self.latch.take() {
                     result.replies.push(self.finish_latch(l));
                 }
@@ -370,8 +438,13 @@ impl<T> NodeCore<T> {
         let corrected = corrected_message(&depth.header, &out, &depth.encoding)
             .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns: {e}")))?;
         self.processed += 1;
+        let camera_info = CameraInfo {
+            header: depth.header.clone(),
+            ..self.info.as_ref().map(|(ci, _)| ci.clone()).unwrap_or_default()
+        };
         result.outputs = Some(NodeOutputs {
             corrected,
+            camera_info,
             frame: out,
             header: depth.header.clone(),
             intrinsics: k,
@@ -381,13 +454,16 @@ impl<T> NodeCore<T> {
     }
 
     fn finish_latch(&mut self, l: LatchInProgress<T>) -> (T, TriggerResponse) {
-        let reply = match l.latch.finish(&l.intrinsics, &self.config) {
+        let Some((latch, intrinsics)) = l.latch else {
+            return (l.token, failure("no camera_info: nothing latched"));
+        };
+        let reply = match latch.finish(&intrinsics, &self.config) {
             Ok(bg) => {
                 let msg = format!(
                     "latched {} frames: {} valid pixels of {}, median noise {:.1} mm; Lin {}{}",
                     bg.frames,
                     bg.valid_pixels,
-                    l.intrinsics.width * l.intrinsics.height,
+                    intrinsics.width * intrinsics.height,
                     bg.median_noise_mm,
                     bg.lin_source,
                     bg.warnings
@@ -397,7 +473,7 @@ impl<T> NodeCore<T> {
                 );
                 let pipe = self
                     .pipeline
-                    .get_or_insert_with(|| Pipeline::new(self.config.clone(), l.intrinsics));
+                    .get_or_insert_with(|| Pipeline::new(self.config.clone(), intrinsics));
                 pipe.set_background(bg);
                 TriggerResponse {
                     success: true,

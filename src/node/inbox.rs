@@ -208,6 +208,8 @@ pub enum Command<T> {
     Latch(T),
     /// `~/clear_background`.
     Clear(T),
+    /// Parameters changed at run time (`forget_evidence`: ξ's pooled evidence no longer applies).
+    Reconfigure(Box<super::RuntimeSettings>, bool),
     /// Finish.
     Shutdown,
 }

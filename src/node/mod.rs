@@ -8,12 +8,16 @@ pub mod core;
 pub mod echo;
 pub mod inbox;
 pub mod latency;
+pub mod params_file;
 pub mod peer;
+pub mod qos_overrides;
 pub mod rlog;
 pub mod ros_args;
 
+use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use futures::StreamExt;
@@ -25,8 +29,9 @@ use ros2_client::{
 };
 use serde::Serialize;
 
+use crate::msgs::diagnostic_msgs::{DiagnosticArray, DiagnosticStatus, KeyValue};
 use crate::msgs::translucent_tof::TranslucencyEstimate;
-use crate::msgs::{CameraInfo, Image, PointCloud2, TriggerRequest, TriggerResponse};
+use crate::msgs::{CameraInfo, Header, Image, PointCloud2, TriggerRequest, TriggerResponse};
 use crate::pipeline::PipelineConfig;
 use crate::viz::{FrameViz, RerunTarget, VizSink};
 
@@ -40,6 +45,7 @@ impl ros2_client::Message for PointCloud2 {}
 impl ros2_client::Message for TranslucencyEstimate {}
 impl ros2_client::Message for TriggerRequest {}
 impl ros2_client::Message for TriggerResponse {}
+impl ros2_client::Message for DiagnosticArray {}
 
 /// Relative names of the node's interfaces (interfaces.md).
 pub mod names {
@@ -61,7 +67,26 @@ pub mod names {
     pub const TRANSLUCENCY: &str = "~/translucency";
     /// Mask.
     pub const MASK: &str = "~/translucent_mask";
+    /// The camera beside the corrected depth.
+    pub const CORRECTED_INFO: &str = "~/depth/camera_info";
+    /// ROS 2's diagnostics topic.
+    pub const DIAGNOSTICS: &str = "/diagnostics";
 }
+
+/// The settings that may change while the node runs (`ros2 param set`).
+#[derive(Debug, Clone)]
+pub struct RuntimeSettings {
+    /// The pipeline (`xi`, `xi_method`, `threshold_mm`, `physics`, `prior_radius_px`).
+    pub config: PipelineConfig,
+    /// `background_frames`.
+    pub background_frames: usize,
+    /// `latch_timeout_s`.
+    pub latch_timeout: Duration,
+}
+
+/// Reads the run-time settings from the whole parameter set; the error is
+/// the reason a change is refused.
+pub type Reconfigure = fn(&BTreeMap<String, ParamValue>) -> Result<RuntimeSettings, String>;
 
 /// Everything the node needs to run (built from `--ros-args` by the CLI layer).
 #[derive(Debug, Clone)]
@@ -72,6 +97,8 @@ pub struct NodeSettings {
     pub background_frames: usize,
     /// A latch gives up after this long.
     pub latch_timeout: Duration,
+    /// Latch as soon as frames flow (`latch_on_start`).
+    pub latch_on_start: bool,
     /// Paired frames waiting for processing; more and the oldest is dropped.
     pub queue_depth: usize,
     /// The processing pool's workers pinned one per CPU ([`crate::affinity`]).
@@ -87,8 +114,17 @@ pub struct NodeSettings {
     pub localhost_only: bool,
     /// Rerun output.
     pub rerun: RerunTarget,
-    /// Parameters as given (declared on the node, readable with `ros2 param`).
+    /// Parameters as given (`-p`, `--params-file`).
     pub params: Vec<(String, ParamValue)>,
+    /// Every parameter of the node with its value (`None`: unset), declared on
+    /// the node for `ros2 param list/get/set`.
+    pub declared: Vec<(String, Option<ParamValue>)>,
+    /// The parameters that may change at run time.
+    pub runtime_params: Vec<&'static str>,
+    /// Turns a changed parameter set into the run-time settings.
+    pub reconfigure: Reconfigure,
+    /// `/diagnostics` period (zero: not published).
+    pub diagnostics_period: Duration,
     /// Write counters and timings here on exit.
     pub stats_json: Option<PathBuf>,
     /// Stop after this many processed frames (tests, benchmarks).
@@ -116,6 +152,9 @@ pub struct NodeStats {
     pub services: [u64; 2],
     /// Frames Rerun could not take.
     pub rerun_dropped: u64,
+    /// Frames of which an output could not be handed to DDS (a reliable
+    /// writer's window full: a reader not acknowledging).
+    pub publish_failures: u64,
     /// Processing time per published frame, ms (from taking the pair off the
     /// queue to its four outputs handed to DDS): median, 95th percentile, max
     /// over the last 8192 frames.
@@ -134,16 +173,19 @@ pub struct NodeStats {
 }
 
 /// Which service a pending request belongs to.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 enum Service {
     Latch,
     Clear,
+    /// The latch `latch_on_start` asks for (no one waits for its reply).
+    OnStart,
 }
 
 type Token = (Service, ros2_client::service::RmwRequestId);
 
 struct Outputs {
     corrected: Publisher<Image>,
+    corrected_info: Publisher<CameraInfo>,
     mask: Publisher<Image>,
     points: Publisher<PointCloud2>,
     estimate: Publisher<TranslucencyEstimate>,
@@ -163,6 +205,11 @@ fn qos_estimate() -> QosProfile {
     QosProfile::publisher_default()
         .durability(Durability::TransientLocal)
         .history(History::KeepLast { depth: 1 })
+}
+
+fn qos_diagnostics() -> QosProfile {
+    // As diagnostic_updater publishes: reliable, volatile.
+    QosProfile::publisher_default().history(History::KeepLast { depth: 10 })
 }
 
 fn qos_service() -> QosProfile {
@@ -199,6 +246,187 @@ pub fn rss_kb() -> u64 {
 
 fn ros_name(full: &str) -> anyhow::Result<Name> {
     Name::parse(full).map_err(|e| anyhow::anyhow!("ROS name {full:?}: {e:?}"))
+}
+
+fn from_parameter(name: &str, v: &ParameterValue) -> Result<ParamValue, String> {
+    Ok(match v {
+        ParameterValue::Boolean(b) => ParamValue::Bool(*b),
+        ParameterValue::Integer(i) => ParamValue::Integer(*i),
+        ParameterValue::Double(x) => ParamValue::Double(*x),
+        ParameterValue::String(s) => ParamValue::String(s.clone()),
+        ParameterValue::NotSet => {
+            return Err(format!(
+                "{name} cannot be unset at run time (restart the node without it)"
+            ))
+        }
+        _ => return Err(format!("{name}: arrays are not among this node's parameter types")),
+    })
+}
+
+/// The parameter services' rules: before the node is up every declared value
+/// passes (they were checked at start-up); after, a parameter that may change
+/// at run time is checked by building the settings it would give, and taken
+/// to the processing thread, which applies it from the next frame; the others
+/// are refused with the reason.
+#[derive(Clone)]
+struct ParamGate {
+    started: Arc<AtomicBool>,
+    current: Arc<Mutex<BTreeMap<String, ParamValue>>>,
+    runtime: Vec<&'static str>,
+    reconfigure: Reconfigure,
+    inbox: Arc<Inbox<Token>>,
+}
+
+impl ParamGate {
+    fn new(s: &NodeSettings, inbox: Arc<Inbox<Token>>) -> Self {
+        // The parameters as given: the settings read from them at start-up are the node's.
+        let current = s.params.iter().cloned().collect();
+        Self {
+            started: Arc::new(AtomicBool::new(false)),
+            current: Arc::new(Mutex::new(current)),
+            runtime: s.runtime_params.clone(),
+            reconfigure: s.reconfigure,
+            inbox,
+        }
+    }
+
+    fn start(&self) {
+        self.started.store(true, Ordering::SeqCst);
+    }
+
+    fn with_change(&self, name: &str, value: &ParameterValue) -> Result<BTreeMap<String, ParamValue>, String> {
+        if qos_overrides::is_override(name) {
+            return Err(format!(
+                "{name} is read at start-up: restart the node with it (-p or --params-file)"
+            ));
+        }
+        if !self.runtime.contains(&name) {
+            return Err(format!(
+                "{name} cannot change at run time: restart the node with it (-p or --params-file); run-time parameters: {}",
+                self.runtime.join(", ")
+            ));
+        }
+        let v = from_parameter(name, value)?;
+        let mut p = self
+            .current
+            .lock()
+            .map_err(|_| "parameter state poisoned".to_string())?
+            .clone();
+        p.insert(name.to_string(), v);
+        Ok(p)
+    }
+
+    fn check(&self, name: &str, value: &ParameterValue) -> Result<(), String> {
+        if !self.started.load(Ordering::SeqCst) {
+            return Ok(());
+        }
+        let p = self.with_change(name, value)?;
+        (self.reconfigure)(&p).map(|_| ())
+    }
+
+    fn apply(&self, name: &str, value: &ParameterValue) -> Result<(), String> {
+        if !self.started.load(Ordering::SeqCst) {
+            return Ok(());
+        }
+        let p = self.with_change(name, value)?;
+        let settings = (self.reconfigure)(&p)?;
+        if let Ok(mut c) = self.current.lock() {
+            *c = p;
+        }
+        let forget_evidence = matches!(name, "xi" | "xi_method" | "physics");
+        self.inbox
+            .push_command(Command::Reconfigure(Box::new(settings), forget_evidence));
+        info!("parameter {name} set to {value:?}: applies from the next frame");
+        Ok(())
+    }
+}
+
+/// What the processing thread reports for `/diagnostics`.
+#[derive(Debug, Clone, Default)]
+struct Live {
+    published: u64,
+    latched_frames: u64,
+    dropped: BTreeMap<DropCause, u64>,
+    latch: &'static str,
+    xi: Option<[f64; 3]>,
+    xi_method: String,
+    processing_ms: [f64; 3],
+}
+
+/// What the DDS side counted.
+struct Inputs<'a> {
+    counts: &'a NodeStats,
+    unpaired: u64,
+    queue_full: u64,
+    read_errors: u64,
+}
+
+/// The node's `/diagnostics` message: one status with its figures.
+fn diagnostics_message(node_fqn: &str, stamp_ns: u64, i: &Inputs, l: &Live) -> DiagnosticArray {
+    let mut dropped = l.dropped.clone();
+    for (cause, n) in [
+        (DropCause::Unpaired, i.unpaired),
+        (DropCause::QueueFull, i.queue_full),
+        (DropCause::BadImage, i.read_errors),
+    ] {
+        if n > 0 {
+            *dropped.entry(cause).or_insert(0) += n;
+        }
+    }
+    let kv = |k: &str, v: String| KeyValue {
+        key: k.into(),
+        value: v,
+    };
+    let mut values = vec![
+        kv("depth_received", i.counts.depth_received.to_string()),
+        kv("ir_received", i.counts.ir_received.to_string()),
+        kv("camera_info_received", i.counts.info_received.to_string()),
+        kv("frames_in", i.counts.pairs.to_string()),
+        kv("frames_out", l.published.to_string()),
+        kv("latched_frames", l.latched_frames.to_string()),
+        kv("latch", l.latch.to_string()),
+    ];
+    for (cause, n) in &dropped {
+        let name = serde_json::to_value(cause)
+            .ok()
+            .and_then(|v| v.as_str().map(String::from))
+            .unwrap_or_else(|| format!("{cause:?}"));
+        values.push(kv(&format!("dropped_{name}"), n.to_string()));
+    }
+    if let Some([xi, lo, hi]) = l.xi {
+        values.push(kv("xi", format!("{xi:.4}")));
+        values.push(kv("xi_interval", format!("[{lo:.4}, {hi:.4}]")));
+        values.push(kv("xi_method", l.xi_method.clone()));
+    }
+    let [median, p95, max] = l.processing_ms;
+    if median.is_finite() {
+        values.push(kv("processing_ms_median", format!("{median:.2}")));
+        values.push(kv("processing_ms_p95", format!("{p95:.2}")));
+        values.push(kv("processing_ms_max", format!("{max:.2}")));
+    }
+    let (level, message) = if l.latch != "latched" {
+        (
+            DiagnosticStatus::WARN,
+            format!("no background latched ({}); call ~/latch_background", l.latch),
+        )
+    } else if l.published == 0 {
+        (
+            DiagnosticStatus::WARN,
+            "background latched; no frame published yet".into(),
+        )
+    } else {
+        (DiagnosticStatus::OK, format!("{} frames published", l.published))
+    };
+    DiagnosticArray {
+        header: Header::new(stamp_ns, ""),
+        status: vec![DiagnosticStatus {
+            level,
+            name: format!("{}: pipeline", node_fqn.trim_start_matches('/')),
+            message,
+            hardware_id: node_fqn.to_string(),
+            values,
+        }],
+    }
 }
 
 fn to_parameter(v: &ParamValue) -> ParameterValue {
@@ -267,19 +495,59 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     // Rerun first: a bad target is an error before anything appears on DDS.
     let viz = VizSink::start(&s.rerun, "translucent_tof", 2).map_err(|e| anyhow::anyhow!(e))?;
     let ctx = context(s.domain_id, s.localhost_only)?;
+    let r = |n: &str| s.names.resolve(n);
+    // Each output's QoS: the default, changed by `qos_overrides./TOPIC.publisher.*`.
+    let given: BTreeMap<String, ParamValue> = s.params.iter().cloned().collect();
+    let outputs_qos: Vec<(String, QosProfile)> = [
+        (names::CORRECTED, qos_outputs()),
+        (names::CORRECTED_INFO, qos_outputs()),
+        (names::MASK, qos_outputs()),
+        (names::POINTS, qos_outputs()),
+        (names::TRANSLUCENCY, qos_estimate()),
+        (names::DIAGNOSTICS, qos_diagnostics()),
+    ]
+    .into_iter()
+    .map(|(n, base)| {
+        let full = r(n)?;
+        let q = qos_overrides::apply(&base, &full, &given)?;
+        Ok((full, q))
+    })
+    .collect::<anyhow::Result<_>>()?;
+    let topics: Vec<String> = outputs_qos.iter().map(|(t, _)| t.clone()).collect();
+    qos_overrides::check_names(given.keys(), &topics)?;
+    let qos_of = |full: &str| {
+        outputs_qos
+            .iter()
+            .find(|(t, _)| t == full)
+            .map(|(_, q)| q.clone())
+            .unwrap_or_else(qos_outputs)
+    };
+
+    let inbox: Arc<Inbox<Token>> = Arc::new(Inbox::new(s.queue_depth));
+    let gate = ParamGate::new(&s, inbox.clone());
     let mut options = NodeOptions::new().enable_rosout(true);
-    for (k, v) in &s.params {
-        options = options.declare_parameter(k, to_parameter(v));
+    for (k, v) in &s.declared {
+        options = options.declare_parameter(k, v.as_ref().map(to_parameter).unwrap_or(ParameterValue::NotSet));
     }
+    for (t, q) in &outputs_qos {
+        for (k, v) in qos_overrides::describe(t, q) {
+            options = options.declare_parameter(&k, to_parameter(&v));
+        }
+    }
+    let (g1, g2) = (gate.clone(), gate.clone());
+    options = options
+        .parameter_validator(Box::new(move |n, v| g1.check(n, v)))
+        .parameter_set_action(Box::new(move |n, v| g2.apply(n, v)));
     let node_name = NodeName::new(&s.names.namespace, &s.names.node)
         .map_err(|e| anyhow::anyhow!("node name {}: {e:?}", s.names.node_fqn()))?;
     let mut node = ctx
         .new_node(node_name.clone(), options)
         .map_err(|e| anyhow::anyhow!("creating node {}: {e:?}", s.names.node_fqn()))?;
+    gate.start();
+    rlog::attach_rosout(node.logging_handle());
     let spinner = node.spinner().map_err(|e| anyhow::anyhow!("node spinner: {e:?}"))?;
-    tokio::spawn(spinner.spin());
+    let spin_task = tokio::spawn(spinner.spin());
 
-    let r = |n: &str| s.names.resolve(n);
     // Every topic straight on the participant (as ros2-client's create_topic does), with
     // resource limits equal to its KeepLast depth: RustDDS otherwise keeps 64 whole messages
     // in each reader's cache, and up to 8192 not yet acknowledged in each writer's (a
@@ -321,33 +589,34 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         .create_subscription::<CameraInfo>(&t, Some(sensor.clone()))
         .map_err(|e| anyhow::anyhow!("subscribing {info_t}: {e:?}"))?;
 
-    let out_q = qos_outputs();
-    let publisher = |name: &str, ty: &str| -> anyhow::Result<_> {
+    let publisher = |name: &str, pkg: &str, ty: &str| -> anyhow::Result<_> {
         let full = r(name)?;
-        let t = topic(&full, "sensor_msgs", ty, &out_q)?;
-        Ok((full, t))
+        let q = qos_of(&full);
+        let t = topic(&full, pkg, ty, &q)?;
+        Ok((full, t, q))
     };
-    let (corrected_n, corrected_t) = publisher(names::CORRECTED, "Image")?;
-    let (mask_n, mask_t) = publisher(names::MASK, "Image")?;
-    let (points_n, points_t) = publisher(names::POINTS, "PointCloud2")?;
-    let est_n = r(names::TRANSLUCENCY)?;
-    let est_q = qos_estimate();
-    let est_t = topic(&est_n, "translucent_tof", "TranslucencyEstimate", &est_q)?;
     let pe = |n: &str| {
         let n = n.to_string();
         move |e| anyhow::anyhow!("publisher {n}: {e:?}")
     };
+    let (corrected_n, t, q) = publisher(names::CORRECTED, "sensor_msgs", "Image")?;
+    let corrected = node.create_publisher(&t, Some(q)).map_err(pe(&corrected_n))?;
+    let (cinfo_n, t, q) = publisher(names::CORRECTED_INFO, "sensor_msgs", "CameraInfo")?;
+    let corrected_info = node.create_publisher(&t, Some(q)).map_err(pe(&cinfo_n))?;
+    let (mask_n, t, q) = publisher(names::MASK, "sensor_msgs", "Image")?;
+    let mask = node.create_publisher(&t, Some(q)).map_err(pe(&mask_n))?;
+    let (points_n, t, q) = publisher(names::POINTS, "sensor_msgs", "PointCloud2")?;
+    let points = node.create_publisher(&t, Some(q)).map_err(pe(&points_n))?;
+    let (est_n, t, q) = publisher(names::TRANSLUCENCY, "translucent_tof", "TranslucencyEstimate")?;
+    let estimate = node.create_publisher(&t, Some(q)).map_err(pe(&est_n))?;
+    let (diag_n, t, q) = publisher(names::DIAGNOSTICS, "diagnostic_msgs", "DiagnosticArray")?;
+    let diagnostics: Publisher<DiagnosticArray> = node.create_publisher(&t, Some(q)).map_err(pe(&diag_n))?;
     let outputs = Outputs {
-        corrected: node
-            .create_publisher(&corrected_t, Some(out_q.clone()))
-            .map_err(pe(&corrected_n))?,
-        mask: node
-            .create_publisher(&mask_t, Some(out_q.clone()))
-            .map_err(pe(&mask_n))?,
-        points: node
-            .create_publisher(&points_t, Some(out_q.clone()))
-            .map_err(pe(&points_n))?,
-        estimate: node.create_publisher(&est_t, Some(est_q)).map_err(pe(&est_n))?,
+        corrected,
+        corrected_info,
+        mask,
+        points,
+        estimate,
     };
 
     let trigger = ServiceTypeName::new("std_srvs", "Trigger");
@@ -372,7 +641,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         .map_err(|e| anyhow::anyhow!("service {clear_n}: {e:?}"))?;
 
     info!(
-        "{} up on domain {}{}: depth {depth_t}, IR {ir_t}, camera_info {info_t}; publishes {corrected_n}, {points_n}, {mask_n}, {est_n}; services {latch_n}, {clear_n} ({:?} mapping); background_frames {}, xi {}",
+        "{} up on domain {}{}: depth {depth_t}, IR {ir_t}, camera_info {info_t}; publishes {corrected_n}, {cinfo_n}, {points_n}, {mask_n}, {est_n}, {diag_n}; services {latch_n}, {clear_n} ({:?} mapping); background_frames {}, xi {}",
         s.names.node_fqn(),
         s.domain_id,
         if s.localhost_only { " (localhost only)" } else { "" },
@@ -384,16 +653,30 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         }
     );
 
-    let inbox: Arc<Inbox<Token>> = Arc::new(Inbox::new(s.queue_depth));
+    let live = Arc::new(Mutex::new(Live::default()));
     let (reply_tx, mut reply_rx) = tokio::sync::mpsc::unbounded_channel::<(Token, TriggerResponse)>();
     let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<NodeStats>();
     let worker = {
         let inbox = inbox.clone();
         let settings = s.clone();
+        let live = live.clone();
         std::thread::Builder::new()
             .name("pipeline".into())
-            .spawn(move || worker(settings, inbox, outputs, viz, reply_tx, done_tx))?
+            .spawn(move || worker(settings, inbox, outputs, viz, reply_tx, done_tx, live))?
     };
+    if s.latch_on_start {
+        info!(
+            "latch_on_start: the background is latched from the first {} frames",
+            s.background_frames
+        );
+        inbox.push_command(Command::Latch((Service::OnStart, Default::default())));
+    }
+    let mut diag_tick = tokio::time::interval(if s.diagnostics_period.is_zero() {
+        Duration::from_secs(3600 * 24 * 365)
+    } else {
+        s.diagnostics_period
+    });
+    diag_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
 
     let mut depth_stream = std::pin::pin!(depth_sub.async_stream());
     let mut ir_stream = std::pin::pin!(ir_sub.async_stream());
@@ -451,9 +734,28 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
                 None => break,
             },
             Some(((which, id), resp)) = reply_rx.recv() => {
-                let (srv, name) = match which { Service::Latch => (&latch_srv, &latch_n), Service::Clear => (&clear_srv, &clear_n) };
+                let (srv, name) = match which {
+                    Service::Latch => (&latch_srv, &latch_n),
+                    Service::Clear => (&clear_srv, &clear_n),
+                    Service::OnStart => {
+                        if resp.success { info!("latch_on_start: {}", resp.message); } else { warn!("latch_on_start: {}", resp.message); }
+                        continue;
+                    }
+                };
                 if resp.success { info!("{name}: {}", resp.message); } else { warn!("{name}: {}", resp.message); }
                 if let Err(e) = srv.async_send_response(id, resp).await { warn!("sending a service reply: {e:?}"); }
+            },
+            _ = diag_tick.tick(), if !s.diagnostics_period.is_zero() => {
+                let inputs = Inputs {
+                    counts: &counts,
+                    unpaired: pairer.unpaired,
+                    queue_full: inbox.dropped(),
+                    read_errors,
+                };
+                let snapshot = live.lock().map(|l| l.clone()).unwrap_or_default();
+                let stamp = node.time_now().to_nanos();
+                let msg = diagnostics_message(&s.names.node_fqn(), u64::try_from(stamp).unwrap_or(0), &inputs, &snapshot);
+                if let Err(e) = diagnostics.publish(msg) { warn!("publishing {diag_n}: {e:?}"); }
             },
             st = done_rx.recv() => { final_stats = st; break; },
             _ = tokio::signal::ctrl_c() => { info!("SIGINT: shutting down"); break; },
@@ -466,6 +768,12 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         None => done_rx.recv().await.unwrap_or_default(),
     };
     let _ = worker.join();
+    // The spinner's entities (parameter services, /rosout, /clock) go before the
+    // participant: dropped after it, RustDDS logs an error for each of them.
+    drop(node);
+    if tokio::time::timeout(Duration::from_secs(2), spin_task).await.is_err() {
+        warn!("the node's spinner did not stop within 2 s");
+    }
     stats.depth_received = counts.depth_received;
     stats.ir_received = counts.ir_received;
     stats.info_received = counts.info_received;
@@ -516,6 +824,7 @@ fn worker(
     viz: Option<VizSink>,
     replies: tokio::sync::mpsc::UnboundedSender<(Token, TriggerResponse)>,
     done: tokio::sync::mpsc::UnboundedSender<NodeStats>,
+    live: Arc<Mutex<Live>>,
 ) {
     let mut stats = NodeStats::default();
     // The processing pool, this thread its first worker (see `pool_on_current_thread`).
@@ -541,7 +850,28 @@ fn worker(
     let reply = |t: Token, r: TriggerResponse| {
         let _ = replies.send((t, r));
     };
+    let mut last_live = Instant::now() - Duration::from_secs(1);
     loop {
+        if last_live.elapsed() >= Duration::from_millis(250) {
+            if let Ok(mut l) = live.lock() {
+                *l = Live {
+                    published: stats.published,
+                    latched_frames: stats.latched_frames,
+                    dropped: core.drops.by_cause.clone(),
+                    latch: if core.latching() {
+                        "latching"
+                    } else if core.background().is_some() {
+                        "latched"
+                    } else {
+                        "none"
+                    },
+                    xi: stats.xi,
+                    xi_method: core.xi_method().to_string(),
+                    processing_ms: percentiles(&mut latencies.clone()),
+                };
+            }
+            last_live = Instant::now();
+        }
         if let Some((t, r)) = core.check_latch_timeout() {
             reply(t, r);
         }
@@ -564,10 +894,26 @@ fn worker(
                 }
             },
             Next::Command(Command::Latch(t)) => {
-                info!("latch requested: averaging the next {} frames", s.background_frames);
-                if let Err((t, r)) = core.start_latch(t) {
+                info!(
+                    "latch requested: averaging the next {} frames",
+                    core.background_frames()
+                );
+                let started = if t.0 == Service::OnStart {
+                    core.start_latch_waiting(t)
+                } else {
+                    core.start_latch(t)
+                };
+                if let Err((t, r)) = started {
                     reply(t, r);
                 }
+            }
+            Next::Command(Command::Reconfigure(r, forget_evidence)) => {
+                let RuntimeSettings {
+                    config,
+                    background_frames,
+                    latch_timeout,
+                } = *r;
+                core.reconfigure(config, background_frames, latch_timeout, forget_evidence);
             }
             Next::Command(Command::Clear(t)) => {
                 let (r, cancelled) = core.clear();
@@ -595,9 +941,11 @@ fn worker(
                     // The corrected depth first (most consumers wait for it alone), then the
                     // rest is made and published.
                     let first = out.corrected.publish(std::mem::take(&mut o.corrected)).err();
+                    let info = out.corrected_info.publish(std::mem::take(&mut o.camera_info)).err();
                     let c = o.companions();
                     let mut results = vec![
                         first.map(|e| format!("{e:?}")),
+                        info.map(|e| format!("{e:?}")),
                         out.mask.publish(c.mask).err().map(|e| format!("{e:?}")),
                         out.points.publish(c.points).err().map(|e| format!("{e:?}")),
                     ];
@@ -605,7 +953,12 @@ fn worker(
                         results.push(out.estimate.publish(e).err().map(|e| format!("{e:?}")));
                     }
                     if let Some(e) = results.into_iter().flatten().next() {
-                        error!("publishing: {e}");
+                        // The error's kind only: its Debug form carries the whole message.
+                        let kind = e.split([' ', '{', '(']).next().unwrap_or("").to_string();
+                        stats.publish_failures += 1;
+                        if stats.publish_failures == 1 {
+                            warn!("publishing an output failed ({kind}; a reliable reader is not keeping up?); further failures are counted (publish_failures)");
+                        }
                     }
                     stats.published += 1;
                     let xi = &o.frame.xi;

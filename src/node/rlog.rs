@@ -1,6 +1,7 @@
 //! Log lines as ROS 2 prints them (`[INFO] [1700000000.123456789] [node]: message`)
 //! on standard error, through the `log` facade. The node's own records go at
-//! the chosen level; the DDS stack's only at warnings and above.
+//! the chosen level; the DDS stack's only at errors. Once the node is up
+//! ([`attach_rosout`]), the node's own records also go to `/rosout`.
 
 use std::io::Write;
 use std::sync::OnceLock;
@@ -11,6 +12,12 @@ struct RosStyle {
 }
 
 static LOGGER: OnceLock<RosStyle> = OnceLock::new();
+static ROSOUT: OnceLock<ros2_client::NodeLoggingHandle> = OnceLock::new();
+
+/// Sends the node's own log records to `/rosout` too, from now on.
+pub fn attach_rosout(handle: ros2_client::NodeLoggingHandle) {
+    let _ = ROSOUT.set(handle);
+}
 
 impl log::Log for RosStyle {
     fn enabled(&self, m: &log::Metadata) -> bool {
@@ -36,11 +43,27 @@ impl log::Log for RosStyle {
             log::Level::Info => "INFO",
             log::Level::Debug | log::Level::Trace => "DEBUG",
         };
-        let who = if r.target().starts_with("translucent_tof") {
-            self.node.as_str()
-        } else {
-            r.target()
-        };
+        let ours = r.target().starts_with("translucent_tof");
+        let who = if ours { self.node.as_str() } else { r.target() };
+        if let (true, Some(h)) = (ours, ROSOUT.get()) {
+            use ros2_client::RosoutRaw;
+            let level = match r.level() {
+                log::Level::Error => ros2_client::log::LogLevel::Error,
+                log::Level::Warn => ros2_client::log::LogLevel::Warn,
+                log::Level::Info => ros2_client::log::LogLevel::Info,
+                log::Level::Debug | log::Level::Trace => ros2_client::log::LogLevel::Debug,
+            };
+            let stamp = ros2_client::builtin_interfaces::Time::now();
+            h.rosout_raw(
+                stamp,
+                level,
+                &self.node.trim_start_matches('/').replace('/', "."),
+                &r.args().to_string(),
+                r.file().unwrap_or(""),
+                r.module_path().unwrap_or(""),
+                r.line().unwrap_or(0),
+            );
+        }
         let _ = writeln!(
             std::io::stderr().lock(),
             "[{level}] [{}.{:09}] [{who}]: {}",

@@ -28,7 +28,9 @@ pub enum RosArgsError {
         why: &'static str,
     },
     /// Something rcl knows but this node does not.
-    #[error("--ros-args: {0} is not supported by this node (supported: -r/--remap, -p/--param, --log-level)")]
+    #[error(
+        "--ros-args: {0} is not supported by this node (supported: -r/--remap, -p/--param, --params-file, --log-level)"
+    )]
     Unsupported(String),
 }
 
@@ -99,6 +101,12 @@ pub struct RosArgs {
     pub remaps: Vec<(String, String)>,
     /// `-p` parameters (the last one given wins).
     pub params: BTreeMap<String, ParamValue>,
+    /// `--params-file` files, each with the number of `-p` given before it: a
+    /// file overrides the `-p` before it and is overridden by those after, as
+    /// in rcl.
+    pub params_files: Vec<(std::path::PathBuf, usize)>,
+    /// Every `-p` in the order given.
+    pub param_order: Vec<(String, ParamValue)>,
     /// `--log-level` (`debug`, `info`, `warn`, `error`, `fatal`), if given.
     pub log_level: Option<String>,
 }
@@ -134,6 +142,11 @@ impl RosArgs {
                         arg: v.clone(),
                     })?;
                     out.params.insert(k.to_string(), ParamValue::parse(val));
+                    out.param_order.push((k.to_string(), ParamValue::parse(val)));
+                }
+                "--params-file" => {
+                    let v = it.next().ok_or_else(|| RosArgsError::MissingValue(a.clone()))?;
+                    out.params_files.push((v.into(), out.param_order.len()));
                 }
                 "--log-level" => {
                     let v = it.next().ok_or_else(|| RosArgsError::MissingValue(a.clone()))?;
@@ -158,6 +171,23 @@ impl RosArgs {
             _ => self.remaps.push((from.to_string(), to.to_string())),
         }
         Ok(())
+    }
+
+    /// The parameters for the node `node_fqn`: the parameter files' entries for it
+    /// and the `-p` ones, in the order given (a later one wins).
+    pub fn resolved_params(
+        &self,
+        node_fqn: &str,
+    ) -> Result<BTreeMap<String, ParamValue>, super::params_file::ParamsFileError> {
+        let mut out = BTreeMap::new();
+        let mut taken = 0;
+        for (file, before) in &self.params_files {
+            out.extend(self.param_order[taken..*before].iter().cloned());
+            taken = *before;
+            out.extend(super::params_file::load(file, node_fqn)?);
+        }
+        out.extend(self.param_order[taken..].iter().cloned());
+        Ok(out)
     }
 }
 

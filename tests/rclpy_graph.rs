@@ -1,0 +1,267 @@
+//! The node in a ROS 2 graph of rclpy on Fast DDS (rmw_fastrtps_cpp, ROS 2's
+//! default middleware; the PyPI `ros-*` packages installed by
+//! scripts/setup-python.sh), in a private network namespace: a latch called
+//! before the first frame, every output received with default and
+//! sensor-data QoS, the parameter services, a params file, QoS overrides,
+//! /diagnostics, /rosout, and a shutdown without ERROR lines.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::netns::isolated;
+use serde_json::Value;
+
+fn python() -> String {
+    std::env::var("TTOF_PYTHON").unwrap_or_else(|_| format!("{}/.venv/bin/python", env!("CARGO_MANIFEST_DIR")))
+}
+
+fn root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn check_python() -> String {
+    let py = python();
+    let check = Command::new(&py)
+        .args(["-c", "import rclpy, sensor_msgs, std_srvs, diagnostic_msgs, mcap_ros2"])
+        .output();
+    assert!(
+        check.as_ref().is_ok_and(|o| o.status.success()),
+        "{py} lacks rclpy / the ROS message packages: run bash scripts/setup-python.sh (scripts/test does)"
+    );
+    py
+}
+
+/// The node as a child process, its standard error in a file.
+struct Node {
+    child: Child,
+    log: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+impl Node {
+    fn start(args: &[&str]) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let log = dir.path().join("node.log");
+        let child = Command::new(env!("CARGO_BIN_EXE_translucent_tof"))
+            .arg("node")
+            .args(["--ros-args", "-r", "__ns:=/tof"])
+            .args(args)
+            .stdin(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        Node { child, log, _dir: dir }
+    }
+
+    /// Stops the node with `signal`; returns its log.
+    fn stop(mut self, signal: &str) -> String {
+        Command::new("kill")
+            .args([signal, &self.child.id().to_string()])
+            .status()
+            .unwrap();
+        let t0 = Instant::now();
+        let status = loop {
+            if let Some(s) = self.child.try_wait().unwrap() {
+                break s;
+            }
+            assert!(t0.elapsed() < Duration::from_secs(20), "node did not stop on {signal}");
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        let log = std::fs::read_to_string(&self.log).unwrap_or_default();
+        assert!(status.success(), "node exited with {status}: {log}");
+        log
+    }
+}
+
+impl Drop for Node {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn peer(py: &str, bag: &Path, background: usize, extra: &[&str]) -> Value {
+    let out = Command::new(py)
+        .arg(root().join("tests/py/rclpy_peer.py"))
+        .arg(bag)
+        .args(["/tof", "/tof/translucent_tof", "--background", &background.to_string()])
+        .args(extra)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "rclpy peer failed: {stderr}");
+    let r: Value = serde_json::from_slice(&out.stdout).expect("peer prints JSON");
+    eprintln!("{}", serde_json::to_string_pretty(&r).unwrap());
+    r
+}
+
+fn fraction(r: &Value, key: &str) -> f64 {
+    r["received"][key].as_f64().unwrap() / r["sent"].as_f64().unwrap()
+}
+
+fn no_error_lines(log: &str) {
+    let errors: Vec<&str> = log.lines().filter(|l| l.contains("[ERROR]")).collect();
+    assert!(
+        errors.is_empty(),
+        "ERROR lines in the node's log:\n{}",
+        errors.join("\n")
+    );
+}
+
+#[test]
+fn rclpy_on_fast_dds_latches_early_receives_every_output_and_sets_parameters() {
+    if !isolated("rclpy_on_fast_dds_latches_early_receives_every_output_and_sets_parameters") {
+        return;
+    }
+    let py = check_python();
+    // The bundled bag is rendered with the paper's model.
+    let node = Node::start(&["-p", "background_frames:=4", "-p", "xi:=0.65", "-p", "physics:=paper"]);
+    let frames = 100;
+    let r = peer(
+        &py,
+        &root().join("bags/document_holder.mcap"),
+        10,
+        &["--rate", "10", "--frames", &frames.to_string(), "--params"],
+    );
+    let log = node.stop("-INT");
+    assert_eq!(r["rmw"], "rmw_fastrtps_cpp");
+    // The latch waited for camera_info and frames, then succeeded.
+    assert_eq!(r["latch_answered_before_frames"], false, "{r}");
+    assert_eq!(r["latch_success"], true, "{r}");
+    assert!(r["latch_message"].as_str().unwrap().contains("latched 4 frames"), "{r}");
+    // Outputs reliable (so default-QoS readers match), the estimate transient-local.
+    assert_eq!(r["points_qos"]["reliability"], "RELIABLE");
+    assert_eq!(r["estimate_durability"], "TRANSIENT_LOCAL");
+    assert_eq!(r["sent"], frames);
+    // Every frame the node published (it drops the oldest when processing falls
+    // behind: see /diagnostics' dropped_queue_full) reached the reliable readers of
+    // the small outputs; the clouds are measured by the ignored test below.
+    let published = r["received"]["corrected_default"].as_u64().unwrap();
+    assert!(published > 0, "{r}");
+    for key in ["camera_info_default", "mask_default"] {
+        assert_eq!(r["received"][key].as_u64(), Some(published), "{key}: {r}");
+    }
+    for key in ["corrected_sensor", "camera_info_sensor", "mask_sensor"] {
+        assert!(r["received"][key].as_u64().unwrap() > 0, "{key}: {r}");
+    }
+    // The camera_info beside the corrected depth: the same stamp, the camera's K.
+    assert_eq!(r["camera_info_matching"], r["received"]["corrected_default"]);
+    assert_eq!(r["cloud"]["width"], 176);
+    assert_eq!(r["cloud"]["height"], 144);
+    assert_eq!(
+        r["cloud"]["fields"],
+        serde_json::json!(["x", "y", "z", "intensity", "translucent"])
+    );
+    // Against the bag's ground truth.
+    let (raw, rec) = (r["rmse_raw_mm"].as_f64().unwrap(), r["rmse_mm"].as_f64().unwrap());
+    assert!(rec < raw / 3.0, "recovered {rec:.1} mm against raw {raw:.1} mm");
+    // Parameters: listed, read, one refused with its reason, one set that applies next frame.
+    let names: Vec<&str> = r["parameters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    for n in [
+        "xi",
+        "threshold_mm",
+        "background_frames",
+        "physics",
+        "use_sim_time",
+        "latch_on_start",
+        "qos_overrides./tof/translucent_tof/points.publisher.reliability",
+    ] {
+        assert!(names.contains(&n), "{n} not listed: {names:?}");
+    }
+    assert_eq!(r["get"], serde_json::json!([30.0, 0.65, 4]));
+    assert_eq!(r["set_queue_depth"]["successful"], false);
+    assert!(r["set_queue_depth"]["reason"]
+        .as_str()
+        .unwrap()
+        .contains("cannot change at run time"));
+    assert_eq!(r["set_bad_threshold"]["successful"], false, "{r}");
+    assert_eq!(r["set_threshold"]["successful"], true, "{r}");
+    assert!(r["mask_before_set"].as_u64().unwrap() > 500, "{r}");
+    assert_eq!(
+        r["mask_after_set"], 0,
+        "the frame after the change still segmented: {r}"
+    );
+    assert_eq!(r["threshold_after_set"], 100000.0);
+    assert_eq!(r["clear_success"], true);
+    // /diagnostics and /rosout.
+    assert!(r["diagnostics_messages"].as_u64().unwrap() >= 1, "{r}");
+    let v = &r["diagnostics"]["values"];
+    assert!(
+        v["frames_out"].as_str().unwrap().parse::<u64>().unwrap() >= published,
+        "{r}"
+    );
+    assert_eq!(v["xi"], "0.6500");
+    assert!(r["rosout_lines"].as_u64().unwrap() >= 1, "{r}");
+    no_error_lines(&log);
+}
+
+#[test]
+fn params_file_and_qos_override_reach_the_publishers_and_sigterm_is_clean() {
+    if !isolated("params_file_and_qos_override_reach_the_publishers_and_sigterm_is_clean") {
+        return;
+    }
+    let py = check_python();
+    let dir = tempfile::tempdir().unwrap();
+    let params = dir.path().join("params.yaml");
+    std::fs::write(
+        &params,
+        "/**:\n  ros__parameters:\n    background_frames: 3\n    xi: 0.3\n\
+         /tof/translucent_tof:\n  ros__parameters:\n    xi: 0.65\n    qos_overrides:\n      \
+         /tof/translucent_tof/points:\n        publisher:\n          reliability: best_effort\n",
+    )
+    .unwrap();
+    let node = Node::start(&["--params-file", params.to_str().unwrap()]);
+    let r = peer(
+        &py,
+        &root().join("bags/document_holder.mcap"),
+        10,
+        &["--rate", "10", "--frames", "20", "--params"],
+    );
+    let log = node.stop("-TERM");
+    assert_eq!(r["latch_success"], true, "{r}");
+    assert!(r["latch_message"].as_str().unwrap().contains("latched 3 frames"), "{r}");
+    // The file's node section wins over its wildcard one.
+    assert_eq!(r["get"][1], 0.65);
+    // A best-effort writer: a reliable (default-QoS) reader does not match it.
+    assert_eq!(r["points_qos"]["reliability"], "BEST_EFFORT");
+    assert_eq!(r["received"]["points_default"], 0, "{r}");
+    // The other outputs keep their reliable default.
+    assert!(r["received"]["corrected_default"].as_u64().unwrap() > 0, "{r}");
+    assert!(log.contains("SIGTERM"), "{log}");
+    no_error_lines(&log);
+}
+
+/// Issue 24's goal: 99 % of the clouds (0.5 MB, fragmented) at 176x144 and 10 Hz
+/// to a default-QoS and a sensor-QoS rclpy reader. Not met yet: on the 2-core
+/// test VM (loaded) 8 of 74 published clouds reached the reliable reader and 0
+/// the best-effort one, while every corrected depth, mask and camera_info did.
+/// `cargo test --test rclpy_graph -- --ignored --nocapture` measures it.
+#[test]
+#[ignore = "clouds to Fast DDS readers are lost (issue 24); run with --ignored to measure"]
+fn clouds_reach_fast_dds_readers_at_176x144_10hz() {
+    if !isolated("clouds_reach_fast_dds_readers_at_176x144_10hz") {
+        return;
+    }
+    let py = check_python();
+    let node = Node::start(&["-p", "background_frames:=4", "-p", "xi:=0.65", "-p", "queue_depth:=100"]);
+    let r = peer(
+        &py,
+        &root().join("bags/document_holder.mcap"),
+        10,
+        &["--rate", "10", "--frames", "100"],
+    );
+    let log = node.stop("-INT");
+    for qos in ["default", "sensor"] {
+        let f = fraction(&r, &format!("points_{qos}"));
+        assert!(f >= 0.99, "points with {qos} QoS: {f:.3} of the clouds delivered");
+    }
+    no_error_lines(&log);
+}
