@@ -275,6 +275,9 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
         &[
             "replay",
             input.to_str().unwrap(),
+            // The bundled bags are the simulator's, which speaks the paper's model.
+            "--physics",
+            "paper",
             "--out",
             "out.mcap",
             "--json",
@@ -426,6 +429,9 @@ fn replay_with_fixed_xi_reports_fixed() {
         &[
             "replay",
             input.to_str().unwrap(),
+            // The bundled bags are the simulator's, which speaks the paper's model.
+            "--physics",
+            "paper",
             "--xi",
             "0.65",
             "--out",
@@ -452,7 +458,7 @@ fn replay_with_the_portable_code_gives_the_same_bag() {
     let input = bundled("document_holder.mcap");
     for (out, portable) in [("vector.mcap", "0"), ("portable.mcap", "1")] {
         let o = Command::new(env!("CARGO_BIN_EXE_translucent_tof"))
-            .args(["replay", input.to_str().unwrap(), "--out", out])
+            .args(["replay", input.to_str().unwrap(), "--physics", "paper", "--out", out])
             .env("TTOF_PORTABLE", portable)
             .current_dir(dir.path())
             .output()
@@ -497,6 +503,9 @@ fn replay_json_to_stdout_is_pure_json() {
         &[
             "replay",
             input.to_str().unwrap(),
+            // The bundled bags are the simulator's, which speaks the paper's model.
+            "--physics",
+            "paper",
             "--xi",
             "0.65",
             "--out",
@@ -561,7 +570,16 @@ fn simulate_random_scene_then_replay_recovers_xi() {
 
     let out = run(
         dir.path(),
-        &["replay", "scene.mcap", "--out", "rec.mcap", "--json", "report.json"],
+        &[
+            "replay",
+            "scene.mcap",
+            "--physics",
+            "paper",
+            "--out",
+            "rec.mcap",
+            "--json",
+            "report.json",
+        ],
     );
     assert_ok(&out);
     let r = read_json(&dir.path().join("report.json"));
@@ -593,6 +611,8 @@ fn calibrate_lin_then_replay_candle_with_it() {
         &[
             "replay",
             candle.to_str().unwrap(),
+            "--physics",
+            "paper",
             "--lin-calibration",
             "lin.json",
             "--out",
@@ -620,7 +640,14 @@ fn calibrate_xi_on_model_validation_bag() {
     let bag = bundled("model_validation_xi072.mcap");
     let out = run(
         dir.path(),
-        &["calibrate-xi", bag.to_str().unwrap(), "--json", "xi.json"],
+        &[
+            "calibrate-xi",
+            bag.to_str().unwrap(),
+            "--physics",
+            "paper",
+            "--json",
+            "xi.json",
+        ],
     );
     assert_ok(&out);
     let r = read_json(&dir.path().join("xi.json"));

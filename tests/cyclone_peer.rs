@@ -40,6 +40,9 @@ fn cyclone_peer_latches_and_receives_points_and_xi() {
             "service_mapping:=cyclone",
             "-p",
             "background_frames:=4",
+            // The bag is the simulator's, which speaks the paper's model.
+            "-p",
+            "physics:=paper",
         ])
         .stdin(Stdio::null())
         .spawn()

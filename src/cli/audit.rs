@@ -149,8 +149,19 @@ pub fn run(a: AuditArgs) -> Result<()> {
     }
     let report = report(&a, &result, &physics, before, after, &plots, &bg.how, &stats);
     let mut summary = format!(
-        "baseline (paper's model): xi {:.3}, depth RMSE {:.1} mm, held-out {:.1} mm ({} pixels, {} frames)\n",
-        result.baseline.xi, result.baseline.rmse_mm, result.baseline.heldout_rmse_mm, result.pixels, result.frames
+        "baseline ({} physics): xi {:.3}, depth RMSE {:.1} mm, held-out {:.1} mm ({} pixels, {} frames)\n",
+        if base.options == crate::physics::ModelOptions::paper() {
+            "the paper's"
+        } else if base.options == crate::physics::ModelOptions::physical() {
+            "the default"
+        } else {
+            "the given"
+        },
+        result.baseline.xi,
+        result.baseline.rmse_mm,
+        result.baseline.heldout_rmse_mm,
+        result.pixels,
+        result.frames
     );
     if result.steps.is_empty() {
         summary += "no effect left out: no candidate improves the held-out error beyond the noise\n";

@@ -358,17 +358,17 @@ struct Inputs<'a> {
     counts: &'a NodeStats,
     unpaired: u64,
     queue_full: u64,
-    read_errors: u64,
+    /// Samples refused before pairing (malformed, oversized), by cause.
+    intake: &'a std::collections::BTreeMap<DropCause, u64>,
 }
 
 /// The node's `/diagnostics` message: one status with its figures.
 fn diagnostics_message(node_fqn: &str, stamp_ns: u64, i: &Inputs, l: &Live) -> DiagnosticArray {
     let mut dropped = l.dropped.clone();
-    for (cause, n) in [
-        (DropCause::Unpaired, i.unpaired),
-        (DropCause::QueueFull, i.queue_full),
-        (DropCause::BadImage, i.read_errors),
-    ] {
+    for (cause, n) in [(DropCause::Unpaired, i.unpaired), (DropCause::QueueFull, i.queue_full)]
+        .into_iter()
+        .chain(i.intake.iter().map(|(c, n)| (*c, *n)))
+    {
         if n > 0 {
             *dropped.entry(cause).or_insert(0) += n;
         }
@@ -750,7 +750,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
                     counts: &counts,
                     unpaired: pairer.unpaired,
                     queue_full: inbox.dropped(),
-                    read_errors,
+                    intake: &intake.drops.by_cause,
                 };
                 let snapshot = live.lock().map(|l| l.clone()).unwrap_or_default();
                 let stamp = node.time_now().to_nanos();

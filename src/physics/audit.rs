@@ -1222,12 +1222,13 @@ pub fn run_audit_with_progress(
 }
 
 /// Physical ranges of the effects' parameters: a fit outside them is not claimed.
-/// The harmonics' bounds are a square wave's correlation (the triangle: 1/9 and 1/25 of the
-/// fundamental), the richest a CW sensor's waveform is; `L2 = Ib xi^2 X^p` with `p` from 0
-/// (light crossing the layer) to 2 (the paper's Eq. 2); a delay and an offset are not negative.
+/// The harmonics' bounds are a square wave's (1/3 and 1/5 of the fundamental: square
+/// emission read through short windows), the richest correlation a CW sensor has;
+/// `L2 = Ib xi^2 X^p` with `p` from 0 (light crossing the layer) to 2 (the paper's Eq. 2);
+/// a delay and an offset are not negative.
 pub const PHYSICAL_RANGES: &[(&str, f64, f64)] = &[
-    ("third", -1.0 / 9.0, 1.0 / 9.0),
-    ("fifth", -1.0 / 25.0, 1.0 / 25.0),
+    ("third", -1.0 / 3.0, 1.0 / 3.0),
+    ("fifth", -1.0 / 5.0, 1.0 / 5.0),
     ("transmission_albedo_power", 0.0, 2.0),
     ("subsurface_delay_mm", 0.0, 200.0),
     ("ambient_offset", 0.0, f64::INFINITY),

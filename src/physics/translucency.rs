@@ -571,67 +571,10 @@ fn distinct_poses(profiles: &[FrameProfile]) -> usize {
     1 + d.windows(2).filter(|w| w[1] - w[0] > (0.05 * w[0]).max(50.0)).count()
 }
 
-/// The poses of the frames (clusters of their median distances, as [`distinct_poses`]
-/// finds them): each frame's pose index.
-fn pose_of_frames(profiles: &[FrameProfile]) -> Vec<Option<usize>> {
-    let mut d: Vec<f64> = profiles
-        .iter()
-        .map(|p| p.median_distance_mm)
-        .filter(|d| d.is_finite())
-        .collect();
-    d.sort_by(f64::total_cmp);
-    let starts: Vec<f64> = d
-        .iter()
-        .enumerate()
-        .filter(|&(i, &x)| i == 0 || x - d[i - 1] > (0.05 * d[i - 1]).max(50.0))
-        .map(|(_, &x)| x)
-        .collect();
-    profiles
-        .iter()
-        .map(|p| {
-            let x = p.median_distance_mm;
-            x.is_finite()
-                .then(|| starts.iter().filter(|&&s| s <= x).count().saturating_sub(1))
-        })
-        .collect()
-}
-
-/// Half-width (97.5 % Student t) of the jackknife over poses of the one-material ξ; `None`
-/// with fewer than three poses or when an estimate leaving one out is not determined.
-fn pose_jackknife_half_width(profiles: &[FrameProfile]) -> Option<f64> {
-    let poses = pose_of_frames(profiles);
-    let n = poses.iter().flatten().max().map_or(0, |m| m + 1);
-    if n < 3 {
-        return None;
-    }
-    let grid = xi_grid();
-    let mut estimates = Vec::with_capacity(n);
-    for leave in 0..n {
-        let kept: Vec<FrameProfile> = profiles
-            .iter()
-            .zip(&poses)
-            .filter(|(_, p)| **p != Some(leave))
-            .map(|(f, _)| f.clone())
-            .collect();
-        let ok = eligible(&kept);
-        let q: Vec<f64> = one_material_objective(&kept)
-            .iter()
-            .zip(&ok)
-            .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
-            .collect();
-        let (k, _) = argmin(&q)?;
-        estimates.push(refine_minimum(&grid, &q, k));
-    }
-    let m = estimates.iter().sum::<f64>() / n as f64;
-    let var = (n as f64 - 1.0) / n as f64 * estimates.iter().map(|x| (x - m).powi(2)).sum::<f64>();
-    Some(student_t975(n - 1) * var.sqrt())
-}
-
 /// ξ as one material (physics.md §3, item 2), pooled over the frames given.
 ///
 /// The interval is where `Q` rises by less than 3.84 times the overdispersion
-/// `max(1, Q_min / (G - 2))` above its minimum, widened to the jackknife over
-/// poses where there are three or more (a profile-likelihood interval
+/// `max(1, Q_min / (G - 2))` above its minimum (a profile-likelihood interval
 /// that widens when the groups scatter more than their errors say), widened
 /// by half a grid step. With fewer than three groups, or the object seen in
 /// one pose only, it is the whole admissible range: the data cannot tell
@@ -679,12 +622,7 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         });
     }
     let phi = (qmin / (groups as f64 - 2.0)).max(1.0);
-    let mut interval = cover(threshold_interval(&grid, &q, kmin, qmin + 3.84 * phi), xi);
-    // What the model leaves out shifts ξ from pose to pose more than the noise says: the
-    // interval also covers the spread of the estimates that leave one pose out (jackknife).
-    if let Some(half) = pose_jackknife_half_width(profiles) {
-        interval = [interval[0].min(xi - half).max(0.0), interval[1].max(xi + half).min(1.0)];
-    }
+    let interval = cover(threshold_interval(&grid, &q, kmin, qmin + 3.84 * phi), xi);
     Some(XiEstimate {
         xi,
         interval,

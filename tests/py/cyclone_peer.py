@@ -112,6 +112,9 @@ class TranslucencyEstimate(IdlStruct, typename="translucent_tof::msg::dds_::Tran
     translucent_pixels: uint32
     fit_residual_mm: float64
     frames_pooled: uint32
+    region_id: uint32
+    region_pixels: uint32
+    opaque: bool
 
 
 # rmw_cyclonedds: every request and reply starts with the client's guid and a sequence number.
