@@ -1170,7 +1170,8 @@ mod tests {
     use crate::physics::model::{IrMode, ModelOptions};
     use crate::physics::sensor::{Sensor, Waveform};
 
-    fn observe(model: &ForwardModel, df: f64, db: f64, xi: f64, x: f64, xb: f64) -> PixelObservation {
+    /// A pixel's observation of a layer as `model` renders it (shared with the phasor path's tests).
+    pub(super) fn observe(model: &ForwardModel, df: f64, db: f64, xi: f64, x: f64, xb: f64) -> PixelObservation {
         let lin = 1.5e10;
         let s = LayerScene {
             foreground_distance_mm: df,

@@ -134,26 +134,7 @@ mod tests {
     use super::*;
     use crate::physics::Sensor;
 
-    fn obs_of(model: &ForwardModel, df: f64, db: f64, xi: f64, x: f64, xb: f64) -> PixelObservation {
-        let lin = 4.0e9;
-        let s = LayerScene {
-            foreground_distance_mm: df,
-            background_distance_mm: db,
-            translucency: xi,
-            foreground_albedo_cos: x,
-            background_albedo_cos: xb,
-            emitted_light: lin,
-        };
-        let m = model.measure_layer(&s);
-        let bg = model.measure(&[ForwardModel::opaque_return(db, xb, lin)]);
-        PixelObservation {
-            distance_mm: m.distance_mm,
-            ir: m.ir,
-            background_distance_mm: db,
-            background_ir: bg.ir,
-            emitted_light: lin,
-        }
-    }
+    use super::super::tests::observe as obs_of;
 
     #[test]
     fn recovers_the_layer_of_the_forward_model_exactly() {
