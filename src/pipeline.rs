@@ -670,35 +670,37 @@ impl Pipeline {
     /// carried no evidence of its own (too small) takes the largest material's.
     /// `None` when ξ is to be estimated and there is no estimate at all yet.
     pub fn region_estimates(&self, obs: &Observed) -> Option<Vec<RegionOutput>> {
-        let fallback = self.xi()?;
-        Some(
-            obs.regions
-                .iter()
-                .map(|r| {
-                    let material = r.material.and_then(|id| self.materials.get(id));
-                    let (id, xi) = match (
-                        self.config.xi,
-                        material.and_then(|m| m.estimate.as_ref().map(|e| (m.id, e))),
-                    ) {
-                        (XiChoice::Estimate(_), Some((id, e))) => (id, e.clone()),
-                        _ => (0, fallback.clone()),
-                    };
-                    RegionOutput {
-                        id,
-                        opaque: xi.is_opaque(),
-                        xi,
-                        pixels: r.pixels,
-                    }
-                })
-                .collect(),
-        )
+        Some(self.region_estimates_with(obs, &self.xi()?))
+    }
+
+    /// [`Self::region_estimates`] with the frame's ξ already found.
+    fn region_estimates_with(&self, obs: &Observed, fallback: &XiEstimate) -> Vec<RegionOutput> {
+        obs.regions
+            .iter()
+            .map(|r| {
+                let material = r.material.and_then(|id| self.materials.get(id));
+                let (id, xi) = match (
+                    self.config.xi,
+                    material.and_then(|m| m.estimate.as_ref().map(|e| (m.id, e))),
+                ) {
+                    (XiChoice::Estimate(_), Some((id, e))) => (id, e.clone()),
+                    _ => (0, fallback.clone()),
+                };
+                RegionOutput {
+                    id,
+                    opaque: xi.is_opaque(),
+                    xi,
+                    pixels: r.pixels,
+                }
+            })
+            .collect()
     }
 
     /// Recovery with each region's own ξ ([`Self::region_estimates`]): opaque regions keep
     /// their readings and leave the mask. `None` when there is no estimate yet.
     pub fn recover_regions(&self, frame: &DepthFrame, obs: &Observed) -> Option<FrameOutput> {
         let fallback = self.xi()?;
-        let regions = self.region_estimates(obs)?;
+        let regions = self.region_estimates_with(obs, &fallback);
         Some(self.recover_with(frame, obs, regions, &fallback))
     }
 
@@ -774,11 +776,7 @@ impl Pipeline {
                 // Every region: the frame's own mask and observations, no copy.
                 self.recover_layer(&obs.mask, &obs.observations, *xi, &mut tally, &mut out.corrected_z_mm);
             } else {
-                let mask = ImageBuf {
-                    width: obs.labels.width,
-                    height: obs.labels.height,
-                    data: obs.labels.data.iter().map(|l| labels.contains(l)).collect(),
-                };
+                let mask = label_mask(obs, |l| labels.contains(&l));
                 let Some(observations) = restrict(&obs.observations, &mask) else {
                     continue;
                 };
@@ -1051,12 +1049,16 @@ fn restrict(all: &SparseImage<PixelObservation>, mask: &ImageBuf<bool>) -> Optio
 
 /// The observations of the region labelled `label`.
 fn region_observations(obs: &Observed, label: u32) -> Option<SparseImage<PixelObservation>> {
-    let mask = ImageBuf {
+    restrict(&obs.observations, &label_mask(obs, |l| l == label))
+}
+
+/// The pixels whose region label passes `keep`.
+fn label_mask(obs: &Observed, keep: impl Fn(u32) -> bool) -> ImageBuf<bool> {
+    ImageBuf {
         width: obs.labels.width,
         height: obs.labels.height,
-        data: obs.labels.data.iter().map(|&l| l == label).collect(),
-    };
-    restrict(&obs.observations, &mask)
+        data: obs.labels.data.iter().map(|&l| keep(l)).collect(),
+    }
 }
 
 /// What recovery keeps of a pixel's inversion ([`crate::physics::LayerEstimate`]'s fields it
