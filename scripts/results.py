@@ -15,7 +15,10 @@ Per bag it reports:
 - per translucent material: the ξ estimate of the region its pixels mostly
   fell in, its interval, whether the truth lies inside, and the poses seen;
 - per opaque material: the share of its pixels not in the mask and the
-  median |z error| (mm) of the published depth there.
+  median |z error| (mm) of the published depth there;
+- over those recovered pixels, the share whose error lies within twice the
+  published standard deviation (`depth/corrected_sigma`), and pooled over
+  every bag at the end.
 """
 
 import argparse
@@ -79,9 +82,10 @@ def evaluate(bag, replay_args, exe):
             return {"bag": bag, "error": run.stderr.strip()}
         report = json.load(open(out_json))
         inp = read(bag, ["ground_truth/depth", "ground_truth/material", "depth/image_raw"])
-        res = read(out_bag, ["depth/corrected", "translucent_mask", "regions"])
+        res = read(out_bag, ["depth/corrected", "translucent_mask", "regions", "depth/corrected_sigma"])
     est = {m["id"]: m for m in report.get("materials", [])}
     frame_rms, frame_raw, covered, total = [], [], 0, 0
+    within_2sigma, with_sigma = 0, 0
     region_votes = defaultdict(Counter)
     opaque_flagged, opaque_total, opaque_err = defaultdict(int), defaultdict(int), defaultdict(list)
     stages = defaultdict(set)
@@ -94,6 +98,7 @@ def evaluate(bag, replay_args, exe):
         z = z_mm(corr)
         mask = image_values(res["translucent_mask"][stamp])
         regions = image_values(res["regions"][stamp]) if stamp in res["regions"] else [0] * len(z)
+        sigma = z_mm(res["depth/corrected_sigma"][stamp]) if stamp in res["depth/corrected_sigma"] else [math.nan] * len(z)
         e2, r2, n = 0.0, 0.0, 0
         for i, m in enumerate(mat):
             info = materials.get(m)
@@ -110,6 +115,9 @@ def evaluate(bag, replay_args, exe):
                 region_votes[m][regions[i]] += 1
             if mask[i] and math.isfinite(z[i]):
                 covered += 1
+                if math.isfinite(sigma[i]):
+                    with_sigma += 1
+                    within_2sigma += abs(z[i] - truth[i]) <= 2.0 * sigma[i]
                 e2 += (z[i] - truth[i]) ** 2
                 r2 += (raw[i] - truth[i]) ** 2 if math.isfinite(raw[i]) else 0.0
                 n += 1
@@ -126,6 +134,7 @@ def evaluate(bag, replay_args, exe):
         "mean_frame_rms_mm": statistics.fmean(frame_rms) if frame_rms else None,
         "mean_frame_rms_raw_mm": statistics.fmean(frame_raw) if frame_raw else None,
         "recovered_share": covered / total if total else None,
+        "within_2sigma": [within_2sigma, with_sigma],
         "materials": [],
         "opaque": [],
     }
@@ -184,13 +193,20 @@ def main():
         print(
             f"{r['bag']}: raw {fmt(r['mean_frame_rms_raw_mm'])} -> {fmt(r['mean_frame_rms_mm'])} mm "
             f"(recovered {fmt(None if r['recovered_share'] is None else 100 * r['recovered_share'], '.0f')} %); "
-            f"{mats}{'; ' + opq if opq else ''}"
+            f"{mats}{'; ' + opq if opq else ''}; "
+            f"within 2 sigma {fmt(100 * r['within_2sigma'][0] / r['within_2sigma'][1] if r['within_2sigma'][1] else None, '.0f')} %"
         )
     ok = [m for r in rows for m in r.get("materials", []) if "inside" in m]
     if ok:
         inside = sum(m["inside"] for m in ok)
         print(f"coverage: {inside} of {len(ok)} materials' true xi inside their interval "
               f"({100 * inside / len(ok):.0f} %); median width {statistics.median(m['width'] for m in ok):.2f}")
+    w = [r["within_2sigma"] for r in rows if r.get("within_2sigma", [0, 0])[1]]
+    if w:
+        shares = [a / b for a, b in w]
+        print(f"sigma: {100 * sum(a for a, _ in w) / sum(b for _, b in w):.1f} % of recovered pixels within 2 sigma "
+              f"(pooled over {len(w)} bags; per bag median {100 * statistics.median(shares):.0f} %, "
+              f"range {100 * min(shares):.0f}-{100 * max(shares):.0f} %)")
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=1)

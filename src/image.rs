@@ -341,8 +341,8 @@ pub fn region_image(header: &Header, ids: &ImageBuf<u16>) -> Result<Image, Image
 }
 
 /// Bytes per point of [`organized_cloud`]: x y z intensity (4 x float32),
-/// translucent (uint8), padded to a multiple of 4.
-pub const CLOUD_POINT_STEP: u32 = 20;
+/// translucent (uint8, padded to 4), sigma (float32).
+pub const CLOUD_POINT_STEP: u32 = 24;
 
 /// The point layout of [`organized_cloud`].
 pub fn cloud_fields() -> Vec<PointField> {
@@ -358,38 +358,60 @@ pub fn cloud_fields() -> Vec<PointField> {
         field("z", 8, PointField::FLOAT32),
         field("intensity", 12, PointField::FLOAT32),
         field("translucent", 16, PointField::UINT8),
+        field("sigma", 20, PointField::FLOAT32),
     ]
+}
+
+/// A depth's standard deviation (mm) as a `32FC1` image in metres, NaN where there is none.
+pub fn sigma_image(header: &Header, sigma_mm: &ImageBuf<f32>) -> Result<Image, ImageError> {
+    let data = f32_bytes(&sigma_mm.data, |mm| if mm.is_finite() { mm / 1000.0 } else { f32::NAN });
+    image_msg(
+        header,
+        sigma_mm.width,
+        sigma_mm.height,
+        "32FC1",
+        Sample::F32,
+        data,
+        "sigma image",
+    )
 }
 
 /// An organized `PointCloud2` (height x width of `xyz_m`): float32 `x y z`
 /// in metres in the optical frame, float32 `intensity`, uint8 `translucent`
-/// (1 or 0); `point_step` [`CLOUD_POINT_STEP`], little-endian,
+/// (1 or 0), float32 `sigma` (the depth's standard deviation, metres, NaN where
+/// not recovered); `point_step` [`CLOUD_POINT_STEP`], little-endian,
 /// `is_dense = false`. NaN coordinates mark invalid points. Pixels missing
-/// from a smaller `intensity` / `translucent` get NaN / 0.
+/// from a smaller `intensity` / `translucent` / `sigma_m` get NaN / 0 / NaN.
 pub fn organized_cloud(
     header: &Header,
     xyz_m: &ImageBuf<[f32; 3]>,
     intensity: &ImageBuf<f32>,
     translucent: &ImageBuf<bool>,
+    sigma_m: &ImageBuf<f32>,
 ) -> PointCloud2 {
     let step = CLOUD_POINT_STEP as usize;
     let same = |w: usize, h: usize| w == xyz_m.width && h == xyz_m.height;
-    let (inten_ok, flag_ok) = (
+    let (inten_ok, flag_ok, sigma_ok) = (
         same(intensity.width, intensity.height),
         same(translucent.width, translucent.height),
+        same(sigma_m.width, sigma_m.height),
     );
-    let mut data = vec![0u8; xyz_m.len() * step];
-    for (i, (p, out)) in xyz_m.data.iter().zip(data.chunks_exact_mut(step)).enumerate() {
-        let inten = if inten_ok {
-            intensity.data.get(i).copied().unwrap_or(f32::NAN)
+    let value = |ok: bool, buf: &ImageBuf<f32>, i: usize| {
+        if ok {
+            buf.data.get(i).copied().unwrap_or(f32::NAN)
         } else {
             f32::NAN
-        };
+        }
+    };
+    let mut data = vec![0u8; xyz_m.len() * step];
+    for (i, (p, out)) in xyz_m.data.iter().zip(data.chunks_exact_mut(step)).enumerate() {
+        let inten = value(inten_ok, intensity, i);
         let flag = flag_ok && translucent.data.get(i).copied().unwrap_or(false);
         for (k, v) in [p[0], p[1], p[2], inten].into_iter().enumerate() {
             out[4 * k..4 * k + 4].copy_from_slice(&v.to_le_bytes());
         }
         out[16] = u8::from(flag);
+        out[20..24].copy_from_slice(&value(sigma_ok, sigma_m, i).to_le_bytes());
     }
     let dims = u32::try_from(xyz_m.width).ok().zip(u32::try_from(xyz_m.height).ok());
     let (width, height) = match dims {
@@ -576,17 +598,18 @@ mod tests {
         let xyz = ImageBuf::from_vec(2, 1, vec![[1.0, 2.0, 3.0], [f32::NAN; 3]]).unwrap();
         let inten = ImageBuf::from_vec(2, 1, vec![10.0, 20.0]).unwrap();
         let tr = ImageBuf::from_vec(2, 1, vec![false, true]).unwrap();
-        let c = organized_cloud(&Header::new(1, "cam"), &xyz, &inten, &tr);
-        assert_eq!((c.width, c.height, c.point_step, c.row_step), (2, 1, 20, 40));
+        let sigma = ImageBuf::from_vec(2, 1, vec![0.004, f32::NAN]).unwrap();
+        let c = organized_cloud(&Header::new(1, "cam"), &xyz, &inten, &tr, &sigma);
+        assert_eq!((c.width, c.height, c.point_step, c.row_step), (2, 1, 24, 48));
         assert!(!c.is_dense && !c.is_bigendian);
-        assert_eq!(c.data.len(), 40);
+        assert_eq!(c.data.len(), 48);
         let f = |off: usize| f32::from_le_bytes([c.data[off], c.data[off + 1], c.data[off + 2], c.data[off + 3]]);
-        assert_eq!([f(0), f(4), f(8), f(12)], [1.0, 2.0, 3.0, 10.0]);
+        assert_eq!([f(0), f(4), f(8), f(12), f(20)], [1.0, 2.0, 3.0, 10.0, 0.004]);
         assert_eq!(c.data[16], 0);
-        assert!(f(20).is_nan() && f(28).is_nan());
-        assert_eq!((f(32), c.data[36]), (20.0, 1));
+        assert!(f(24).is_nan() && f(32).is_nan() && f(44).is_nan());
+        assert_eq!((f(36), c.data[40]), (20.0, 1));
         let names: Vec<&str> = c.fields.iter().map(|f| f.name.as_str()).collect();
-        assert_eq!(names, ["x", "y", "z", "intensity", "translucent"]);
+        assert_eq!(names, ["x", "y", "z", "intensity", "translucent", "sigma"]);
         // Every field fits in the point.
         for f in &c.fields {
             let size = PointField::datatype_size(f.datatype).unwrap();
@@ -594,7 +617,7 @@ mod tests {
         }
         // A mismatched intensity buffer gives NaN intensity, not a panic.
         let small = ImageBuf::from_vec(1, 1, vec![5.0]).unwrap();
-        let c = organized_cloud(&Header::default(), &xyz, &small, &tr);
+        let c = organized_cloud(&Header::default(), &xyz, &small, &tr, &sigma);
         assert!(f32::from_le_bytes([c.data[12], c.data[13], c.data[14], c.data[15]]).is_nan());
     }
 }

@@ -2,7 +2,7 @@
 //! `replay` so that both publish exactly the same thing.
 #![deny(missing_docs)]
 
-use crate::image::{depth_image, mask_image, organized_cloud, ImageError};
+use crate::image::{depth_image, mask_image, organized_cloud, sigma_image, ImageError};
 use crate::msgs::translucent_tof::TranslucencyEstimate;
 use crate::msgs::{Header, Image, PointCloud2};
 use crate::physics::{ImageBuf, Intrinsics, XiEstimate};
@@ -15,6 +15,8 @@ pub struct OutputMessages {
     pub corrected: Image,
     /// `~/translucent_mask`: `mono8`, 255 where translucent.
     pub mask: Image,
+    /// `~/depth/corrected_sigma`: `32FC1`, metres, NaN where nothing was recovered.
+    pub sigma: Image,
     /// `~/points`: organized cloud of the corrected depth.
     pub points: PointCloud2,
     /// `~/translucency`: one per region (one for the frame when it has none).
@@ -33,12 +35,14 @@ pub fn output_messages(
     let corrected = corrected_message(header, out, depth_encoding)?;
     let Companions {
         mask,
+        sigma,
         points,
         estimates,
-    } = companion_messages(header, intrinsics, out, ir);
+    } = companion_messages(header, intrinsics, out, ir)?;
     Ok(OutputMessages {
         corrected,
         mask,
+        sigma,
         points,
         estimates,
     })
@@ -56,6 +60,8 @@ pub fn corrected_message(header: &Header, out: &FrameOutput, depth_encoding: &st
 pub struct Companions {
     /// `~/translucent_mask`.
     pub mask: Image,
+    /// `~/depth/corrected_sigma`.
+    pub sigma: Image,
     /// `~/points`.
     pub points: PointCloud2,
     /// `~/translucency`: one per region (one for the frame when it has none).
@@ -68,8 +74,13 @@ pub fn companion_messages(
     intrinsics: &Intrinsics,
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
-) -> Companions {
+) -> Result<Companions, ImageError> {
     let xyz = points_m(intrinsics, &out.corrected_z_mm);
+    let sigma_m = ImageBuf {
+        width: out.corrected_sigma_mm.width,
+        height: out.corrected_sigma_mm.height,
+        data: out.corrected_sigma_mm.data.iter().map(|s| s / 1000.0).collect(),
+    };
     let count = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
     let estimate = |xi: &XiEstimate, region_id: u32, region_pixels: usize, opaque: bool| TranslucencyEstimate {
         header: header.clone(),
@@ -92,11 +103,12 @@ pub fn companion_messages(
     if estimates.is_empty() {
         estimates.push(estimate(&out.xi, 0, 0, out.xi.is_opaque()));
     }
-    Companions {
+    Ok(Companions {
         mask: mask_image(header, &out.mask),
-        points: organized_cloud(header, &xyz, ir, &out.mask),
+        sigma: sigma_image(header, &out.corrected_sigma_mm)?,
+        points: organized_cloud(header, &xyz, ir, &out.mask, &sigma_m),
         estimates,
-    }
+    })
 }
 
 /// Points in the optical frame (REP 103: x right, y down, z forward), metres,

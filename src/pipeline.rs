@@ -412,6 +412,9 @@ pub struct FrameOutput {
     /// Corrected z-depth, mm: recovered at translucent pixels (NaN where recovery
     /// failed), the input elsewhere.
     pub corrected_z_mm: ImageBuf<f32>,
+    /// Standard deviation of the recovered z-depth, mm ([`Pipeline::recover`]); NaN where
+    /// nothing was recovered.
+    pub corrected_sigma_mm: ImageBuf<f32>,
     /// ξ of the frame's largest translucent region (of its largest region when none is).
     pub xi: XiEstimate,
     /// Every region's estimate, in the order of [`Observed::regions`].
@@ -739,6 +742,7 @@ impl Pipeline {
             stamp_ns: frame.stamp_ns,
             mask: obs.mask.clone(),
             corrected_z_mm: frame.z_mm.clone(),
+            corrected_sigma_mm: ImageBuf::filled(frame.z_mm.width, frame.z_mm.height, f32::NAN),
             xi: main,
             regions,
             translucent_pixels: 0,
@@ -748,16 +752,16 @@ impl Pipeline {
             fit_residual_mm: f64::NAN,
         };
         // Groups of regions recovered together: one per material and ξ.
-        let mut groups: Vec<(u32, f64, Vec<u32>)> = vec![];
+        let mut groups: Vec<(u32, XiEstimate, Vec<u32>)> = vec![];
         for (k, r) in out.regions.iter().enumerate() {
             let label = k as u32 + 1;
             if r.opaque {
                 continue;
             }
             out.translucent_pixels += r.pixels;
-            match groups.iter_mut().find(|g| g.0 == r.id && g.1 == r.xi.xi) {
+            match groups.iter_mut().find(|g| g.0 == r.id && g.1 == r.xi) {
                 Some(g) => g.2.push(label),
-                None => groups.push((r.id, r.xi.xi, vec![label])),
+                None => groups.push((r.id, r.xi.clone(), vec![label])),
             }
         }
         for (k, r) in out.regions.iter().enumerate() {
@@ -772,15 +776,20 @@ impl Pipeline {
         }
         let mut tally = Tally::default();
         for (_, xi, labels) in &groups {
+            let mut layer = Layer {
+                z_mm: &mut out.corrected_z_mm,
+                sigma_mm: &mut out.corrected_sigma_mm,
+                tally: &mut tally,
+            };
             if labels.len() == obs.regions.len() {
                 // Every region: the frame's own mask and observations, no copy.
-                self.recover_layer(&obs.mask, &obs.observations, *xi, &mut tally, &mut out.corrected_z_mm);
+                self.recover_layer(&obs.mask, &obs.observations, xi, &mut layer);
             } else {
                 let mask = label_mask(obs, |l| labels.contains(&l));
                 let Some(observations) = restrict(&obs.observations, &mask) else {
                     continue;
                 };
-                self.recover_layer(&mask, &observations, *xi, &mut tally, &mut out.corrected_z_mm);
+                self.recover_layer(&mask, &observations, xi, &mut layer);
             }
         }
         out.recovered_pixels = tally.recovered;
@@ -792,16 +801,16 @@ impl Pipeline {
         out
     }
 
-    /// The layer at the `mask` pixels at one ξ, written into `corrected` (z, mm; NaN where
-    /// nothing was recovered), with the counts added to `tally`.
+    /// The layer at the `mask` pixels at one ξ, written into `out` (z and its standard
+    /// deviation, mm; NaN where nothing was recovered), with the counts added to its tally.
     fn recover_layer(
         &self,
         obs_mask: &ImageBuf<bool>,
         observations: &SparseImage<PixelObservation>,
-        xi: f64,
-        tally: &mut Tally,
-        corrected: &mut ImageBuf<f32>,
+        xi_estimate: &XiEstimate,
+        out: &mut Layer,
     ) {
+        let xi = xi_estimate.xi;
         // The work is done on the rectangle around the translucent pixels (on the prior's
         // block grid, so its windows are those of the whole image): often a small part of it.
         let Some(region) = Region::around(obs_mask, self.config.prior_stride_px) else {
@@ -818,6 +827,7 @@ impl Pipeline {
         let mut fitted = 0usize;
         let mut several_roots = vec![];
         let mut unresolved = 0;
+        let mut noise = vec![f64::NAN; n];
         let bg = self.background.as_ref();
         // The translucent pixels with an observation, in pixel order, each as its index in the
         // rectangle and in the image (walking the rectangle's rows: no division per pixel), with
@@ -896,6 +906,7 @@ impl Pipeline {
                     unresolved += 1;
                 } else {
                     df[i] = est.foreground_distance_mm;
+                    noise[i] = est.layer_sigma_mm;
                     points.data[i] = rays.data[i] * est.foreground_distance_mm;
                 }
             } else {
@@ -929,6 +940,7 @@ impl Pipeline {
             }
             // The windows those pixels are in, refitted (the same surfaces as refitting all).
             surfaces.update(&points, &rays, &windows, &repicked);
+            let roots = df.clone();
             // Pixels without their own root but inside the object take the neighbourhood's surface too.
             for (&(i, _), o) in observed.iter().zip(held.iter()) {
                 let t = surfaces.ray_distance(i, &rays).or_else(|| {
@@ -942,19 +954,70 @@ impl Pipeline {
                     }
                 }
             }
+            noise = surface_standard_error(
+                &roots,
+                &df,
+                &noise,
+                region.width,
+                self.config.prior_radius_px,
+                self.config.max_layer_sigma_mm,
+            );
         }
+        let xi_share = self.xi_share(&observed, &held, &df, xi_estimate);
         for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
-            corrected.data[fi] = if df[i].is_finite() {
-                tally.recovered += 1;
-                (df[i] / self.scale.data[fi]) as f32
+            let (z, sigma) = if df[i].is_finite() {
+                out.tally.recovered += 1;
+                let s = noise[i].hypot(xi_share[i]);
+                ((df[i] / self.scale.data[fi]) as f32, (s / self.scale.data[fi]) as f32)
             } else {
-                f32::NAN
+                (f32::NAN, f32::NAN)
             };
+            out.z_mm.data[fi] = z;
+            out.sigma_mm.data[fi] = sigma;
         }
-        tally.pinned += pinned;
-        tally.unresolved += unresolved;
-        tally.res2 += res2;
-        tally.fitted += fitted;
+        out.tally.pinned += pinned;
+        out.tally.unresolved += unresolved;
+        out.tally.res2 += res2;
+        out.tally.fitted += fitted;
+    }
+
+    /// ξ's share of each recovered layer's standard deviation (ray distance, mm, by the
+    /// rectangle's index): how far the layer moves between ξ and the ends of its 95 %
+    /// interval, the farther end taken as 1.96 σ. 0 for a given ξ (no interval).
+    fn xi_share(
+        &self,
+        observed: &[(usize, usize)],
+        held: &[PixelObservation],
+        df: &[f64],
+        xi: &XiEstimate,
+    ) -> Vec<f64> {
+        let mut share = vec![0.0; df.len()];
+        let ends: Vec<f64> = xi
+            .interval
+            .iter()
+            .copied()
+            .filter(|e| (e - xi.xi).abs() > 1e-9)
+            .collect();
+        if ends.is_empty() {
+            return share;
+        }
+        let items: Vec<(usize, &PixelObservation)> = observed
+            .iter()
+            .zip(held)
+            .filter(|((i, _), _)| df[*i].is_finite())
+            .map(|(&(i, _), o)| (i, o))
+            .collect();
+        let moves = map_ordered(&items, MIN_PARALLEL_PIXELS, 64, |&(i, o)| {
+            let moved = ends.iter().filter_map(|&e| {
+                let est = foreground_distance_without_slopes(&self.config.model, o, e, &self.bounds, Some(df[i]))?;
+                (!est.pinned).then(|| (est.foreground_distance_mm - df[i]).abs())
+            });
+            moved.fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v))))
+        });
+        for (&(i, _), m) in items.iter().zip(moves) {
+            share[i] = m.map_or(self.config.max_layer_sigma_mm, |m| m / 1.96);
+        }
+        share
     }
 
     /// Online processing (the node): observe, add ξ evidence, recover with the pooled ξ.
@@ -1029,6 +1092,75 @@ impl Pipeline {
             .collect();
         Some((est.profile, translucency::eq12_flat_range(&r, est.pixels)))
     }
+}
+
+/// Where a layer's recovery is written: z and its standard deviation (mm), and the counts.
+struct Layer<'a> {
+    z_mm: &'a mut ImageBuf<f32>,
+    sigma_mm: &'a mut ImageBuf<f32>,
+    tally: &'a mut Tally,
+}
+
+/// Parameters a window's surface fits (a quadric's six): its value at a pixel averages the
+/// noise of `n` roots down by `sqrt(SURFACE_PARAMETERS / n)`.
+const SURFACE_PARAMETERS: f64 = 6.0;
+
+/// The standard error of the surface prior's layer at each pixel (mm, by the rectangle's
+/// index, `width` wide): the roots' scatter about the surface within `radius` (at least their
+/// reading noise, `noise`), averaged down by the window's count. A pixel with no root near
+/// gets `unknown_mm`.
+fn surface_standard_error(
+    roots: &[f64],
+    surface: &[f64],
+    noise: &[f64],
+    width: usize,
+    radius: usize,
+    unknown_mm: f64,
+) -> Vec<f64> {
+    let w = width.max(1);
+    let h = roots.len() / w;
+    // Summed-area tables of (residual^2, noise^2, count) over the pixels with both.
+    let mut table = vec![[0.0f64; 3]; (w + 1) * (h + 1)];
+    for r in 0..h {
+        for c in 0..w {
+            let i = r * w + c;
+            let e = roots[i] - surface[i];
+            let v = if e.is_finite() && noise[i].is_finite() {
+                [e * e, noise[i] * noise[i], 1.0]
+            } else {
+                [0.0; 3]
+            };
+            let (up, left, diag) = (
+                table[r * (w + 1) + c + 1],
+                table[(r + 1) * (w + 1) + c],
+                table[r * (w + 1) + c],
+            );
+            table[(r + 1) * (w + 1) + c + 1] = std::array::from_fn(|k| v[k] + up[k] + left[k] - diag[k]);
+        }
+    }
+    (0..roots.len())
+        .map(|i| {
+            if !surface[i].is_finite() {
+                return f64::NAN;
+            }
+            let (r, c) = (i / w, i % w);
+            let (r0, r1, c0, c1) = (
+                r.saturating_sub(radius),
+                (r + radius + 1).min(h),
+                c.saturating_sub(radius),
+                (c + radius + 1).min(w),
+            );
+            let at = |rr: usize, cc: usize| table[rr * (w + 1) + cc];
+            let (a, b, cc, d) = (at(r1, c1), at(r0, c1), at(r1, c0), at(r0, c0));
+            let sum: [f64; 3] = std::array::from_fn(|k| a[k] - b[k] - cc[k] + d[k]);
+            let n = sum[2];
+            if n < 1.0 {
+                return unknown_mm;
+            }
+            let scatter2 = (sum[0] / n).max(sum[1] / n);
+            (scatter2 * (SURFACE_PARAMETERS / n).min(1.0)).sqrt()
+        })
+        .collect()
 }
 
 /// Counts of a frame's recovery, summed over its materials.

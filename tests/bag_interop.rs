@@ -123,7 +123,7 @@ fn write_test_bag(path: &Path) {
         w.write("/tof/depth/camera_info", t, &camera_info(f)).unwrap();
         let xyz = ImageBuf::from_vec(3, 2, (0..6).map(|i| [i as f32 * 0.1, -0.5, 1.25]).collect()).unwrap();
         let translucent = ImageBuf::from_vec(3, 2, vec![true, false, false, false, false, true]).unwrap();
-        let cloud: PointCloud2 = organized_cloud(&h, &xyz, &ir, &translucent);
+        let cloud: PointCloud2 = organized_cloud(&h, &xyz, &ir, &translucent, &ImageBuf::filled(3, 2, 0.004f32));
         w.write("/tof/points", t, &cloud).unwrap();
     }
     w.finish().unwrap();
@@ -234,7 +234,7 @@ fn check_python_view(json: &Value) {
         (Some(3), Some(2)),
         "{reader}: {c}"
     );
-    assert_eq!((c["point_step"].as_u64(), c["row_step"].as_u64()), (Some(20), Some(60)));
+    assert_eq!((c["point_step"].as_u64(), c["row_step"].as_u64()), (Some(24), Some(72)));
     assert_eq!(c["is_dense"], false);
     let fp = &c["first_point"];
     assert_eq!(
@@ -242,8 +242,12 @@ fn check_python_view(json: &Value) {
         (Some(0.0), Some(-0.5), Some(1.25))
     );
     assert_eq!(
-        (fp["intensity"].as_f64(), fp["translucent"].as_u64()),
-        (Some(400.0), Some(1))
+        (
+            fp["intensity"].as_f64(),
+            fp["translucent"].as_u64(),
+            fp["sigma"].as_f64().map(|s| (s * 1e6).round())
+        ),
+        (Some(400.0), Some(1), Some(4000.0))
     );
 }
 

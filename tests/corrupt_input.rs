@@ -588,7 +588,7 @@ fn all_cdr_mutants(per_type: usize) {
     let xyz = ImageBuf::from_vec(4, 3, (0..12).map(|i| [i as f32, 0.5, 1.0]).collect()).unwrap();
     let inten = ImageBuf::from_vec(4, 3, vec![100.0; 12]).unwrap();
     let mask = ImageBuf::from_vec(4, 3, (0..12).map(|i| i % 2 == 0).collect()).unwrap();
-    let cloud = organized_cloud(&header, &xyz, &inten, &mask);
+    let cloud = organized_cloud(&header, &xyz, &inten, &mask, &ImageBuf::filled(4, 3, 0.01f32));
     let estimate = TranslucencyEstimate {
         header: header.clone(),
         xi: 0.65,

@@ -85,7 +85,8 @@ fn cyclone_peer_latches_and_receives_points_and_xi() {
             ["y", 4, 7, 1],
             ["z", 8, 7, 1],
             ["intensity", 12, 7, 1],
-            ["translucent", 16, 2, 1]
+            ["translucent", 16, 2, 1],
+            ["sigma", 20, 7, 1]
         ])
     );
     assert!(c["translucent_points"].as_u64().unwrap() > 100);

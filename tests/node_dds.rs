@@ -65,7 +65,7 @@ fn demo_runs_the_graph_and_recovers_the_document_holder() {
             let c: PointCloud2 = BagReader::decode(&m).unwrap();
             assert_eq!((c.width, c.height, c.point_step), (176, 144, CLOUD_POINT_STEP));
             let names: Vec<&str> = c.fields.iter().map(|f| f.name.as_str()).collect();
-            assert_eq!(names, ["x", "y", "z", "intensity", "translucent"]);
+            assert_eq!(names, ["x", "y", "z", "intensity", "translucent", "sigma"]);
             assert_eq!(c.data.len(), 176 * 144 * CLOUD_POINT_STEP as usize);
             let step = CLOUD_POINT_STEP as usize;
             let flagged = (0..176 * 144).filter(|k| c.data[k * step + 16] == 1).count();

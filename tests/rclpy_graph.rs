@@ -141,7 +141,7 @@ fn rclpy_on_fast_dds_latches_early_receives_every_output_and_sets_parameters() {
     // the small outputs; the clouds are measured by the ignored test below.
     let published = r["received"]["corrected_default"].as_u64().unwrap();
     assert!(published > 0, "{r}");
-    for key in ["camera_info_default", "mask_default"] {
+    for key in ["camera_info_default", "mask_default", "sigma_default"] {
         assert_eq!(r["received"][key].as_u64(), Some(published), "{key}: {r}");
     }
     for key in ["corrected_sensor", "camera_info_sensor", "mask_sensor"] {
@@ -149,11 +149,20 @@ fn rclpy_on_fast_dds_latches_early_receives_every_output_and_sets_parameters() {
     }
     // The camera_info beside the corrected depth: the same stamp, the camera's K.
     assert_eq!(r["camera_info_matching"], r["received"]["corrected_default"]);
+    // The recovered pixels carry their standard deviation; most errors lie within 2 sigma.
+    let (n, inside) = (
+        r["sigma_pixels"].as_u64().unwrap(),
+        r["within_2sigma"].as_u64().unwrap(),
+    );
+    assert!(
+        n > 1000 && inside as f64 >= 0.8 * n as f64,
+        "sigma: {inside} of {n} within 2 sigma"
+    );
     assert_eq!(r["cloud"]["width"], 176);
     assert_eq!(r["cloud"]["height"], 144);
     assert_eq!(
         r["cloud"]["fields"],
-        serde_json::json!(["x", "y", "z", "intensity", "translucent"])
+        serde_json::json!(["x", "y", "z", "intensity", "translucent", "sigma"])
     );
     // Against the bag's ground truth.
     let (raw, rec) = (r["rmse_raw_mm"].as_f64().unwrap(), r["rmse_mm"].as_f64().unwrap());

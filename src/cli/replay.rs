@@ -270,6 +270,7 @@ fn write_outputs(
     let t = out.stamp_ns;
     let m = output_messages(header, &rec.intrinsics, out, ir, &rec.depth_encoding)?;
     writer.write("/translucent_tof/depth/corrected", t, &m.corrected)?;
+    writer.write("/translucent_tof/depth/corrected_sigma", t, &m.sigma)?;
     writer.write("/translucent_tof/translucent_mask", t, &m.mask)?;
     writer.write("/translucent_tof/points", t, &m.points)?;
     for e in &m.estimates {

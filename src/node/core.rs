@@ -120,8 +120,8 @@ pub struct NodeOutputs {
 }
 
 impl NodeOutputs {
-    /// The mask, cloud and estimate (the same as `replay` writes).
-    pub fn companions(&self) -> Companions {
+    /// The sigma image, mask, cloud and estimates (the same as `replay` writes).
+    pub fn companions(&self) -> Result<Companions, crate::image::ImageError> {
         companion_messages(&self.header, &self.intrinsics, &self.frame, &self.ir)
     }
 }

@@ -129,7 +129,13 @@ pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
                 let (w, h) = (img.width as usize, img.height as usize);
                 let mask = ImageBuf::filled(w, h, false);
                 let xyz = ImageBuf::filled(w, h, [0.0f32, 0.0, 1.0]);
-                let cloud = organized_cloud(&img.header, &xyz, &ImageBuf::filled(w, h, 0.0f32), &mask);
+                let cloud = organized_cloud(
+                    &img.header,
+                    &xyz,
+                    &ImageBuf::filled(w, h, 0.0f32),
+                    &mask,
+                    &ImageBuf::filled(w, h, f32::NAN),
+                );
                 template = Some((img.width, img.height, cloud, mask_image(&img.header, &mask)));
             }
             let Some((_, _, cloud, m_img)) = &template else { return };

@@ -69,6 +69,8 @@ pub mod names {
     pub const MASK: &str = "~/translucent_mask";
     /// The camera beside the corrected depth.
     pub const CORRECTED_INFO: &str = "~/depth/camera_info";
+    /// The corrected depth's standard deviation.
+    pub const CORRECTED_SIGMA: &str = "~/depth/corrected_sigma";
     /// ROS 2's diagnostics topic.
     pub const DIAGNOSTICS: &str = "/diagnostics";
 }
@@ -186,6 +188,7 @@ type Token = (Service, ros2_client::service::RmwRequestId);
 struct Outputs {
     corrected: Publisher<Image>,
     corrected_info: Publisher<CameraInfo>,
+    sigma: Publisher<Image>,
     mask: Publisher<Image>,
     points: Publisher<PointCloud2>,
     estimate: Publisher<TranslucencyEstimate>,
@@ -603,6 +606,8 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     let corrected = node.create_publisher(&t, Some(q)).map_err(pe(&corrected_n))?;
     let (cinfo_n, t, q) = publisher(names::CORRECTED_INFO, "sensor_msgs", "CameraInfo")?;
     let corrected_info = node.create_publisher(&t, Some(q)).map_err(pe(&cinfo_n))?;
+    let (sigma_n, t, q) = publisher(names::CORRECTED_SIGMA, "sensor_msgs", "Image")?;
+    let sigma = node.create_publisher(&t, Some(q)).map_err(pe(&sigma_n))?;
     let (mask_n, t, q) = publisher(names::MASK, "sensor_msgs", "Image")?;
     let mask = node.create_publisher(&t, Some(q)).map_err(pe(&mask_n))?;
     let (points_n, t, q) = publisher(names::POINTS, "sensor_msgs", "PointCloud2")?;
@@ -614,6 +619,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     let outputs = Outputs {
         corrected,
         corrected_info,
+        sigma,
         mask,
         points,
         estimate,
@@ -942,15 +948,17 @@ fn worker(
                     // rest is made and published.
                     let first = out.corrected.publish(std::mem::take(&mut o.corrected)).err();
                     let info = out.corrected_info.publish(std::mem::take(&mut o.camera_info)).err();
-                    let c = o.companions();
-                    let mut results = vec![
-                        first.map(|e| format!("{e:?}")),
-                        info.map(|e| format!("{e:?}")),
-                        out.mask.publish(c.mask).err().map(|e| format!("{e:?}")),
-                        out.points.publish(c.points).err().map(|e| format!("{e:?}")),
-                    ];
-                    for e in c.estimates {
-                        results.push(out.estimate.publish(e).err().map(|e| format!("{e:?}")));
+                    let mut results = vec![first.map(|e| format!("{e:?}")), info.map(|e| format!("{e:?}"))];
+                    match o.companions() {
+                        Ok(c) => {
+                            results.push(out.sigma.publish(c.sigma).err().map(|e| format!("{e:?}")));
+                            results.push(out.mask.publish(c.mask).err().map(|e| format!("{e:?}")));
+                            results.push(out.points.publish(c.points).err().map(|e| format!("{e:?}")));
+                            for e in c.estimates {
+                                results.push(out.estimate.publish(e).err().map(|e| format!("{e:?}")));
+                            }
+                        }
+                        Err(e) => results.push(Some(format!("Companions {e}"))),
                     }
                     if let Some(e) = results.into_iter().flatten().next() {
                         // The error's kind only: its Debug form carries the whole message.

@@ -98,6 +98,7 @@ class Peer:
             ("corrected", Image, f"{fqn}/depth/corrected"),
             ("camera_info", CameraInfo, f"{fqn}/depth/camera_info"),
             ("mask", Image, f"{fqn}/translucent_mask"),
+            ("sigma", Image, f"{fqn}/depth/corrected_sigma"),
         ]
         for name, ty, topic in outputs:
             for qos_name, qos in [("default", reliable), ("sensor", qos_profile_sensor_data)]:
@@ -235,6 +236,7 @@ def main():
 
     # 3. The outputs against the input and the ground truth.
     raw_err, rec_err, info_ok, masks = [], [], 0, []
+    within_2sigma, with_sigma = 0, 0
     for s in sent:
         c = peer.got["corrected_default"].get(s)
         ci = peer.got["camera_info_default"].get(s)
@@ -253,6 +255,11 @@ def main():
         if sel.sum() > 100:
             raw_err.append(float(np.sqrt(np.mean((z_raw[sel] - z_true[sel]) ** 2))) * 1000)
             rec_err.append(float(np.sqrt(np.mean((z_rec[sel] - z_true[sel]) ** 2))) * 1000)
+        sg = peer.got["sigma_default"].get(s)
+        if sg is not None and sg.encoding == "32FC1" and sel.sum() > 0:
+            sigma = np.frombuffer(bytes(sg.data), dtype="<f4").reshape(sg.height, sg.width)
+            with_sigma += int((sel & np.isfinite(sigma)).sum())
+            within_2sigma += int((sel & (np.abs(z_rec - z_true) <= 2 * sigma)).sum())
     cloud = peer.first_cloud
     if cloud is not None:
         out["cloud"] = {
@@ -260,6 +267,7 @@ def main():
             "fields": [f.name for f in cloud.fields],
         }
     out["camera_info_matching"] = info_ok
+    out["sigma_pixels"], out["within_2sigma"] = with_sigma, within_2sigma
     out["mask_pixels_median"] = int(np.median(masks)) if masks else 0
     out["rmse_raw_mm"] = float(np.mean(raw_err)) if raw_err else None
     out["rmse_mm"] = float(np.mean(rec_err)) if rec_err else None
