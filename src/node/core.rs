@@ -557,4 +557,34 @@ mod tests {
         );
         assert_eq!(core.intrinsics().map(|k| k.width), Some(48));
     }
+
+    #[test]
+    fn an_unusable_camera_info_is_refused_with_its_reason_and_the_camera_kept() {
+        let mut core: NodeCore<u32> = NodeCore::new(PipelineConfig::default(), 3, std::time::Duration::from_secs(60));
+        let k = Intrinsics::from_fov(32, 24, 44.0, 35.0);
+        let good = camera_info(&Header::new(0, "tof_optical_frame"), &k);
+        assert_eq!(core.on_camera_info(&good), Ok(None));
+        for (model, d) in [
+            ("kannala_brandt", vec![0.1; 4]),
+            ("plumb_bob", vec![0.1; 3]),
+            ("plumb_bob", vec![f64::NAN; 5]),
+        ] {
+            let bad = CameraInfo {
+                distortion_model: model.into(),
+                d,
+                ..good.clone()
+            };
+            let (cause, why) = core.on_camera_info(&bad).unwrap_err();
+            assert_eq!(cause, DropCause::BadCameraInfo);
+            assert!(why.contains("distortion"), "{why}");
+        }
+        assert_eq!(core.intrinsics(), Some(k));
+        // A new lens is a new camera: the rays change.
+        let lens = CameraInfo {
+            d: vec![-0.2, 0.05, 0.0, 0.0, 0.0],
+            ..good
+        };
+        assert!(core.on_camera_info(&lens).expect("usable").is_some());
+        assert_ne!(core.intrinsics(), Some(k));
+    }
 }

@@ -51,16 +51,18 @@ pub enum DistortionError {
 
 impl Distortion {
     /// From camera_info's `distortion_model` and `d`. An empty or all-zero
-    /// `d` is no distortion (under a known model, or an empty name).
+    /// `d` is no distortion under a known model or an empty name (as ROS's
+    /// image_geometry takes it, `equidistant` too).
     pub fn from_ros(model: &str, d: &[f64]) -> Result<Self, DistortionError> {
         if let Some((index, &value)) = d.iter().enumerate().find(|(_, v)| !v.is_finite()) {
             return Err(DistortionError::NonFinite { index, value });
         }
-        let known = ["plumb_bob", "rational_polynomial", "equidistant"];
-        if !known.contains(&model) && !(model.is_empty() && d.iter().all(|&v| v == 0.0)) {
+        let known = ["plumb_bob", "rational_polynomial", "equidistant"].contains(&model);
+        let zero = d.iter().all(|&v| v == 0.0);
+        if !(known || model.is_empty() && zero) {
             return Err(DistortionError::UnknownModel(model.into()));
         }
-        if d.iter().all(|&v| v == 0.0) {
+        if zero {
             return Ok(Self::None);
         }
         match model {

@@ -381,6 +381,27 @@ mod tests {
         assert_eq!(s.physics, ModelOptions::default());
     }
 
+    #[test]
+    fn the_camera_lens_is_optional_and_checked() {
+        let with = |lens: &str| {
+            Scene::from_toml(
+                &format!("[camera]\n{lens}\n[background]\ndistance_mm = 2000\n"),
+                "l.toml",
+            )
+        };
+        assert_eq!(with("").unwrap().camera.lens(), Ok(Distortion::None));
+        let s = with("distortion_model = \"equidistant\"\ndistortion = [0.05, -0.01, 0, 0]").unwrap();
+        assert_eq!(s.camera.lens(), Ok(Distortion::Equidistant([0.05, -0.01, 0.0, 0.0])));
+        let e = chain(&with("distortion_model = \"fisheye\"\ndistortion = [0.1, 0, 0, 0]").unwrap_err());
+        assert!(
+            e.contains("l.toml") && e.contains("\"fisheye\" is not supported"),
+            "{e}"
+        );
+        // Barrel distortion this strong folds back before the image's corners.
+        let e = chain(&with("distortion_model = \"plumb_bob\"\ndistortion = [-2.5, 0, 0, 0, 0]").unwrap_err());
+        assert!(e.contains("no ray through pixel"), "{e}");
+    }
+
     /// The error and its causes, as `main` prints them.
     fn chain(e: &dyn std::error::Error) -> String {
         let mut s = e.to_string();
