@@ -177,3 +177,48 @@ fn a_distorted_lens_recovers_in_the_corners_as_in_the_centre() {
         "pinhole rays should be measurably worse in the corners: {pin_corner:.2} vs {corner:.2} mm"
     );
 }
+
+/// A camera_info whose lens folds back inside the image (barrel k1 = -2.5:
+/// the outer pixels have no ray) is usable where it has rays: the pipeline
+/// runs over it without a panic, and the pixels without a ray are never
+/// taken as translucent.
+#[test]
+fn pixels_without_a_ray_are_left_alone() {
+    use translucent_tof::physics::camera::Distortion;
+    use translucent_tof::physics::Intrinsics;
+    use translucent_tof::pipeline::{DepthFrame, Pipeline, PipelineConfig};
+    use translucent_tof::sim::{render_all, Scene};
+
+    let pinhole = SCENE
+        .replace("distortion_model = \"plumb_bob\"\n", "")
+        .replace("distortion = [-0.3, 0.1, 0.0, 0.0, 0.0]\n", "");
+    let scene = Scene::from_toml(&pinhole, "pinhole");
+    let frames = render_all(&scene.expect("scene"));
+    let k = Intrinsics::sr4000().with_distortion(Distortion::PlumbBob([-2.5, 0.0, 0.0, 0.0, 0.0]));
+    let rayless: Vec<usize> = (0..k.width * k.height)
+        .filter(|&i| !k.ray(i % k.width, i / k.width).x.is_finite())
+        .collect();
+    assert!(rayless.len() > 1000, "{} pixels without a ray", rayless.len());
+    let df = |f: &translucent_tof::sim::SimFrame| DepthFrame {
+        stamp_ns: f.stamp_ns,
+        z_mm: f.depth_z_mm.clone(),
+        ir: f.ir.clone(),
+    };
+    let background: Vec<DepthFrame> = frames.iter().filter(|f| f.background_only).map(df).collect();
+    let mut pipe = Pipeline::latched(PipelineConfig::default(), k, &background).expect("latched");
+    let mut recovered = 0;
+    for f in frames.iter().filter(|f| !f.background_only) {
+        let mut obs = pipe.observe(&df(f)).expect("observed");
+        assert!(rayless.iter().all(|&i| !obs.mask.data[i]));
+        pipe.add_xi_evidence(&mut obs);
+        if let Some(out) = pipe.recover_regions(&df(f), &obs) {
+            assert!(rayless.iter().all(|&i| !out.mask.data[i]));
+            recovered += 1;
+        }
+    }
+    println!(
+        "{} pixels without a ray; {recovered} frames recovered around them",
+        rayless.len()
+    );
+    assert!(recovered > 0);
+}
