@@ -7,8 +7,9 @@
 //! invalid.
 #![deny(missing_docs)]
 
-use crate::msgs::{Header, Image, PointCloud2, PointField};
-use crate::physics::ImageBuf;
+use crate::msgs::{CameraInfo, Header, Image, PointCloud2, PointField, RegionOfInterest};
+use crate::physics::camera::{CameraError, Distortion, SensorWindow};
+use crate::physics::{ImageBuf, Intrinsics};
 
 /// Why an image could not be converted.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -435,21 +436,53 @@ pub fn organized_cloud(
     }
 }
 
-/// The CameraInfo of an undistorted pinhole camera (`plumb_bob` with zero
-/// distortion, identity rectification, `P = [K | 0]`).
-pub fn camera_info(header: &Header, k: &crate::physics::Intrinsics) -> crate::msgs::CameraInfo {
-    crate::msgs::CameraInfo {
+/// The CameraInfo of a camera: K, its distortion (`plumb_bob` with zero
+/// coefficients when none), ROI and binning (zero when the whole sensor, as
+/// drivers give them), identity rectification, `P = [K | 0]`.
+pub fn camera_info(header: &Header, k: &Intrinsics) -> CameraInfo {
+    let (model, d) = k.distortion.to_ros();
+    let w = &k.window;
+    let (roi, binning) = if w.is_full() {
+        (RegionOfInterest::default(), [0, 0])
+    } else {
+        let roi = RegionOfInterest {
+            x_offset: w.offset[0],
+            y_offset: w.offset[1],
+            width: w.size[0],
+            height: w.size[1],
+            do_rectify: false,
+        };
+        (roi, w.binning)
+    };
+    CameraInfo {
         header: header.clone(),
-        height: k.height as u32,
-        width: k.width as u32,
-        distortion_model: "plumb_bob".into(),
-        d: vec![0.0; 5],
+        height: w.full_size[1],
+        width: w.full_size[0],
+        distortion_model: model.into(),
+        d,
         k: k.k(),
         r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
         p: [k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-        binning_x: 0,
-        binning_y: 0,
-        roi: crate::msgs::RegionOfInterest::default(),
+        binning_x: binning[0],
+        binning_y: binning[1],
+        roi,
+    }
+}
+
+impl Intrinsics {
+    /// The camera a camera_info describes: K and D of the full-resolution
+    /// sensor, the image cut by its ROI and then binned (REP 104); the
+    /// image's size is what they leave. Errors say what is unusable.
+    pub fn from_camera_info(info: &CameraInfo) -> Result<Self, CameraError> {
+        let distortion = Distortion::from_ros(&info.distortion_model, &info.d)?;
+        let roi = &info.roi;
+        let window = SensorWindow::new(
+            [info.width, info.height],
+            [roi.x_offset, roi.y_offset],
+            [roi.width, roi.height],
+            [info.binning_x, info.binning_y],
+        )?;
+        Intrinsics::calibrated(&info.k, distortion, window)
     }
 }
 

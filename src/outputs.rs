@@ -5,7 +5,9 @@
 use crate::image::{depth_image, mask_image, organized_cloud, sigma_image, ImageError};
 use crate::msgs::translucent_tof::TranslucencyEstimate;
 use crate::msgs::{Header, Image, PointCloud2};
-use crate::physics::{ImageBuf, Intrinsics, XiEstimate};
+use nalgebra::Vector3;
+
+use crate::physics::{ImageBuf, XiEstimate};
 use crate::pipeline::FrameOutput;
 
 /// What the node publishes for one frame.
@@ -23,11 +25,12 @@ pub struct OutputMessages {
     pub estimates: Vec<TranslucencyEstimate>,
 }
 
-/// Builds the outputs of `out`. `header` is the input depth image's;
+/// Builds the outputs of `out`. `header` is the input depth image's; `rays`
+/// the camera's unit rays ([`crate::pipeline::Pipeline::rays`]);
 /// `depth_encoding` its encoding (`32FC1` is kept, anything else becomes `16UC1`).
 pub fn output_messages(
     header: &Header,
-    intrinsics: &Intrinsics,
+    rays: &ImageBuf<Vector3<f64>>,
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
     depth_encoding: &str,
@@ -38,7 +41,7 @@ pub fn output_messages(
         sigma,
         points,
         estimates,
-    } = companion_messages(header, intrinsics, out, ir)?;
+    } = companion_messages(header, rays, out, ir)?;
     Ok(OutputMessages {
         corrected,
         mask,
@@ -71,11 +74,11 @@ pub struct Companions {
 /// The mask, cloud and estimates of [`output_messages`].
 pub fn companion_messages(
     header: &Header,
-    intrinsics: &Intrinsics,
+    rays: &ImageBuf<Vector3<f64>>,
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
 ) -> Result<Companions, ImageError> {
-    let xyz = points_m(intrinsics, &out.corrected_z_mm);
+    let xyz = points_m(rays, &out.corrected_z_mm);
     let sigma_m = ImageBuf {
         width: out.corrected_sigma_mm.width,
         height: out.corrected_sigma_mm.height,
@@ -112,23 +115,26 @@ pub fn companion_messages(
 }
 
 /// Points in the optical frame (REP 103: x right, y down, z forward), metres,
+/// along each pixel's unit ray `rays` (the camera's, lens distortion undone);
 /// NaN where the depth is invalid.
-pub fn points_m(k: &Intrinsics, z_mm: &ImageBuf<f32>) -> ImageBuf<[f32; 3]> {
-    let mut data = Vec::with_capacity(z_mm.len());
-    for row in 0..k.height {
-        for col in 0..k.width {
-            let z = z_mm.data.get(row * k.width + col).copied().unwrap_or(f32::NAN) as f64 / 1000.0;
-            if z.is_finite() && z > 0.0 {
-                let r = k.ray(col, row) * z;
-                data.push([r.x as f32, r.y as f32, r.z as f32]);
+pub fn points_m(rays: &ImageBuf<Vector3<f64>>, z_mm: &ImageBuf<f32>) -> ImageBuf<[f32; 3]> {
+    let data = rays
+        .data
+        .iter()
+        .enumerate()
+        .map(|(i, u)| {
+            let z = z_mm.data.get(i).copied().unwrap_or(f32::NAN) as f64 / 1000.0;
+            let p = u * (z / u.z);
+            if z > 0.0 && p.iter().all(|v| v.is_finite()) {
+                [p.x as f32, p.y as f32, p.z as f32]
             } else {
-                data.push([f32::NAN; 3]);
+                [f32::NAN; 3]
             }
-        }
-    }
+        })
+        .collect();
     ImageBuf {
-        width: k.width,
-        height: k.height,
+        width: rays.width,
+        height: rays.height,
         data,
     }
 }

@@ -4,6 +4,8 @@
 //!
 //! Buffers in, buffers out: no ROS, no files.
 
+use std::sync::Arc;
+
 use nalgebra::Vector3;
 use serde::Serialize;
 use thiserror::Error;
@@ -172,6 +174,8 @@ pub struct BackgroundLatch {
     frames: usize,
     width: usize,
     height: usize,
+    /// `ray distance / z` of the camera the frames so far were of (made at the first push).
+    scale: Option<(Intrinsics, ImageBuf<f64>)>,
 }
 
 /// A latched background.
@@ -218,6 +222,7 @@ impl BackgroundLatch {
             frames: 0,
             width,
             height,
+            scale: None,
         }
     }
 
@@ -229,23 +234,26 @@ impl BackgroundLatch {
     /// Adds a frame (ray distances via the camera's intrinsics).
     pub fn push(&mut self, frame: &DepthFrame, intrinsics: &Intrinsics) -> Result<(), PipelineError> {
         check_size(frame, intrinsics)?;
-        for row in 0..self.height {
-            for col in 0..self.width {
-                let i = row * self.width + col;
-                let z = frame.z_mm.data[i] as f64;
-                let ir = frame.ir.data[i] as f64;
-                if z.is_finite() && z > 0.0 && ir.is_finite() && ir > 0.0 {
-                    let mut d = z * intrinsics.ray_scale(col, row);
-                    if self.first[i].is_nan() {
-                        self.first[i] = d;
-                    }
-                    d = self.first[i] + wrapped_difference(d, self.first[i], self.range_mm);
-                    self.n[i] += 1;
-                    self.sum_d[i] += d;
-                    self.sum_d2[i] += d * d;
-                    self.sum_ir[i] += ir;
-                    self.sum_ir2[i] += ir * ir;
+        if self.scale.as_ref().is_none_or(|(k, _)| k != intrinsics) {
+            self.scale = Some((*intrinsics, intrinsics.ray_scale_map()));
+        }
+        let Some((_, scale)) = &self.scale else {
+            return Ok(());
+        };
+        for i in 0..self.width * self.height {
+            let z = frame.z_mm.data[i] as f64;
+            let ir = frame.ir.data[i] as f64;
+            let mut d = z * scale.data[i];
+            if z > 0.0 && d.is_finite() && ir.is_finite() && ir > 0.0 {
+                if self.first[i].is_nan() {
+                    self.first[i] = d;
                 }
+                d = self.first[i] + wrapped_difference(d, self.first[i], self.range_mm);
+                self.n[i] += 1;
+                self.sum_d[i] += d;
+                self.sum_d2[i] += d * d;
+                self.sum_ir[i] += ir;
+                self.sum_ir2[i] += ir * ir;
             }
         }
         self.frames += 1;
@@ -439,7 +447,8 @@ pub struct Pipeline {
     pub config: PipelineConfig,
     /// Camera.
     pub intrinsics: Intrinsics,
-    rays: ImageBuf<Vector3<f64>>,
+    /// Unit rays per pixel, shared with the outputs of each frame.
+    rays: Arc<ImageBuf<Vector3<f64>>>,
     /// `ray distance / z` per pixel.
     scale: ImageBuf<f64>,
     background: Option<Background>,
@@ -456,7 +465,7 @@ pub struct Pipeline {
 impl Pipeline {
     /// A pipeline for a camera; no background yet.
     pub fn new(config: PipelineConfig, intrinsics: Intrinsics) -> Self {
-        let rays = intrinsics.unit_ray_map();
+        let rays = Arc::new(intrinsics.unit_ray_map());
         let scale = intrinsics.ray_scale_map();
         Self {
             intrinsics,
@@ -527,6 +536,11 @@ impl Pipeline {
     /// Unit rays of the camera's pixels.
     pub fn rays(&self) -> &ImageBuf<Vector3<f64>> {
         &self.rays
+    }
+
+    /// [`Self::rays`], shared (for outputs made after the frame).
+    pub fn shared_rays(&self) -> Arc<ImageBuf<Vector3<f64>>> {
+        Arc::clone(&self.rays)
     }
 
     /// The latched background.

@@ -15,7 +15,8 @@ use std::sync::mpsc::{sync_channel, SyncSender};
 use std::sync::Arc;
 
 use crate::outputs::points_m;
-use crate::physics::{ImageBuf, Intrinsics};
+use crate::physics::ImageBuf;
+use nalgebra::Vector3;
 
 /// Where Rerun data goes (parameter / flag `rerun`).
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -60,8 +61,8 @@ pub struct FrameViz {
     pub stamp_ns: u64,
     /// Frame counter.
     pub frame: u64,
-    /// Camera.
-    pub intrinsics: Intrinsics,
+    /// The camera's unit rays.
+    pub rays: Arc<ImageBuf<Vector3<f64>>>,
     /// Reading, z mm.
     pub raw_z_mm: ImageBuf<f32>,
     /// Corrected, z mm.
@@ -162,8 +163,8 @@ pub fn write_curves(target: &RerunTarget, app_id: &'static str, curves: &[Curve]
 
 /// The translucent pixels' points (raw, recovered) and the rest of the scene.
 pub fn split_clouds(f: &FrameViz) -> [Vec<[f32; 3]>; 3] {
-    let raw = points_m(&f.intrinsics, &f.raw_z_mm);
-    let rec = points_m(&f.intrinsics, &f.recovered_z_mm);
+    let raw = points_m(&f.rays, &f.raw_z_mm);
+    let rec = points_m(&f.rays, &f.recovered_z_mm);
     let (mut r, mut c, mut s) = (vec![], vec![], vec![]);
     for i in 0..f.mask.len().min(raw.len()).min(rec.len()) {
         let ok = |p: &[f32; 3]| p.iter().all(|v| v.is_finite());

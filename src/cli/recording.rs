@@ -69,13 +69,8 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
             sel.info.as_deref().map(|t| format!(" on {t}")).unwrap_or_default()
         )
     })?;
-    let intrinsics = Intrinsics::from_k(info.width as usize, info.height as usize, &info.k).ok_or_else(|| {
-        anyhow!(
-            "bag {}: camera_info K {:?} has no usable focal length",
-            path.display(),
-            info.k
-        )
-    })?;
+    let intrinsics = Intrinsics::from_camera_info(&info)
+        .with_context(|| format!("bag {}: camera_info not usable", path.display()))?;
     let paired: Vec<u64> = depth.keys().filter(|s| ir.contains_key(s)).copied().collect();
     let unpaired = (depth.len() - paired.len(), ir.len() - paired.len());
     if paired.is_empty() {
@@ -110,7 +105,7 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
         }
         if z.width != intrinsics.width || z.height != intrinsics.height {
             bail!(
-                "bag {}: at stamp {stamp} ns the images are {}x{} but camera_info says {}x{}",
+                "bag {}: at stamp {stamp} ns the images are {}x{} but camera_info (with its ROI and binning) gives {}x{}",
                 path.display(),
                 z.width,
                 z.height,

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use nalgebra::Vector3;
 use serde_json::json;
 
 use crate::bag::BagWriter;
@@ -116,7 +117,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         let xi = out.xi.clone();
         total_px += out.translucent_pixels;
         let header = &rec.headers[bg.count + j];
-        write_outputs(&mut writer, header, &rec, &out, &f.ir, &obs.labels)?;
+        write_outputs(&mut writer, header, (&rec, pipe.rays()), &out, &f.ir, &obs.labels)?;
         let mut row = json!({
             "stamp": f.stamp_ns as f64 * 1e-9,
             "xi": xi.xi,
@@ -262,13 +263,13 @@ pub fn run(a: ReplayArgs) -> Result<()> {
 fn write_outputs(
     writer: &mut BagWriter,
     header: &Header,
-    rec: &Recording,
+    (rec, rays): (&Recording, &ImageBuf<Vector3<f64>>),
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
     labels: &ImageBuf<u32>,
 ) -> Result<()> {
     let t = out.stamp_ns;
-    let m = output_messages(header, &rec.intrinsics, out, ir, &rec.depth_encoding)?;
+    let m = output_messages(header, rays, out, ir, &rec.depth_encoding)?;
     writer.write("/translucent_tof/depth/corrected", t, &m.corrected)?;
     writer.write("/translucent_tof/depth/corrected_sigma", t, &m.sigma)?;
     writer.write("/translucent_tof/translucent_mask", t, &m.mask)?;

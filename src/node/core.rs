@@ -3,11 +3,14 @@
 //! count what had to be dropped and why.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use nalgebra::Vector3;
 
 use crate::image::{depth_mm, ir_counts};
 use crate::msgs::{CameraInfo, Image, TriggerResponse};
 use crate::outputs::{companion_messages, corrected_message, Companions};
-use crate::physics::Intrinsics;
+use crate::physics::{ImageBuf, Intrinsics};
 use crate::pipeline::{Background, BackgroundLatch, DepthFrame, FrameOutput, Pipeline, PipelineConfig};
 
 /// Why a frame was dropped (each logged once, then counted).
@@ -27,7 +30,7 @@ pub enum DropCause {
     Unpaired,
     /// No camera_info received yet (the intrinsics are needed).
     NoCameraInfo,
-    /// A camera_info without a usable focal length.
+    /// A camera_info that is not usable (focal length, distortion model, ROI, binning).
     BadCameraInfo,
     /// No background latched yet (call `~/latch_background`).
     NoBackground,
@@ -51,7 +54,9 @@ impl DropCause {
             DropCause::Oversized => "images must be the size camera_info gives, with data of step x height bytes",
             DropCause::Unpaired => "depth and IR are paired by exact header stamp; check the driver stamps both alike",
             DropCause::NoCameraInfo => "waiting for depth/camera_info (remap it if the driver uses another name)",
-            DropCause::BadCameraInfo => "camera_info K must have positive fx, fy",
+            DropCause::BadCameraInfo => {
+                "camera_info needs K with positive fx, fy; a distortion model of plumb_bob, rational_polynomial or equidistant with its coefficients (or none); ROI and binning within its width and height"
+            }
             DropCause::NoBackground => "call ~/latch_background with the scene empty of the translucent object",
             DropCause::QueueFull => "frames arrive faster than they are processed; the oldest are dropped",
             DropCause::NoXiYet => "xi is estimated from the translucent pixels seen so far; set -p xi:=X to fix it",
@@ -115,14 +120,14 @@ pub struct NodeOutputs {
     /// The recovery it was made from.
     pub frame: FrameOutput,
     header: crate::msgs::Header,
-    intrinsics: Intrinsics,
-    ir: crate::physics::ImageBuf<f32>,
+    rays: Arc<ImageBuf<Vector3<f64>>>,
+    ir: ImageBuf<f32>,
 }
 
 impl NodeOutputs {
     /// The sigma image, mask, cloud and estimates (the same as `replay` writes).
     pub fn companions(&self) -> Result<Companions, crate::image::ImageError> {
-        companion_messages(&self.header, &self.intrinsics, &self.frame, &self.ir)
+        companion_messages(&self.header, &self.rays, &self.frame, &self.ir)
     }
 }
 
@@ -178,6 +183,11 @@ impl<T> NodeCore<T> {
         self.info.as_ref().map(|(_, k)| *k)
     }
 
+    /// The camera's unit rays, once camera_info has come.
+    pub fn shared_rays(&self) -> Option<Arc<ImageBuf<Vector3<f64>>>> {
+        self.pipeline.as_ref().map(|p| p.shared_rays())
+    }
+
     /// ξ frames pooled so far.
     pub fn xi_frames(&self) -> usize {
         self.pipeline.as_ref().map(|p| p.xi_frames()).unwrap_or(0)
@@ -187,16 +197,11 @@ impl<T> NodeCore<T> {
     /// background (it no longer lines up) and starts a latch in progress over
     /// with the new camera (its frames so far were of the old one); returns a
     /// message when that happens.
-    pub fn on_camera_info(&mut self, info: &CameraInfo) -> Result<Option<String>, DropCause> {
-        if self
-            .info
-            .as_ref()
-            .is_some_and(|(old, _)| old.k == info.k && old.width == info.width && old.height == info.height)
-        {
+    pub fn on_camera_info(&mut self, info: &CameraInfo) -> Result<Option<String>, (DropCause, String)> {
+        let k = Intrinsics::from_camera_info(info).map_err(|e| (DropCause::BadCameraInfo, e.to_string()))?;
+        if self.info.as_ref().is_some_and(|(_, old)| *old == k) {
             return Ok(None);
         }
-        let k =
-            Intrinsics::from_k(info.width as usize, info.height as usize, &info.k).ok_or(DropCause::BadCameraInfo)?;
         let had_background = self.background().is_some();
         let range_mm = self.config.model.sensor.unambiguous_range_mm();
         let restarted = self.latch.as_mut().and_then(|l| {
@@ -383,7 +388,7 @@ impl<T> NodeCore<T> {
                 return Err((
                     DropCause::SizeMismatch,
                     format!(
-                        "frame at stamp {stamp} ns dropped: {what} is {w}x{h} but camera_info says {}x{}",
+                        "frame at stamp {stamp} ns dropped: {what} is {w}x{h} but camera_info (with its ROI and binning) gives {}x{}",
                         k.width, k.height
                     ),
                 ));
@@ -447,7 +452,7 @@ impl<T> NodeCore<T> {
             camera_info,
             frame: out,
             header: depth.header.clone(),
-            intrinsics: k,
+            rays: pipe.shared_rays(),
             ir: frame.ir,
         });
         Ok(())
@@ -551,5 +556,35 @@ mod tests {
             replies[0].1.message
         );
         assert_eq!(core.intrinsics().map(|k| k.width), Some(48));
+    }
+
+    #[test]
+    fn an_unusable_camera_info_is_refused_with_its_reason_and_the_camera_kept() {
+        let mut core: NodeCore<u32> = NodeCore::new(PipelineConfig::default(), 3, std::time::Duration::from_secs(60));
+        let k = Intrinsics::from_fov(32, 24, 44.0, 35.0);
+        let good = camera_info(&Header::new(0, "tof_optical_frame"), &k);
+        assert_eq!(core.on_camera_info(&good), Ok(None));
+        for (model, d) in [
+            ("kannala_brandt", vec![0.1; 4]),
+            ("plumb_bob", vec![0.1; 3]),
+            ("plumb_bob", vec![f64::NAN; 5]),
+        ] {
+            let bad = CameraInfo {
+                distortion_model: model.into(),
+                d,
+                ..good.clone()
+            };
+            let (cause, why) = core.on_camera_info(&bad).unwrap_err();
+            assert_eq!(cause, DropCause::BadCameraInfo);
+            assert!(why.contains("distortion"), "{why}");
+        }
+        assert_eq!(core.intrinsics(), Some(k));
+        // A new lens is a new camera: the rays change.
+        let lens = CameraInfo {
+            d: vec![-0.2, 0.05, 0.0, 0.0, 0.0],
+            ..good
+        };
+        assert!(core.on_camera_info(&lens).expect("usable").is_some());
+        assert_ne!(core.intrinsics(), Some(k));
     }
 }

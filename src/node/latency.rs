@@ -190,8 +190,7 @@ async fn drive(cfg: &LatencyConfig, info: &CameraInfo, pairs: &[(Image, Image)],
 fn translucent_shares(info: &CameraInfo, pairs: &[(Image, Image)], background: usize) -> Result<Vec<f64>> {
     use crate::image::{depth_mm, ir_counts};
     use crate::pipeline::{DepthFrame, Pipeline, PipelineConfig};
-    let k = crate::physics::Intrinsics::from_k(info.width as usize, info.height as usize, &info.k)
-        .context("the bag's camera_info has no usable K")?;
+    let k = crate::physics::Intrinsics::from_camera_info(info).context("the bag's camera_info is not usable")?;
     let frame = |(d, i): &(Image, Image)| -> Result<DepthFrame> {
         Ok(DepthFrame {
             stamp_ns: d.header.stamp.as_log_time_ns(),

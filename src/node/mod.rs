@@ -887,10 +887,10 @@ fn worker(
             Next::Command(Command::CameraInfo(ci)) => match core.on_camera_info(&ci) {
                 Ok(Some(note)) => warn!("{note}"),
                 Ok(None) => {}
-                Err(cause) => {
+                Err((cause, why)) => {
                     if core.drops.record(cause) {
                         warn!(
-                            "camera_info {}x{} K {:?} not usable ({})",
+                            "camera_info {}x{} K {:?} not usable: {why} ({})",
                             ci.width,
                             ci.height,
                             ci.k,
@@ -975,13 +975,13 @@ fn worker(
                         latencies.remove(0);
                     }
                     latencies.push(start.elapsed().as_secs_f64() * 1e3);
-                    if let (Some(v), Some(k)) = (&viz, core.intrinsics()) {
+                    if let (Some(v), Some(rays)) = (&viz, core.shared_rays()) {
                         let raw = crate::image::depth_mm(&depth).ok();
                         if let Some(raw) = raw {
                             v.log(FrameViz {
                                 stamp_ns: o.frame.stamp_ns,
                                 frame: stats.published,
-                                intrinsics: k,
+                                rays,
                                 raw_z_mm: raw,
                                 recovered_z_mm: o.frame.corrected_z_mm,
                                 mask: o.frame.mask,

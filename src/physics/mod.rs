@@ -20,6 +20,7 @@ pub use inversion::{
     PixelObservation,
 };
 pub mod camera;
+pub mod distortion;
 pub mod emitted_light;
 pub mod segmentation;
 pub mod stats;

@@ -40,20 +40,23 @@ pub fn scene_sensor(scene: &Scene) -> Sensor {
     Sensor::new(c.modulation_frequency_hz, w)
 }
 
-/// The scene's intrinsics.
+/// The scene's intrinsics: K from the fields of view, and the lens (a
+/// pinhole when the scene's lens is not valid, which [`Scene::validate`] and
+/// [`render`] refuse).
 pub fn scene_intrinsics(scene: &Scene) -> Intrinsics {
     let c = &scene.camera;
-    Intrinsics::from_fov(c.width, c.height, c.hfov_deg, c.vfov_deg)
+    Intrinsics::from_fov(c.width, c.height, c.hfov_deg, c.vfov_deg).with_distortion(c.lens().unwrap_or_default())
 }
 
 /// `Lin` per pixel: the peak on the axis, falling quadratically to the corners.
 pub fn emitted_light_map(scene: &Scene) -> ImageBuf<f64> {
     let k = scene_intrinsics(scene);
-    let rmax2 = k.cx * k.cx + k.cy * k.cy;
+    let [cx, cy] = k.principal_point();
+    let rmax2 = cx * cx + cy * cy;
     let mut data = Vec::with_capacity(k.width * k.height);
     for row in 0..k.height {
         for col in 0..k.width {
-            let r2 = ((col as f64 - k.cx).powi(2) + (row as f64 - k.cy).powi(2)) / rmax2;
+            let r2 = ((col as f64 - cx).powi(2) + (row as f64 - cy).powi(2)) / rmax2;
             data.push(scene.emitter.peak_emitted_light * (1.0 - scene.emitter.vignetting * r2));
         }
     }
@@ -184,6 +187,7 @@ fn ray_returns(
 /// Renders every frame of the scene: background frames, then each stage's.
 /// `on_frame` receives each frame as it is made (for progress and writing).
 pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result<(), String>) -> Result<(), String> {
+    scene.camera.lens().map_err(|e| format!("camera: {e}"))?;
     let k = scene_intrinsics(scene);
     let sensor = scene_sensor(scene);
     let model = ForwardModel {

@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::physics::camera::{Distortion, DistortionError};
 use crate::physics::ModelOptions;
 
 /// What is wrong with a scene file.
@@ -97,6 +98,19 @@ pub struct CameraSpec {
     /// Sub-rays per pixel side (1: one ray through the centre). More mix the
     /// returns of surfaces a pixel straddles at edges ("flying pixels").
     pub supersample: usize,
+    /// Lens distortion model as camera_info names it: `plumb_bob`,
+    /// `rational_polynomial` or `equidistant` ("": none). The fields of view
+    /// set K as for a pinhole; the lens then bends each pixel's ray.
+    pub distortion_model: String,
+    /// Its coefficients in ROS's order (empty: none).
+    pub distortion: Vec<f64>,
+}
+
+impl CameraSpec {
+    /// The lens the scene asks for.
+    pub fn lens(&self) -> Result<Distortion, DistortionError> {
+        Distortion::from_ros(&self.distortion_model, &self.distortion)
+    }
 }
 
 impl Default for CameraSpec {
@@ -116,6 +130,8 @@ impl Default for CameraSpec {
             namespace: "/tof".into(),
             start_time_s: 1_700_000_000.0,
             supersample: 1,
+            distortion_model: String::new(),
+            distortion: vec![],
         }
     }
 }
@@ -270,6 +286,12 @@ impl Scene {
         if !(c.hfov_deg > 0.0 && c.hfov_deg < 170.0 && c.vfov_deg > 0.0 && c.vfov_deg < 170.0) {
             return Err("camera field of view must be in (0, 170) degrees".into());
         }
+        c.lens().map_err(|e| format!("camera: {e}"))?;
+        if let Some((col, row)) = pixel_without_ray(&super::render::scene_intrinsics(self)) {
+            return Err(format!(
+                "camera: the lens model has no ray through pixel ({col}, {row}): its distortion folds back within the field of view"
+            ));
+        }
         if !(1..=8).contains(&c.supersample) {
             return Err(format!("camera.supersample {} must be in 1..=8", c.supersample));
         }
@@ -333,6 +355,16 @@ impl Scene {
     }
 }
 
+/// A pixel on the image's border whose ray the lens model cannot give
+/// (distortion folds back first at the border).
+fn pixel_without_ray(k: &crate::physics::Intrinsics) -> Option<(usize, usize)> {
+    let (w, h) = (k.width, k.height);
+    let border = (0..w)
+        .flat_map(|c| [(c, 0), (c, h - 1)])
+        .chain((0..h).flat_map(|r| [(0, r), (w - 1, r)]));
+    border.into_iter().find(|&(c, r)| !k.ray(c, r).x.is_finite())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -347,6 +379,27 @@ mod tests {
         assert_eq!((s.camera.width, s.camera.height), (176, 144));
         assert_eq!(s.frame_count(), 12);
         assert_eq!(s.physics, ModelOptions::default());
+    }
+
+    #[test]
+    fn the_camera_lens_is_optional_and_checked() {
+        let with = |lens: &str| {
+            Scene::from_toml(
+                &format!("[camera]\n{lens}\n[background]\ndistance_mm = 2000\n"),
+                "l.toml",
+            )
+        };
+        assert_eq!(with("").unwrap().camera.lens(), Ok(Distortion::None));
+        let s = with("distortion_model = \"equidistant\"\ndistortion = [0.05, -0.01, 0, 0]").unwrap();
+        assert_eq!(s.camera.lens(), Ok(Distortion::Equidistant([0.05, -0.01, 0.0, 0.0])));
+        let e = chain(&with("distortion_model = \"fisheye\"\ndistortion = [0.1, 0, 0, 0]").unwrap_err());
+        assert!(
+            e.contains("l.toml") && e.contains("\"fisheye\" is not supported"),
+            "{e}"
+        );
+        // Barrel distortion this strong folds back before the image's corners.
+        let e = chain(&with("distortion_model = \"plumb_bob\"\ndistortion = [-2.5, 0, 0, 0, 0]").unwrap_err());
+        assert!(e.contains("no ray through pixel"), "{e}");
     }
 
     /// The error and its causes, as `main` prints them.
