@@ -402,7 +402,7 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
     }
     let [lo, hi] = interval(&r);
     for (_, data, ty) in &outs["/translucent_tof/translucency"] {
-        assert_eq!(ty, "translucent_tof/msg/TranslucencyEstimate");
+        assert_eq!(ty, "translucent_tof_msgs/msg/TranslucencyEstimate");
         let e: TranslucencyEstimate = decode(data);
         assert_eq!(e.method, "one_material");
         assert!(
