@@ -1,6 +1,6 @@
 //! `replay BAG`: the node's pipeline over a recorded bag, offline.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -23,15 +23,15 @@ pub struct ReplayArgs {
     /// A fixed ξ (e.g. from calibrate-xi); default: estimate it.
     #[arg(long)]
     pub xi: Option<f64>,
-    /// How to estimate ξ: one_material (default) or eq12_residual (the paper's, degenerate; for comparison).
-    #[arg(long, default_value = "one_material")]
-    pub xi_method: String,
-    /// pooled: estimate ξ over all object frames, then recover each (offline default);
-    /// online: each frame uses the estimate pooled up to it, as the node does.
-    #[arg(long, default_value = "pooled")]
-    pub xi_mode: String,
-    /// Output bag (default: BAG's stem + `.recovered.mcap` in the current directory).
-    #[arg(long)]
+    /// How to estimate ξ.
+    #[arg(long, value_enum, default_value_t = XiMethodArg::OneMaterial)]
+    pub xi_method: XiMethodArg,
+    /// Which frames' evidence each frame's ξ pools.
+    #[arg(long, value_enum, default_value_t = XiMode::Pooled)]
+    pub xi_mode: XiMode,
+    /// Output bag, or an existing folder to write BAG's stem + `.recovered.mcap` into
+    /// (default: that name in `out/` under the current directory).
+    #[arg(short = 'o', long, value_name = "OUT.mcap|DIR")]
     pub out: Option<PathBuf>,
     /// Radius (pixels) of the smooth-surface prior on the recovered layer (0: per-pixel inversion only).
     #[arg(long, default_value_t = 4)]
@@ -46,18 +46,65 @@ pub struct ReplayArgs {
     pub output: OutputArgs,
 }
 
+/// `--xi-method`: how ξ is estimated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[value(rename_all = "snake_case")]
+pub enum XiMethodArg {
+    /// One material per region, pooled over frames (the default).
+    OneMaterial,
+    /// The paper's Eq. 12 residual (degenerate; for comparison).
+    #[value(alias = "eq12")]
+    Eq12Residual,
+}
+
+impl From<XiMethodArg> for XiMethod {
+    fn from(m: XiMethodArg) -> Self {
+        match m {
+            XiMethodArg::OneMaterial => XiMethod::OneMaterial,
+            XiMethodArg::Eq12Residual => XiMethod::Eq12Residual,
+        }
+    }
+}
+
+/// `--xi-mode`: which frames' evidence each frame's ξ pools.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[value(rename_all = "snake_case")]
+pub enum XiMode {
+    /// ξ estimated over all object frames, then each frame recovered (the offline default).
+    Pooled,
+    /// Each frame uses the estimate pooled up to it, as the node does.
+    Online,
+}
+
+impl XiMode {
+    /// The name `--xi-mode` takes (and the report gives).
+    pub fn name(self) -> &'static str {
+        match self {
+            XiMode::Pooled => "pooled",
+            XiMode::Online => "online",
+        }
+    }
+}
+
+/// Where replay writes its bag: `--out` if it names a file, `STEM.recovered.mcap` in
+/// `--out` if that is a folder, else in `out/`.
+fn out_path(bag: &Path, out: Option<&Path>) -> PathBuf {
+    let stem = bag
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "replay".into());
+    let name = format!("{stem}.recovered.mcap");
+    match out {
+        Some(o) if o.is_dir() => o.join(name),
+        Some(o) => o.to_path_buf(),
+        None => Path::new(super::common::OUT_DIR).join(name),
+    }
+}
+
 /// Runs `replay`.
 pub fn run(a: ReplayArgs) -> Result<()> {
-    let method = match a.xi_method.as_str() {
-        "one_material" => XiMethod::OneMaterial,
-        "eq12_residual" | "eq12" => XiMethod::Eq12Residual,
-        other => bail!("--xi-method {other:?}: expected one_material or eq12_residual"),
-    };
-    let online = match a.xi_mode.as_str() {
-        "pooled" => false,
-        "online" => true,
-        other => bail!("--xi-mode {other:?}: expected pooled or online"),
-    };
+    let method = XiMethod::from(a.xi_method);
+    let online = a.xi_mode == XiMode::Online;
     if let Some(x) = a.xi {
         if !(0.0..1.0).contains(&x) {
             bail!("--xi must be in [0, 1), got {x}");
@@ -74,14 +121,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
     let mut pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];
-    let out_path = a.out.clone().unwrap_or_else(|| {
-        let stem = a
-            .bag
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "replay".into());
-        PathBuf::from(format!("{stem}.recovered.mcap"))
-    });
+    let out_path = out_path(&a.bag, a.out.as_deref());
+    super::common::create_parent(&out_path)?;
 
     // Pass 1 (pooled): the evidence of every object frame, before any is recovered.
     let mut observed = Vec::with_capacity(objects.len());
@@ -190,7 +231,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "xi": xi.as_ref().map(|x| x.xi),
         "xi_interval": xi.as_ref().map(|x| x.interval),
         "xi_method": xi.as_ref().map(|x| x.method.as_str()),
-        "xi_mode": a.xi_mode,
+        "xi_mode": a.xi_mode.name(),
         "xi_frames_pooled": pipe.xi_frames(),
         "xi_note": xi.as_ref().map(|x| {
             if pipe.config.lin_calibration.is_none() && x.method != XiMethod::Fixed {
