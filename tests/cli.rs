@@ -874,6 +874,147 @@ fn default_outputs_land_under_out() {
     assert!(text(&out.stdout).contains("[default: out/demo]"), "{}", describe(&out));
 }
 
+/// The Python interpreter of the venv `scripts/setup-python.sh` builds (or `TTOF_PYTHON`).
+fn python() -> PathBuf {
+    let p = std::env::var_os("TTOF_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join(".venv/bin/python"));
+    assert!(
+        p.exists(),
+        "Python with rerun-sdk not found at {}: run `bash scripts/setup-python.sh` or set TTOF_PYTHON",
+        p.display()
+    );
+    p
+}
+
+/// The version of a package in Cargo.lock.
+fn locked_version(name: &str) -> String {
+    let lock = std::fs::read_to_string(repo().join("Cargo.lock")).expect("Cargo.lock");
+    let at = lock
+        .find(&format!("name = \"{name}\"\nversion = \""))
+        .unwrap_or_else(|| panic!("{name} is not in Cargo.lock"));
+    let rest = &lock[at..];
+    let v = &rest[rest.find("version = \"").unwrap() + 11..];
+    v[..v.find('"').unwrap()].to_string()
+}
+
+/// The Rerun CLI of rerun-sdk with `args` (its `rerun` command; `python -m
+/// rerun_cli` would drop the exit code).
+fn rerun_cli(args: &[&str]) -> Output {
+    Command::new(python())
+        .args([
+            "-c",
+            "import sys; from rerun_cli.__main__ import main; sys.exit(main())",
+        ])
+        .args(args)
+        .output()
+        .expect("running the Rerun CLI of rerun-sdk")
+}
+
+/// `rerun rrd verify FILE` by the Rerun CLI of rerun-sdk, which must be the
+/// version of the `rerun` crate this binary logs with. Returns its output.
+fn rerun_verify(file: &Path) -> Output {
+    let cli = rerun_cli;
+    let version = cli(&["--version"]);
+    assert!(version.status.success(), "rerun_cli --version: {}", describe(&version));
+    let want = format!("rerun-cli {} ", locked_version("rerun"));
+    assert!(
+        text(&version.stdout).starts_with(&want),
+        "the Rerun CLI is not the crate's version ({want:?}): {} (scripts/setup-python.sh pins rerun-sdk)",
+        text(&version.stdout)
+    );
+    cli(&["rrd", "verify", file.to_str().unwrap()])
+}
+
+/// `rerun rrd verify` exits 0 for a file it could not read at all ("0 files
+/// verified"): success is that exit with the file counted.
+fn assert_rerun_verifies(file: &Path) {
+    let out = rerun_verify(file);
+    let all = format!("{}{}", text(&out.stdout), text(&out.stderr));
+    assert!(
+        out.status.success() && all.contains("1 file verified without error"),
+        "rerun rrd verify {}: {}",
+        file.display(),
+        describe(&out)
+    );
+}
+
+/// `replay --rerun OUT.rrd` writes a recording that the Rerun CLI of the same
+/// version verifies (a cut copy of it does not pass, so the check reads it),
+/// with the recovered depth of every recovered frame; a path not ending in
+/// `.rrd` is refused, and a build without Rerun refuses the flag.
+#[test]
+fn replay_rerun_writes_a_recording_rerun_verifies() {
+    let dir = temp();
+    let input = bundled("document_holder.mcap");
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            input.to_str().unwrap(),
+            "--physics",
+            "paper",
+            "--rerun",
+            "viz/replay.rrd",
+            "--json",
+            "r.json",
+        ],
+    );
+    if !cfg!(feature = "rerun") {
+        assert_clean_failure(&out, &["--rerun", "rerun"], dir.path(), &[]);
+        return;
+    }
+    assert_ok(&out);
+    let rrd = dir.path().join("viz/replay.rrd");
+    assert_rerun_verifies(&rrd);
+    let bytes = std::fs::read(&rrd).unwrap();
+    let cut = dir.path().join("cut.rrd");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let refused = rerun_verify(&cut);
+    assert!(
+        !refused.status.success(),
+        "a cut recording passed: {}",
+        describe(&refused)
+    );
+    let r = read_json(&dir.path().join("r.json"));
+    assert_eq!(r["rerun"], "viz/replay.rrd", "{}", r["rerun"]);
+    // Every recovered frame is in it: the rows of the recovered depth, over its chunks.
+    let print = rerun_cli(&["rrd", "print", "-v", rrd.to_str().unwrap()]);
+    assert!(print.status.success(), "{}", describe(&print));
+    let rows: usize = text(&print.stdout)
+        .lines()
+        .filter(|l| l.contains(" - /camera/depth/recovered - "))
+        .filter_map(|l| l.split(" with ").nth(1)?.split(' ').next()?.parse::<usize>().ok())
+        .sum();
+    let recovered = r["per_frame"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|f| f["xi"].is_number())
+        .count();
+    assert!(recovered > 0, "{r}");
+    assert_eq!(rows, recovered, "{}", text(&print.stdout));
+    let bad = run(
+        dir.path(),
+        &[
+            "replay",
+            input.to_str().unwrap(),
+            "--physics",
+            "paper",
+            "--rerun",
+            "viz/replay.txt",
+            "-o",
+            "x.mcap",
+        ],
+    );
+    assert_clean_failure(
+        &bad,
+        &["--rerun", "viz/replay.txt", ".rrd"],
+        dir.path(),
+        &["cut.rrd", "out", "r.json", "viz"],
+    );
+}
+
 /// `bench` on a small image at two layer distances: one row per case and
 /// distance, the farther layer covering less of the image and taking less
 /// time to recover (the work follows the translucent pixels), `replay` once;
@@ -1430,6 +1571,7 @@ fn audit_rerun_writes_a_recording_or_is_refused() {
             .map(|m| m.len())
             .unwrap_or(0);
         assert!(size > 1000, "out.rrd is {size} bytes");
+        assert_rerun_verifies(&dir.path().join("out.rrd"));
         let r: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.path().join("a.json")).unwrap()).unwrap();
         assert!(r["plots"]["files"].to_string().contains("out.rrd"), "{}", r["plots"]);

@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use serde_json::json;
 
@@ -33,6 +33,10 @@ pub struct ReplayArgs {
     /// (default: that name in `out/` under the current directory).
     #[arg(short = 'o', long, value_name = "OUT.mcap|DIR")]
     pub out: Option<PathBuf>,
+    /// Also log the raw and recovered depth, the mask, the points and ξ of every frame to a
+    /// Rerun recording (needs a build with Rerun).
+    #[arg(long, value_name = "OUT.rrd")]
+    pub rerun: Option<PathBuf>,
     /// Radius (pixels) of the smooth-surface prior on the recovered layer (0: per-pixel inversion only).
     #[arg(long, default_value_t = 4)]
     pub prior_radius_px: usize,
@@ -105,6 +109,17 @@ fn out_path(bag: &Path, out: Option<&Path>) -> PathBuf {
 pub fn run(a: ReplayArgs) -> Result<()> {
     let method = XiMethod::from(a.xi_method);
     let online = a.xi_mode == XiMode::Online;
+    if let Some(r) = &a.rerun {
+        if !cfg!(feature = "rerun") {
+            bail!(
+                "--rerun {}: this build has no Rerun logging (rebuild with the default `rerun` feature); the outputs are in the bag (--out)",
+                r.display()
+            );
+        }
+        if r.extension().and_then(|e| e.to_str()) != Some("rrd") {
+            bail!("--rerun {}: expected a path ending in .rrd", r.display());
+        }
+    }
     if let Some(x) = a.xi {
         if !(0.0..1.0).contains(&x) {
             bail!("--xi must be in [0, 1), got {x}");
@@ -123,6 +138,9 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let objects = &rec.frames[bg.count..];
     let out_path = out_path(&a.bag, a.out.as_deref());
     super::common::create_parent(&out_path)?;
+    if let Some(r) = &a.rerun {
+        super::common::create_parent(r)?;
+    }
 
     // Pass 1 (pooled): the evidence of every object frame, before any is recovered.
     let mut observed = Vec::with_capacity(objects.len());
@@ -139,6 +157,13 @@ pub fn run(a: ReplayArgs) -> Result<()> {
 
     // Pass 2: recover and write.
     let mut writer = BagWriter::create(&out_path).with_context(|| format!("creating {}", out_path.display()))?;
+    let viz = match &a.rerun {
+        Some(r) => Some(
+            crate::viz::Recorder::open(&crate::viz::RerunTarget::File(r.clone()), "translucent_tof_replay")
+                .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?,
+        ),
+        None => None,
+    };
     let pb = a.output.progress(objects.len() as u64, "recovering");
     let mut per_frame = vec![];
     let mut last: Option<XiEstimate> = None;
@@ -158,6 +183,18 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         total_px += out.translucent_pixels;
         let header = &rec.headers[bg.count + j];
         write_outputs(&mut writer, header, &rec, &out, &f.ir, &obs.labels)?;
+        if let (Some(v), Some(r)) = (&viz, &a.rerun) {
+            v.log(&crate::viz::FrameViz {
+                stamp_ns: out.stamp_ns,
+                frame: j as u64,
+                intrinsics: rec.intrinsics,
+                raw_z_mm: f.z_mm.clone(),
+                recovered_z_mm: out.corrected_z_mm.clone(),
+                mask: out.mask.clone(),
+                xi: Some((xi.xi, xi.interval)),
+            })
+            .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
+        }
         let mut row = json!({
             "stamp": f.stamp_ns as f64 * 1e-9,
             "xi": xi.xi,
@@ -206,6 +243,9 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     writer
         .finish()
         .with_context(|| format!("finishing {}", out_path.display()))?;
+    if let (Some(v), Some(r)) = (viz, &a.rerun) {
+        v.finish().map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
+    }
 
     let bgd = pipe.background().context("background")?;
     // The material with the most evidence (the last frame's when ξ is given or nothing pooled).
@@ -213,6 +253,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let mut report = json!({
         "bag": a.bag.display().to_string(),
         "out": out_path.display().to_string(),
+        "rerun": a.rerun.as_ref().map(|r| r.display().to_string()),
         "frames": rec.frames.len(),
         "background_frames": bg.count,
         "background_choice": bg.how,
@@ -415,5 +456,8 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         ));
     }
     s.push_str(&format!("wrote {}", r["out"].as_str().unwrap_or("")));
+    if let Some(rrd) = r["rerun"].as_str() {
+        s.push_str(&format!(" and {rrd}"));
+    }
     s
 }
