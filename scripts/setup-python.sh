@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Creates the Python virtual environment used by the bag interoperability
-# tests (tests/bag_interop.rs): independent ROS 2 MCAP readers and writers.
+# tests (tests/bag_interop.rs): independent ROS 2 MCAP readers and writers;
+# by the DDS peer tests (tests/cyclone_peer.rs, tests/rclpy_graph.rs); and by
+# the Rerun recording checks of tests/cli.rs (`rerun rrd verify`).
 #
 #   bash scripts/setup-python.sh          # venv at <repo>/.venv
 #   TTOF_VENV=/some/dir bash scripts/setup-python.sh
@@ -25,6 +27,9 @@ RCLPY_VERSION="9.1.2"
 RMW_FASTRTPS_VERSION="9.3.3"
 ROS_MSGS_VERSION="5.5.1"       # sensor_msgs, std_srvs, diagnostic_msgs
 RCL_INTERFACES_VERSION="2.3.0"
+# The Rerun CLI (`rerun rrd verify`) of the same version as the Rust crate
+# `rerun` in Cargo.lock: a recording is checked by the reader of its own version.
+RERUN_SDK_VERSION="0.36.3"
 
 if [ ! -x "$venv/bin/python" ]; then
     echo "creating venv at $venv"
@@ -40,10 +45,11 @@ fi
     "ros-sensor-msgs==$ROS_MSGS_VERSION" \
     "ros-std-srvs==$ROS_MSGS_VERSION" \
     "ros-diagnostic-msgs==$ROS_MSGS_VERSION" \
-    "ros-rcl-interfaces==$RCL_INTERFACES_VERSION"
+    "ros-rcl-interfaces==$RCL_INTERFACES_VERSION" \
+    "rerun-sdk==$RERUN_SDK_VERSION"
 "$venv/bin/python" - <<'PY'
 import importlib.metadata as md
-for name in ("rosbags", "mcap", "mcap-ros2-support", "cyclonedds", "ros-rclpy", "ros-rmw-fastrtps-cpp"):
+for name in ("rosbags", "mcap", "mcap-ros2-support", "cyclonedds", "ros-rclpy", "ros-rmw-fastrtps-cpp", "rerun-sdk"):
     print(f"{name}=={md.version(name)}")
 PY
 echo "ok: run the interop tests with: cargo test --test bag_interop"

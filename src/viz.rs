@@ -142,6 +142,31 @@ impl Drop for VizSink {
     }
 }
 
+/// A recording written in the caller's thread, every frame kept (offline
+/// use, e.g. `replay --rerun`; the node uses [`VizSink`], which never waits).
+pub struct Recorder {
+    rec: backend::Stream,
+}
+
+impl Recorder {
+    /// Opens `target` (not [`RerunTarget::Off`]).
+    pub fn open(target: &RerunTarget, app_id: &'static str) -> Result<Self, String> {
+        Ok(Self {
+            rec: backend::open(target, app_id)?,
+        })
+    }
+
+    /// Logs one frame.
+    pub fn log(&self, f: &FrameViz) -> Result<(), String> {
+        backend::log_frame(&self.rec, f)
+    }
+
+    /// Flushes and closes the recording.
+    pub fn finish(self) -> Result<(), String> {
+        backend::close(self.rec)
+    }
+}
+
 /// A curve in a 2D plot (e.g. mean residual against a physical quantity).
 #[derive(Debug, Clone)]
 pub struct Curve {
@@ -186,6 +211,8 @@ pub fn split_clouds(f: &FrameViz) -> [Vec<[f32; 3]>; 3] {
 mod backend {
     use super::{split_clouds, FrameViz, RerunTarget};
     use rerun::{ChannelDatatype, Color, DepthImage, Points3D, RecordingStream, RecordingStreamBuilder, Scalars};
+
+    pub type Stream = RecordingStream;
 
     pub fn open(target: &RerunTarget, app_id: &'static str) -> Result<RecordingStream, String> {
         let b = RecordingStreamBuilder::new(app_id);
@@ -284,6 +311,8 @@ mod backend {
     use super::{FrameViz, RerunTarget};
 
     pub struct Never;
+
+    pub type Stream = Never;
 
     pub fn open(_: &RerunTarget, _: &'static str) -> Result<Never, String> {
         Err("this build has no Rerun support (rebuild with the default `rerun` feature), so `rerun` must be off".into())

@@ -402,7 +402,7 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
     }
     let [lo, hi] = interval(&r);
     for (_, data, ty) in &outs["/translucent_tof/translucency"] {
-        assert_eq!(ty, "translucent_tof/msg/TranslucencyEstimate");
+        assert_eq!(ty, "translucent_tof_msgs/msg/TranslucencyEstimate");
         let e: TranslucencyEstimate = decode(data);
         assert_eq!(e.method, "one_material");
         assert!(
@@ -668,6 +668,351 @@ fn help_lists_subcommands() {
     for sub in ["replay", "simulate", "calibrate-xi", "calibrate-lin"] {
         assert!(s.contains(sub), "--help does not list {sub}:\n{s}");
     }
+}
+
+/// The options that take one of a few names show them in `--help` (clap's
+/// "possible values"), `--physics` its presets beside FILE; a name not among
+/// them is refused naming the option and the values.
+#[test]
+fn help_shows_possible_values() {
+    let dir = temp();
+    let help = |args: &[&str]| {
+        let out = run(dir.path(), args);
+        assert_ok(&out);
+        text(&out.stdout)
+    };
+    let replay = help(&["replay", "--help"]);
+    for (option, values) in [
+        ("--xi-method", &["one_material", "eq12_residual"][..]),
+        ("--xi-mode", &["pooled", "online"]),
+        ("--physics", &["physical", "paper"]),
+        ("--waveform", &["sinusoid", "triangle"]),
+        ("--ir-mode", &["sum", "amplitude"]),
+    ] {
+        let at = replay
+            .find(&format!("{option} <"))
+            .unwrap_or_else(|| panic!("replay --help has no {option}:\n{replay}"));
+        let section = &replay[at..];
+        let end = section[2..].find("\n      --").map_or(section.len(), |e| e + 2);
+        let section = &section[..end];
+        assert!(
+            section.contains("Possible values:"),
+            "{option} lists no values:\n{section}"
+        );
+        for v in values {
+            assert!(
+                section.contains(&format!("- {v}")),
+                "{option} does not list {v}:\n{section}"
+            );
+        }
+    }
+    assert!(replay.contains("--physics <physical|paper|FILE>"), "{replay}");
+    let short = help(&["replay", "-h"]);
+    assert!(
+        short.contains("[possible values: physical, paper]"),
+        "replay -h: --physics\n{short}"
+    );
+    let calibrate = help(&["calibrate-lin", "-h"]);
+    assert!(
+        calibrate.contains("[possible values: sinusoid, triangle]"),
+        "{calibrate}"
+    );
+    let bench = help(&["bench", "-h"]);
+    assert!(
+        bench.contains("[possible values: recover, recover_per_pixel, observe, xi_estimate, replay, node_latency]"),
+        "{bench}"
+    );
+    let bad = run(dir.path(), &["replay", "x.mcap", "--xi-mode", "offline"]);
+    assert_clean_failure(&bad, &["--xi-mode", "offline", "pooled", "online"], dir.path(), &[]);
+    let bad = run(dir.path(), &["bench", "--cases", "recover,fast"]);
+    assert_clean_failure(&bad, &["--cases", "fast", "node_latency"], dir.path(), &[]);
+    // A --physics that is no preset and no file says both.
+    let bad = run(
+        dir.path(),
+        &[
+            "replay",
+            bundled("document_holder.mcap").to_str().unwrap(),
+            "--physics",
+            "papr",
+        ],
+    );
+    assert_clean_failure(&bad, &["papr", "physical, paper", "physics file"], dir.path(), &[]);
+}
+
+/// Flags that exist for tests and benchmarks are accepted but not shown.
+#[test]
+fn help_hides_test_only_flags() {
+    let dir = temp();
+    let out = run(dir.path(), &["node", "--help"]);
+    assert_ok(&out);
+    let help = text(&out.stdout);
+    assert!(!help.contains("--max-frames"), "{help}");
+    assert!(help.contains("--stats-json"), "{help}");
+    let top = run(dir.path(), &["--help"]);
+    assert!(!text(&top.stdout).contains("dds-echo"), "{}", text(&top.stdout));
+    // Still accepted: the parse fails later, on the parameter, not on the flag.
+    let out = run(
+        dir.path(),
+        &["node", "--max-frames", "1", "--ros-args", "-p", "pin_threads:=2"],
+    );
+    assert_clean_failure(&out, &["pin_threads"], dir.path(), &[]);
+}
+
+/// `node --help` gives every parameter of the README's table with its type and
+/// default, under a header naming the columns.
+#[test]
+fn node_help_lists_parameters_with_type_and_default() {
+    let dir = temp();
+    let out = run(dir.path(), &["node", "--help"]);
+    assert_ok(&out);
+    let help = text(&out.stdout);
+    let header = help
+        .lines()
+        .find(|l| l.trim_start().starts_with("NAME"))
+        .unwrap_or_else(|| panic!("no header line:\n{help}"));
+    let words: Vec<&str> = header.split_whitespace().collect();
+    assert_eq!(words, ["NAME", "TYPE", "DEFAULT", "MEANING"], "{header}");
+    let readme = std::fs::read_to_string(repo().join("README.md")).expect("README.md");
+    let mut rows = 0;
+    for line in readme.lines() {
+        // | `name` | type | default | run time | meaning |
+        let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+        if cells.len() < 7 || !cells[1].starts_with('`') || !["double", "integer", "string", "bool"].contains(&cells[2])
+        {
+            continue;
+        }
+        let name = cells[1].trim_matches('`');
+        let default = cells[3].split_whitespace().next().unwrap_or("").trim_matches('`');
+        let row = help
+            .lines()
+            .find(|l| l.split_whitespace().next() == Some(name))
+            .unwrap_or_else(|| panic!("node --help does not list {name}:\n{help}"));
+        let got: Vec<&str> = row.split_whitespace().collect();
+        assert_eq!(got[1], cells[2], "type of {name}: {row}");
+        assert_eq!(got[2], default, "default of {name}: {row}");
+        assert!(got.len() > 3, "no meaning for {name}: {row}");
+        rows += 1;
+    }
+    assert!(rows >= 15, "only {rows} parameters found in README's table");
+}
+
+/// `replay -o` is `--out`: a file name, or a folder to write the default name
+/// into; nothing is written anywhere else.
+#[test]
+fn replay_o_writes_there() {
+    let dir = temp();
+    let input = bundled("document_holder.mcap");
+    let bag = input.to_str().unwrap();
+    std::fs::create_dir(dir.path().join("results")).unwrap();
+    let out = run(dir.path(), &["replay", bag, "--physics", "paper", "-o", "results"]);
+    assert_ok(&out);
+    let written = dir.path().join("results/document_holder.recovered.mcap");
+    let outs = messages_by_topic(&written);
+    assert!(
+        outs.contains_key("/translucent_tof/depth/corrected"),
+        "{:?}",
+        outs.keys()
+    );
+    assert_eq!(entries(dir.path()), BTreeSet::from(["results".to_string()]));
+    assert_eq!(entries(&dir.path().join("results")).len(), 1);
+    let out = run(
+        dir.path(),
+        &["replay", bag, "--physics", "paper", "-o", "results/named.mcap"],
+    );
+    assert_ok(&out);
+    assert!(
+        text(&out.stdout).contains("wrote results/named.mcap"),
+        "{}",
+        describe(&out)
+    );
+    assert!(messages_by_topic(&dir.path().join("results/named.mcap")).contains_key("/translucent_tof/translucency"));
+    assert_eq!(entries(dir.path()), BTreeSet::from(["results".to_string()]));
+}
+
+/// Without `--out`, replay's bag lands in `out/` under the working directory
+/// (created), never beside the input or in the working directory itself.
+#[test]
+fn default_outputs_land_under_out() {
+    let dir = temp();
+    let input = dir.path().join("in").join("document_holder.mcap");
+    std::fs::create_dir(input.parent().unwrap()).unwrap();
+    std::fs::copy(bundled("document_holder.mcap"), &input).unwrap();
+    let out = run(dir.path(), &["replay", "in/document_holder.mcap", "--physics", "paper"]);
+    assert_ok(&out);
+    assert_eq!(
+        entries(dir.path()),
+        BTreeSet::from(["in".to_string(), "out".to_string()])
+    );
+    assert_eq!(
+        entries(&dir.path().join("in")),
+        BTreeSet::from(["document_holder.mcap".to_string()])
+    );
+    assert_eq!(
+        entries(&dir.path().join("out")),
+        BTreeSet::from(["document_holder.recovered.mcap".to_string()])
+    );
+    assert!(
+        messages_by_topic(&dir.path().join("out/document_holder.recovered.mcap"))
+            .contains_key("/translucent_tof/depth/corrected")
+    );
+    // The other subcommands write nothing unless asked (demo's default, out/demo, needs DDS: tests/node_dds.rs).
+    let out = run(
+        dir.path(),
+        &[
+            "calibrate-xi",
+            bundled("model_validation_xi072.mcap").to_str().unwrap(),
+            "--physics",
+            "paper",
+        ],
+    );
+    assert_ok(&out);
+    assert_eq!(
+        entries(dir.path()),
+        BTreeSet::from(["in".to_string(), "out".to_string()])
+    );
+    let out = run(dir.path(), &["demo", "--help"]);
+    assert!(text(&out.stdout).contains("[default: out/demo]"), "{}", describe(&out));
+}
+
+/// The Python interpreter of the venv `scripts/setup-python.sh` builds (or `TTOF_PYTHON`).
+fn python() -> PathBuf {
+    let p = std::env::var_os("TTOF_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join(".venv/bin/python"));
+    assert!(
+        p.exists(),
+        "Python with rerun-sdk not found at {}: run `bash scripts/setup-python.sh` or set TTOF_PYTHON",
+        p.display()
+    );
+    p
+}
+
+/// The version of a package in Cargo.lock.
+fn locked_version(name: &str) -> String {
+    let lock = std::fs::read_to_string(repo().join("Cargo.lock")).expect("Cargo.lock");
+    let at = lock
+        .find(&format!("name = \"{name}\"\nversion = \""))
+        .unwrap_or_else(|| panic!("{name} is not in Cargo.lock"));
+    let rest = &lock[at..];
+    let v = &rest[rest.find("version = \"").unwrap() + 11..];
+    v[..v.find('"').unwrap()].to_string()
+}
+
+/// The Rerun CLI of rerun-sdk with `args` (its `rerun` command; `python -m
+/// rerun_cli` would drop the exit code).
+fn rerun_cli(args: &[&str]) -> Output {
+    Command::new(python())
+        .args([
+            "-c",
+            "import sys; from rerun_cli.__main__ import main; sys.exit(main())",
+        ])
+        .args(args)
+        .output()
+        .expect("running the Rerun CLI of rerun-sdk")
+}
+
+/// `rerun rrd verify FILE` by the Rerun CLI of rerun-sdk, which must be the
+/// version of the `rerun` crate this binary logs with. Returns its output.
+fn rerun_verify(file: &Path) -> Output {
+    let cli = rerun_cli;
+    let version = cli(&["--version"]);
+    assert!(version.status.success(), "rerun_cli --version: {}", describe(&version));
+    let want = format!("rerun-cli {} ", locked_version("rerun"));
+    assert!(
+        text(&version.stdout).starts_with(&want),
+        "the Rerun CLI is not the crate's version ({want:?}): {} (scripts/setup-python.sh pins rerun-sdk)",
+        text(&version.stdout)
+    );
+    cli(&["rrd", "verify", file.to_str().unwrap()])
+}
+
+/// `rerun rrd verify` exits 0 for a file it could not read at all ("0 files
+/// verified"): success is that exit with the file counted.
+fn assert_rerun_verifies(file: &Path) {
+    let out = rerun_verify(file);
+    let all = format!("{}{}", text(&out.stdout), text(&out.stderr));
+    assert!(
+        out.status.success() && all.contains("1 file verified without error"),
+        "rerun rrd verify {}: {}",
+        file.display(),
+        describe(&out)
+    );
+}
+
+/// `replay --rerun OUT.rrd` writes a recording that the Rerun CLI of the same
+/// version verifies (a cut copy of it does not pass, so the check reads it),
+/// with the recovered depth of every recovered frame; a path not ending in
+/// `.rrd` is refused, and a build without Rerun refuses the flag.
+#[test]
+fn replay_rerun_writes_a_recording_rerun_verifies() {
+    let dir = temp();
+    let input = bundled("document_holder.mcap");
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            input.to_str().unwrap(),
+            "--physics",
+            "paper",
+            "--rerun",
+            "viz/replay.rrd",
+            "--json",
+            "r.json",
+        ],
+    );
+    if !cfg!(feature = "rerun") {
+        assert_clean_failure(&out, &["--rerun", "rerun"], dir.path(), &[]);
+        return;
+    }
+    assert_ok(&out);
+    let rrd = dir.path().join("viz/replay.rrd");
+    assert_rerun_verifies(&rrd);
+    let bytes = std::fs::read(&rrd).unwrap();
+    let cut = dir.path().join("cut.rrd");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let refused = rerun_verify(&cut);
+    assert!(
+        !refused.status.success(),
+        "a cut recording passed: {}",
+        describe(&refused)
+    );
+    let r = read_json(&dir.path().join("r.json"));
+    assert_eq!(r["rerun"], "viz/replay.rrd", "{}", r["rerun"]);
+    // Every recovered frame is in it: the rows of the recovered depth, over its chunks.
+    let print = rerun_cli(&["rrd", "print", "-v", rrd.to_str().unwrap()]);
+    assert!(print.status.success(), "{}", describe(&print));
+    let rows: usize = text(&print.stdout)
+        .lines()
+        .filter(|l| l.contains(" - /camera/depth/recovered - "))
+        .filter_map(|l| l.split(" with ").nth(1)?.split(' ').next()?.parse::<usize>().ok())
+        .sum();
+    let recovered = r["per_frame"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|f| f["xi"].is_number())
+        .count();
+    assert!(recovered > 0, "{r}");
+    assert_eq!(rows, recovered, "{}", text(&print.stdout));
+    let bad = run(
+        dir.path(),
+        &[
+            "replay",
+            input.to_str().unwrap(),
+            "--physics",
+            "paper",
+            "--rerun",
+            "viz/replay.txt",
+            "-o",
+            "x.mcap",
+        ],
+    );
+    assert_clean_failure(
+        &bad,
+        &["--rerun", "viz/replay.txt", ".rrd"],
+        dir.path(),
+        &["cut.rrd", "out", "r.json", "viz"],
+    );
 }
 
 /// `bench` on a small image at two layer distances: one row per case and
@@ -1226,6 +1571,7 @@ fn audit_rerun_writes_a_recording_or_is_refused() {
             .map(|m| m.len())
             .unwrap_or(0);
         assert!(size > 1000, "out.rrd is {size} bytes");
+        assert_rerun_verifies(&dir.path().join("out.rrd"));
         let r: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.path().join("a.json")).unwrap()).unwrap();
         assert!(r["plots"]["files"].to_string().contains("out.rrd"), "{}", r["plots"]);

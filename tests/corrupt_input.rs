@@ -330,7 +330,7 @@ fn decode_any(raw: &RawMessage) -> Result<(), String> {
         "sensor_msgs/msg/PointCloud2" => {
             BagReader::decode::<PointCloud2>(raw).map_err(|e| chain(&e))?;
         }
-        "translucent_tof/msg/TranslucencyEstimate" => {
+        "translucent_tof_msgs/msg/TranslucencyEstimate" => {
             BagReader::decode::<TranslucencyEstimate>(raw).map_err(|e| chain(&e))?;
         }
         _ => {}

@@ -76,7 +76,7 @@ fn cyclone_peer_latches_and_receives_points_and_xi() {
     let c = &r["cloud"];
     assert_eq!(
         (c["width"].as_u64(), c["height"].as_u64(), c["point_step"].as_u64()),
-        (Some(176), Some(144), Some(20))
+        (Some(176), Some(144), Some(24))
     );
     assert_eq!(
         c["fields"],

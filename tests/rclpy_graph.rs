@@ -135,6 +135,11 @@ fn rclpy_on_fast_dds_latches_early_receives_every_output_and_sets_parameters() {
     // Outputs reliable (so default-QoS readers match), the estimate transient-local.
     assert_eq!(r["points_qos"]["reliability"], "RELIABLE");
     assert_eq!(r["estimate_durability"], "TRANSIENT_LOCAL");
+    // The estimate's type as the ament package ros/translucent_tof_msgs builds it.
+    assert_eq!(
+        r["estimate_type"], "translucent_tof_msgs/msg/TranslucencyEstimate",
+        "{r}"
+    );
     assert_eq!(r["sent"], frames);
     // Every frame the node published (it drops the oldest when processing falls
     // behind: see /diagnostics' dropped_queue_full) reached the reliable readers of

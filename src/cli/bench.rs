@@ -24,14 +24,14 @@ pub struct BenchArgs {
     /// Image sizes, comma-separated WIDTHxHEIGHT.
     #[arg(long, value_delimiter = ',', default_value = "176x144,640x480")]
     pub sizes: Vec<String>,
-    /// Cases to run, comma-separated: recover, recover_per_pixel (recover without the smooth-surface prior), observe, xi_estimate, replay, node_latency
-    /// (the node over DDS on loopback against a bare publish/subscribe of the same messages).
+    /// Cases to run, comma-separated.
     #[arg(
         long,
+        value_enum,
         value_delimiter = ',',
         default_value = "recover,recover_per_pixel,observe,xi_estimate,replay"
     )]
-    pub cases: Vec<String>,
+    pub cases: Vec<CaseArg>,
     /// node_latency: object frames published (cycling the bag's).
     #[arg(long, default_value_t = 200)]
     pub node_frames: usize,
@@ -75,17 +75,37 @@ fn parse_size(s: &str) -> Result<(usize, usize)> {
     }
 }
 
-fn parse_case(s: &str) -> Result<Case> {
-    Ok(match s.trim() {
-        "recover" => Case::Recover,
-        "recover_per_pixel" => Case::RecoverPerPixel,
-        "observe" => Case::Observe,
-        "xi_estimate" | "xi" => Case::XiEstimate,
-        "replay" => Case::Replay,
-        other => bail!(
-            "--cases {other:?}: expected recover, recover_per_pixel, observe, xi_estimate, replay or node_latency"
-        ),
-    })
+/// `--cases`: what `bench` times.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[value(rename_all = "snake_case")]
+pub enum CaseArg {
+    /// Recovery of one frame at a fixed ξ (inversion, noise gate, smooth-surface prior).
+    Recover,
+    /// Recovery without the smooth-surface prior.
+    RecoverPerPixel,
+    /// Segmentation of one frame.
+    Observe,
+    /// ξ estimation on one frame.
+    #[value(alias = "xi")]
+    XiEstimate,
+    /// The pipeline over the object frames, ξ estimated online; per frame.
+    Replay,
+    /// The node over DDS on loopback against a bare publish/subscribe of the same messages.
+    NodeLatency,
+}
+
+impl CaseArg {
+    /// The library's case (`None`: node_latency, which runs apart).
+    fn case(self) -> Option<Case> {
+        match self {
+            CaseArg::Recover => Some(Case::Recover),
+            CaseArg::RecoverPerPixel => Some(Case::RecoverPerPixel),
+            CaseArg::Observe => Some(Case::Observe),
+            CaseArg::XiEstimate => Some(Case::XiEstimate),
+            CaseArg::Replay => Some(Case::Replay),
+            CaseArg::NodeLatency => None,
+        }
+    }
 }
 
 fn ms(v: Option<f64>) -> String {
@@ -95,13 +115,8 @@ fn ms(v: Option<f64>) -> String {
 /// Runs `bench`.
 pub fn run(a: BenchArgs) -> Result<()> {
     let sizes: Vec<(usize, usize)> = a.sizes.iter().map(|s| parse_size(s)).collect::<Result<_>>()?;
-    let node_latency = a.cases.iter().any(|c| c.trim() == "node_latency");
-    let cases: Vec<Case> = a
-        .cases
-        .iter()
-        .filter(|c| c.trim() != "node_latency")
-        .map(|s| parse_case(s))
-        .collect::<Result<_>>()?;
+    let node_latency = a.cases.contains(&CaseArg::NodeLatency);
+    let cases: Vec<Case> = a.cases.iter().filter_map(|c| c.case()).collect();
     if a.threads.contains(&0) || a.threads.is_empty() {
         bail!("--threads: counts of at least 1");
     }

@@ -89,20 +89,97 @@ impl PipelineArgs {
 /// The sensor and the physics (`--physics`, `--waveform`, ...).
 #[derive(Debug, Clone, Args)]
 pub struct ModelArgs {
-    /// The physics: `physical` (default: the second return crosses the layer twice, IR is the
-    /// demodulated amplitude), `paper` (the paper's Eq. 2 and 7, for replication), or a physics
-    /// TOML file (as `audit --physics-out` writes).
-    #[arg(long, value_name = "physical|paper|FILE")]
+    /// The physics: a preset's name, or a physics TOML file (as `audit --physics-out` writes).
+    #[arg(long, value_name = "physical|paper|FILE", value_parser = PhysicsParser)]
     pub physics: Option<PathBuf>,
     /// Modulation frequency, Hz.
     #[arg(long, default_value_t = 30.0e6)]
     pub modulation_frequency_hz: f64,
-    /// Correlation waveform: sinusoid or triangle (a physics file may give harmonics).
-    #[arg(long, default_value = "sinusoid")]
-    pub waveform: String,
-    /// What the IR image reports: sum (paper Eq. 7) or amplitude.
-    #[arg(long)]
-    pub ir_mode: Option<String>,
+    /// Correlation waveform (a physics file may give harmonics).
+    #[arg(long, value_enum, default_value_t = WaveformArg::Sinusoid)]
+    pub waveform: WaveformArg,
+    /// What the IR image reports (default: the physics' own).
+    #[arg(long, value_enum)]
+    pub ir_mode: Option<IrModeArg>,
+}
+
+/// `--waveform`: the camera's correlation waveform.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum WaveformArg {
+    /// A pure sinusoid (the paper's model).
+    Sinusoid,
+    /// A triangle (square-wave emission and gating).
+    Triangle,
+}
+
+impl WaveformArg {
+    /// The name `--waveform` takes.
+    pub fn name(self) -> &'static str {
+        match self {
+            WaveformArg::Sinusoid => "sinusoid",
+            WaveformArg::Triangle => "triangle",
+        }
+    }
+}
+
+/// `--ir-mode`: what the IR image reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum IrModeArg {
+    /// The sum of the returns' intensities (paper Eq. 7).
+    Sum,
+    /// The demodulated amplitude, as CW-ToF cameras report it.
+    Amplitude,
+}
+
+impl From<IrModeArg> for IrMode {
+    fn from(m: IrModeArg) -> Self {
+        match m {
+            IrModeArg::Sum => IrMode::Sum,
+            IrModeArg::Amplitude => IrMode::Amplitude,
+        }
+    }
+}
+
+/// A value of a [`clap::ValueEnum`] given as text (a node parameter), or a
+/// message naming the parameter and the values it takes.
+pub fn parse_choice<T: clap::ValueEnum>(what: &str, text: &str) -> Result<T> {
+    T::from_str(text, false).map_err(|_| {
+        let names: Vec<String> = T::value_variants()
+            .iter()
+            .filter_map(|v| v.to_possible_value())
+            .map(|p| p.get_name().to_string())
+            .collect();
+        anyhow::anyhow!("{what} {text:?}: expected one of {}", names.join(", "))
+    })
+}
+
+/// `--physics`: a preset's name or a path. The presets are its possible
+/// values in `--help`; any other value is taken as a physics file.
+#[derive(Debug, Clone, Copy)]
+pub struct PhysicsParser;
+
+impl clap::builder::TypedValueParser for PhysicsParser {
+    type Value = PathBuf;
+
+    fn parse_ref(
+        &self,
+        cmd: &clap::Command,
+        arg: Option<&clap::Arg>,
+        value: &std::ffi::OsStr,
+    ) -> std::result::Result<PathBuf, clap::Error> {
+        clap::builder::PathBufValueParser::new().parse_ref(cmd, arg, value)
+    }
+
+    fn possible_values(&self) -> Option<Box<dyn Iterator<Item = clap::builder::PossibleValue> + '_>> {
+        Some(Box::new(Preset::ALL.into_iter().map(|p| {
+            clap::builder::PossibleValue::new(p.name()).help(match p {
+                Preset::Physical => {
+                    "The default: the second return crosses the layer twice, IR is the demodulated amplitude"
+                }
+                Preset::Paper => "The paper's Eq. 2 and 7, for replication",
+            })
+        })))
+    }
 }
 
 /// A physics file: the forward model's options on top of a preset.
@@ -175,6 +252,14 @@ impl ModelArgs {
                     preset: Some(preset),
                     ..PhysicsFile::default()
                 },
+                None if !p.exists() => {
+                    let names: Vec<&str> = Preset::ALL.iter().map(|p| p.name()).collect();
+                    bail!(
+                        "physics {:?}: neither a preset ({}) nor an existing physics file",
+                        p.display().to_string(),
+                        names.join(", ")
+                    )
+                }
                 None => PhysicsFile::load(p)?,
             },
             None => PhysicsFile::default(),
@@ -188,14 +273,10 @@ impl ModelArgs {
             subsurface_delay_mm: file.subsurface_delay_mm.unwrap_or(d.subsurface_delay_mm),
             refraction_shift_px: file.refraction_shift_px.unwrap_or(d.refraction_shift_px),
         };
-        if let Some(m) = &self.ir_mode {
-            options.ir_mode = match m.as_str() {
-                "sum" => IrMode::Sum,
-                "amplitude" => IrMode::Amplitude,
-                other => bail!("--ir-mode {other:?}: expected sum or amplitude"),
-            };
+        if let Some(m) = self.ir_mode {
+            options.ir_mode = m.into();
         }
-        let wf = waveform(file.waveform.as_deref().unwrap_or(&self.waveform), file.harmonics)?;
+        let wf = waveform(file.waveform.as_deref().unwrap_or(self.waveform.name()), file.harmonics)?;
         Ok(ForwardModel {
             sensor: Sensor::new(self.modulation_frequency_hz, wf),
             options,
@@ -311,6 +392,19 @@ impl OutputArgs {
         }
         pb.set_prefix(label.to_string());
         pb
+    }
+}
+
+/// Where outputs go when their option is not given: relative to the working directory.
+pub const OUT_DIR: &str = "out";
+
+/// Creates the folder a file is to be written in, if it has one and it is missing.
+pub fn create_parent(path: &Path) -> Result<()> {
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))
+        }
+        _ => Ok(()),
     }
 }
 

@@ -13,7 +13,7 @@ use crate::physics::XiMethod;
 use crate::pipeline::XiChoice;
 use crate::viz::RerunTarget;
 
-use super::common::{ModelArgs, PipelineArgs, TopicArgs};
+use super::common::{parse_choice, ModelArgs, PipelineArgs, TopicArgs, WaveformArg};
 
 /// Arguments of `node`.
 #[derive(Debug, Args)]
@@ -22,7 +22,7 @@ pub struct NodeArgs {
     #[arg(long)]
     pub stats_json: Option<PathBuf>,
     /// Exit after publishing this many frames (tests, benchmarks).
-    #[arg(long)]
+    #[arg(long, hide = true)]
     pub max_frames: Option<u64>,
     /// `--ros-args -r FROM:=TO -p NAME:=VALUE --log-level LEVEL ...`
     #[arg(trailing_var_arg = true, allow_hyphen_values = true, num_args = 0.., value_name = "--ros-args ...")]
@@ -204,6 +204,10 @@ pub fn parameters_help() -> String {
     let mut out = String::from(
         "Parameters (--ros-args -p NAME:=VALUE or --params-file FILE; `ros2 param` at run time, * = takes effect from the next frame):\n",
     );
+    out.push_str(&format!(
+        "  {:<24}{:<8}{:<14}  {}\n",
+        "NAME", "TYPE", "DEFAULT", "MEANING"
+    ));
     for p in PARAMETERS {
         out.push_str(&format!(
             "  {:<24}{:<8}{:<14}{}{}\n",
@@ -274,8 +278,13 @@ pub fn runtime_settings(p: &Params) -> Result<RuntimeSettings> {
         model: ModelArgs {
             physics: text("physics").filter(|s| !s.is_empty()).map(PathBuf::from),
             modulation_frequency_hz: number(p, "modulation_frequency_hz")?.unwrap_or(30.0e6),
-            waveform: text("waveform").unwrap_or_else(|| "sinusoid".into()),
-            ir_mode: text("ir_mode"),
+            waveform: text("waveform")
+                .map(|w| parse_choice("parameter waveform", &w))
+                .transpose()?
+                .unwrap_or(WaveformArg::Sinusoid),
+            ir_mode: text("ir_mode")
+                .map(|m| parse_choice("parameter ir_mode", &m))
+                .transpose()?,
         },
         topics: TopicArgs::default(),
     };

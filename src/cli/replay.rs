@@ -1,8 +1,8 @@
 //! `replay BAG`: the node's pipeline over a recorded bag, offline.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use nalgebra::Vector3;
 use serde_json::json;
@@ -24,16 +24,20 @@ pub struct ReplayArgs {
     /// A fixed ξ (e.g. from calibrate-xi); default: estimate it.
     #[arg(long)]
     pub xi: Option<f64>,
-    /// How to estimate ξ: one_material (default) or eq12_residual (the paper's, degenerate; for comparison).
-    #[arg(long, default_value = "one_material")]
-    pub xi_method: String,
-    /// pooled: estimate ξ over all object frames, then recover each (offline default);
-    /// online: each frame uses the estimate pooled up to it, as the node does.
-    #[arg(long, default_value = "pooled")]
-    pub xi_mode: String,
-    /// Output bag (default: BAG's stem + `.recovered.mcap` in the current directory).
-    #[arg(long)]
+    /// How to estimate ξ.
+    #[arg(long, value_enum, default_value_t = XiMethodArg::OneMaterial)]
+    pub xi_method: XiMethodArg,
+    /// Which frames' evidence each frame's ξ pools.
+    #[arg(long, value_enum, default_value_t = XiMode::Pooled)]
+    pub xi_mode: XiMode,
+    /// Output bag, or an existing folder to write BAG's stem + `.recovered.mcap` into
+    /// (default: that name in `out/` under the current directory).
+    #[arg(short = 'o', long, value_name = "OUT.mcap|DIR")]
     pub out: Option<PathBuf>,
+    /// Also log the raw and recovered depth, the mask, the points and ξ of every frame to a
+    /// Rerun recording (needs a build with Rerun).
+    #[arg(long, value_name = "OUT.rrd")]
+    pub rerun: Option<PathBuf>,
     /// Radius (pixels) of the smooth-surface prior on the recovered layer (0: per-pixel inversion only).
     #[arg(long, default_value_t = 4)]
     pub prior_radius_px: usize,
@@ -47,18 +51,76 @@ pub struct ReplayArgs {
     pub output: OutputArgs,
 }
 
+/// `--xi-method`: how ξ is estimated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[value(rename_all = "snake_case")]
+pub enum XiMethodArg {
+    /// One material per region, pooled over frames (the default).
+    OneMaterial,
+    /// The paper's Eq. 12 residual (degenerate; for comparison).
+    #[value(alias = "eq12")]
+    Eq12Residual,
+}
+
+impl From<XiMethodArg> for XiMethod {
+    fn from(m: XiMethodArg) -> Self {
+        match m {
+            XiMethodArg::OneMaterial => XiMethod::OneMaterial,
+            XiMethodArg::Eq12Residual => XiMethod::Eq12Residual,
+        }
+    }
+}
+
+/// `--xi-mode`: which frames' evidence each frame's ξ pools.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[value(rename_all = "snake_case")]
+pub enum XiMode {
+    /// ξ estimated over all object frames, then each frame recovered (the offline default).
+    Pooled,
+    /// Each frame uses the estimate pooled up to it, as the node does.
+    Online,
+}
+
+impl XiMode {
+    /// The name `--xi-mode` takes (and the report gives).
+    pub fn name(self) -> &'static str {
+        match self {
+            XiMode::Pooled => "pooled",
+            XiMode::Online => "online",
+        }
+    }
+}
+
+/// Where replay writes its bag: `--out` if it names a file, `STEM.recovered.mcap` in
+/// `--out` if that is a folder, else in `out/`.
+fn out_path(bag: &Path, out: Option<&Path>) -> PathBuf {
+    let stem = bag
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "replay".into());
+    let name = format!("{stem}.recovered.mcap");
+    match out {
+        Some(o) if o.is_dir() => o.join(name),
+        Some(o) => o.to_path_buf(),
+        None => Path::new(super::common::OUT_DIR).join(name),
+    }
+}
+
 /// Runs `replay`.
 pub fn run(a: ReplayArgs) -> Result<()> {
-    let method = match a.xi_method.as_str() {
-        "one_material" => XiMethod::OneMaterial,
-        "eq12_residual" | "eq12" => XiMethod::Eq12Residual,
-        other => bail!("--xi-method {other:?}: expected one_material or eq12_residual"),
-    };
-    let online = match a.xi_mode.as_str() {
-        "pooled" => false,
-        "online" => true,
-        other => bail!("--xi-mode {other:?}: expected pooled or online"),
-    };
+    let method = XiMethod::from(a.xi_method);
+    let online = a.xi_mode == XiMode::Online;
+    if let Some(r) = &a.rerun {
+        if !cfg!(feature = "rerun") {
+            bail!(
+                "--rerun {}: this build has no Rerun logging (rebuild with the default `rerun` feature); the outputs are in the bag (--out)",
+                r.display()
+            );
+        }
+        if r.extension().and_then(|e| e.to_str()) != Some("rrd") {
+            bail!("--rerun {}: expected a path ending in .rrd", r.display());
+        }
+    }
     if let Some(x) = a.xi {
         if !(0.0..1.0).contains(&x) {
             bail!("--xi must be in [0, 1), got {x}");
@@ -75,14 +137,11 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
     let mut pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];
-    let out_path = a.out.clone().unwrap_or_else(|| {
-        let stem = a
-            .bag
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "replay".into());
-        PathBuf::from(format!("{stem}.recovered.mcap"))
-    });
+    let out_path = out_path(&a.bag, a.out.as_deref());
+    super::common::create_parent(&out_path)?;
+    if let Some(r) = &a.rerun {
+        super::common::create_parent(r)?;
+    }
 
     // Pass 1 (pooled): the evidence of every object frame, before any is recovered.
     let mut observed = Vec::with_capacity(objects.len());
@@ -99,6 +158,13 @@ pub fn run(a: ReplayArgs) -> Result<()> {
 
     // Pass 2: recover and write.
     let mut writer = BagWriter::create(&out_path).with_context(|| format!("creating {}", out_path.display()))?;
+    let viz = match &a.rerun {
+        Some(r) => Some(
+            crate::viz::Recorder::open(&crate::viz::RerunTarget::File(r.clone()), "translucent_tof_replay")
+                .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?,
+        ),
+        None => None,
+    };
     let pb = a.output.progress(objects.len() as u64, "recovering");
     let mut per_frame = vec![];
     let mut last: Option<XiEstimate> = None;
@@ -118,6 +184,18 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         total_px += out.translucent_pixels;
         let header = &rec.headers[bg.count + j];
         write_outputs(&mut writer, header, (&rec, pipe.rays()), &out, &f.ir, &obs.labels)?;
+        if let (Some(v), Some(r)) = (&viz, &a.rerun) {
+            v.log(&crate::viz::FrameViz {
+                stamp_ns: out.stamp_ns,
+                frame: j as u64,
+                rays: pipe.shared_rays(),
+                raw_z_mm: f.z_mm.clone(),
+                recovered_z_mm: out.corrected_z_mm.clone(),
+                mask: out.mask.clone(),
+                xi: Some((xi.xi, xi.interval)),
+            })
+            .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
+        }
         let mut row = json!({
             "stamp": f.stamp_ns as f64 * 1e-9,
             "xi": xi.xi,
@@ -166,6 +244,9 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     writer
         .finish()
         .with_context(|| format!("finishing {}", out_path.display()))?;
+    if let (Some(v), Some(r)) = (viz, &a.rerun) {
+        v.finish().map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
+    }
 
     let bgd = pipe.background().context("background")?;
     // The material with the most evidence (the last frame's when ξ is given or nothing pooled).
@@ -173,6 +254,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let mut report = json!({
         "bag": a.bag.display().to_string(),
         "out": out_path.display().to_string(),
+        "rerun": a.rerun.as_ref().map(|r| r.display().to_string()),
         "frames": rec.frames.len(),
         "background_frames": bg.count,
         "background_choice": bg.how,
@@ -191,7 +273,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "xi": xi.as_ref().map(|x| x.xi),
         "xi_interval": xi.as_ref().map(|x| x.interval),
         "xi_method": xi.as_ref().map(|x| x.method.as_str()),
-        "xi_mode": a.xi_mode,
+        "xi_mode": a.xi_mode.name(),
         "xi_frames_pooled": pipe.xi_frames(),
         "xi_note": xi.as_ref().map(|x| {
             if pipe.config.lin_calibration.is_none() && x.method != XiMethod::Fixed {
@@ -376,5 +458,8 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         ));
     }
     s.push_str(&format!("wrote {}", r["out"].as_str().unwrap_or("")));
+    if let Some(rrd) = r["rerun"].as_str() {
+        s.push_str(&format!(" and {rrd}"));
+    }
     s
 }

@@ -1,11 +1,17 @@
-//! `translucent_tof/msg/*`: this package's own messages (`msg/`).
+//! `translucent_tof_msgs/msg/*`: this package's own messages (`msg/`, built for
+//! ROS 2 by the ament package `ros/translucent_tof_msgs`).
 
 use serde::{Deserialize, Serialize};
 
 use super::std_msgs::Header;
 use super::RosMessage;
 
-/// `translucent_tof/msg/TranslucencyEstimate` (field order = `msg/TranslucencyEstimate.msg`).
+/// The ROS 2 package of this crate's messages (`ros/translucent_tof_msgs`): their
+/// type names are `translucent_tof_msgs/msg/NAME`, on DDS
+/// `translucent_tof_msgs::msg::dds_::NAME_`.
+pub const PACKAGE: &str = "translucent_tof_msgs";
+
+/// `translucent_tof_msgs/msg/TranslucencyEstimate` (field order = `msg/TranslucencyEstimate.msg`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TranslucencyEstimate {
     /// Stamp of the frame the estimate was used for.
@@ -33,7 +39,7 @@ pub struct TranslucencyEstimate {
 }
 
 impl RosMessage for TranslucencyEstimate {
-    const TYPE_NAME: &'static str = "translucent_tof/msg/TranslucencyEstimate";
+    const TYPE_NAME: &'static str = "translucent_tof_msgs/msg/TranslucencyEstimate";
     fn definition() -> &'static str {
         include_str!("../../msg/TranslucencyEstimate.msg")
     }
@@ -68,5 +74,28 @@ mod tests {
         assert_eq!(back, m);
         let schema = ros2msg_schema::<TranslucencyEstimate>();
         assert!(schema.contains("MSG: std_msgs/Header") && schema.contains("MSG: builtin_interfaces/Time"));
+    }
+
+    /// The type name is the one the ament package builds (`ros/translucent_tof_msgs`),
+    /// in bags and on DDS, and that package's definition is this one.
+    #[test]
+    fn type_name_is_the_ament_packages() {
+        let package_xml = include_str!("../../ros/translucent_tof_msgs/package.xml");
+        assert!(
+            package_xml.contains(&format!("<name>{PACKAGE}</name>")),
+            "{package_xml}"
+        );
+        assert_eq!(
+            TranslucencyEstimate::TYPE_NAME,
+            format!("{PACKAGE}/msg/TranslucencyEstimate")
+        );
+        assert_eq!(
+            ros2_client::MessageTypeName::new(PACKAGE, "TranslucencyEstimate").dds_msg_type(),
+            "translucent_tof_msgs::msg::dds_::TranslucencyEstimate_"
+        );
+        assert_eq!(
+            TranslucencyEstimate::definition(),
+            include_str!("../../ros/translucent_tof_msgs/msg/TranslucencyEstimate.msg")
+        );
     }
 }

@@ -68,7 +68,7 @@ pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
         let est_q = super::qos_estimate();
         let t_est = topic(
             format!("{node_fqn}/translucency"),
-            "translucent_tof",
+            crate::msgs::translucent_tof::PACKAGE,
             "TranslucencyEstimate",
             &est_q,
         )?;

@@ -612,7 +612,11 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     let mask = node.create_publisher(&t, Some(q)).map_err(pe(&mask_n))?;
     let (points_n, t, q) = publisher(names::POINTS, "sensor_msgs", "PointCloud2")?;
     let points = node.create_publisher(&t, Some(q)).map_err(pe(&points_n))?;
-    let (est_n, t, q) = publisher(names::TRANSLUCENCY, "translucent_tof", "TranslucencyEstimate")?;
+    let (est_n, t, q) = publisher(
+        names::TRANSLUCENCY,
+        crate::msgs::translucent_tof::PACKAGE,
+        "TranslucencyEstimate",
+    )?;
     let estimate = node.create_publisher(&t, Some(q)).map_err(pe(&est_n))?;
     let (diag_n, t, q) = publisher(names::DIAGNOSTICS, "diagnostic_msgs", "DiagnosticArray")?;
     let diagnostics: Publisher<DiagnosticArray> = node.create_publisher(&t, Some(q)).map_err(pe(&diag_n))?;

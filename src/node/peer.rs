@@ -124,7 +124,7 @@ impl Peer {
         let t_points = topic(format!("{node_fqn}/points"), "sensor_msgs", "PointCloud2", &listen)?;
         let t_est = topic(
             format!("{node_fqn}/translucency"),
-            "translucent_tof",
+            crate::msgs::translucent_tof::PACKAGE,
             "TranslucencyEstimate",
             &latched,
         )?;

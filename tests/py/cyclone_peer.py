@@ -103,7 +103,7 @@ class PointCloud2(IdlStruct, typename="sensor_msgs::msg::dds_::PointCloud2_"):
 
 @final
 @dataclass
-class TranslucencyEstimate(IdlStruct, typename="translucent_tof::msg::dds_::TranslucencyEstimate_"):
+class TranslucencyEstimate(IdlStruct, typename="translucent_tof_msgs::msg::dds_::TranslucencyEstimate_"):
     header: Header
     xi: float64
     xi_lower: float64
