@@ -103,7 +103,12 @@ pub fn companion_messages(
         .iter()
         .map(|r| estimate(&r.xi, r.id, r.pixels, r.opaque))
         .collect();
-    if estimates.is_empty() {
+    if let Some(why) = out.passthrough {
+        estimates = vec![TranslucencyEstimate {
+            method: format!("passthrough: {}", why.as_str()),
+            ..estimate(&out.xi, 0, 0, false)
+        }];
+    } else if estimates.is_empty() {
         estimates.push(estimate(&out.xi, 0, 0, out.xi.is_opaque()));
     }
     Ok(Companions {

@@ -438,6 +438,87 @@ pub struct FrameOutput {
     pub unresolved_pixels: usize,
     /// RMS of the per-pixel model residual, mm.
     pub fit_residual_mm: f64,
+    /// Why the input was passed through uncorrected, if it was.
+    pub passthrough: Option<Passthrough>,
+}
+
+/// How a frame's readings depart from the latched background, over the pixels valid in both.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct Departure {
+    /// Pixels valid in the frame and the background.
+    pub valid: usize,
+    /// Read nearer than the background, beyond the change threshold.
+    pub nearer: usize,
+    /// Read farther than the background, beyond the change threshold.
+    pub farther: usize,
+}
+
+impl Departure {
+    /// A share of the valid pixels read farther than the background beyond which the camera
+    /// moved: a layer's return mixes with the background's and reads between the two (Eq. 3),
+    /// never farther, so objects placed in the scene give none.
+    pub const MOVED_FARTHER_SHARE: f64 = 0.2;
+    /// A share of the valid pixels changed beyond which the camera moved (a move toward the
+    /// scene brings every pixel nearer; objects leave most of the background in view).
+    pub const MOVED_CHANGED_SHARE: f64 = 0.8;
+
+    /// The frame is not of the camera the background was latched from.
+    pub fn camera_moved(&self) -> bool {
+        let share = |n: usize| n as f64 / self.valid.max(1) as f64;
+        self.valid > 0
+            && (share(self.farther) > Self::MOVED_FARTHER_SHARE
+                || share(self.farther + self.nearer) > Self::MOVED_CHANGED_SHARE)
+    }
+}
+
+/// Why a frame's input is passed through uncorrected (the node's output never goes silent).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Passthrough {
+    /// No background latched yet.
+    NoBackground,
+    /// A background latch is in progress.
+    Latching,
+    /// ξ is not determined yet (too few translucent pixels so far).
+    NoXiYet,
+    /// The camera moved after the latch: the background no longer lines up.
+    CameraMoved,
+}
+
+impl Passthrough {
+    /// Why, in words (the estimate's `method` says `passthrough: <this>`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Passthrough::NoBackground => "no background latched",
+            Passthrough::Latching => "latching the background",
+            Passthrough::NoXiYet => "xi not determined yet",
+            Passthrough::CameraMoved => "the camera moved after the latch",
+        }
+    }
+}
+
+impl FrameOutput {
+    /// The input as it is: nothing in the mask, nothing recovered.
+    pub fn passed_through(frame: &DepthFrame, why: Passthrough) -> Self {
+        let (w, h) = (frame.z_mm.width, frame.z_mm.height);
+        let mut xi = XiEstimate::fixed(f64::NAN);
+        xi.interval = [0.0, 1.0];
+        xi.note = why.as_str().into();
+        Self {
+            stamp_ns: frame.stamp_ns,
+            mask: ImageBuf::filled(w, h, false),
+            corrected_z_mm: frame.z_mm.clone(),
+            corrected_sigma_mm: ImageBuf::filled(w, h, f32::NAN),
+            xi,
+            regions: vec![],
+            translucent_pixels: 0,
+            recovered_pixels: 0,
+            pinned_pixels: 0,
+            unresolved_pixels: 0,
+            fit_residual_mm: f64::NAN,
+            passthrough: Some(why),
+        }
+    }
 }
 
 /// The pipeline's state: camera, background and the pooled ξ evidence.
@@ -764,6 +845,7 @@ impl Pipeline {
             pinned_pixels: 0,
             unresolved_pixels: 0,
             fit_residual_mm: f64::NAN,
+            passthrough: None,
         };
         // Groups of regions recovered together: one per material and ξ.
         let mut groups: Vec<(u32, XiEstimate, Vec<u32>)> = vec![];
@@ -1032,6 +1114,28 @@ impl Pipeline {
             share[i] = m.map_or(self.config.max_layer_sigma_mm, |m| m / 1.96);
         }
         share
+    }
+
+    /// How a frame's readings depart from the background (`None` without one).
+    pub fn departure(&self, obs: &Observed) -> Option<Departure> {
+        let bg = self.background.as_ref()?;
+        let range = self.config.model.sensor.unambiguous_range_mm();
+        let mut out = Departure::default();
+        for (i, (&d, &db)) in obs.distance_mm.data.iter().zip(&bg.distance_mm.data).enumerate() {
+            if !(d.is_finite() && d > 0.0 && db.is_finite() && db > 0.0) {
+                continue;
+            }
+            out.valid += 1;
+            let sigma = self.change_noise.as_ref().map_or(0.0, |n| n.data[i]);
+            let threshold = self
+                .config
+                .threshold_mm
+                .max(NOISE_SIGMAS * if sigma.is_finite() { sigma } else { 0.0 });
+            let diff = wrapped_difference(d, db, range);
+            out.nearer += usize::from(diff < -threshold);
+            out.farther += usize::from(diff > threshold);
+        }
+        Some(out)
     }
 
     /// Online processing (the node): observe, add ξ evidence, recover with the pooled ξ.

@@ -47,7 +47,10 @@ fn demo_runs_the_graph_and_recovers_the_document_holder() {
     let xi = r["xi"].as_f64().unwrap();
     let iv = r["xi_interval"].as_array().unwrap();
     assert!(iv[0].as_f64().unwrap() <= xi && xi <= iv[1].as_f64().unwrap());
-    assert!(r["node"]["published"].as_u64().unwrap() >= got);
+    let passed: u64 = r["node"]["passed_through"]
+        .as_object()
+        .map_or(0, |m| m.values().filter_map(|v| v.as_u64()).sum());
+    assert!(r["node"]["published"].as_u64().unwrap() + passed >= got, "{r}");
     // The outputs kept as a bag: corrected depth as the input, an organized cloud.
     let reader = BagReader::open(&dir.path().join("demo.mcap")).unwrap();
     let (mut images, mut clouds) = (0, 0);
@@ -369,7 +372,7 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
             "no output after the malformed burst"
         );
         eprintln!("sent {sent_malformed} malformed samples");
-        // 10. Clear: frames are dropped again, and a second clear says so.
+        // 10. Clear: frames are passed through uncorrected again, and a second clear says so.
         let r = peer.call(false, Duration::from_secs(10)).await.unwrap();
         assert!(r.success && r.message.contains("cleared"), "{r:?}");
         let s = next();
@@ -383,7 +386,6 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
     let dropped = &st["dropped"];
     for cause in [
         "no_camera_info",
-        "no_background",
         "bad_image",
         "size_mismatch",
         "unpaired",
@@ -395,7 +397,9 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
             "no {cause} drop counted: {dropped}"
         );
     }
-    assert!(dropped["no_background"].as_u64().unwrap() >= 3);
+    // Frames without a background are published as they came (`passthrough`), not dropped.
+    assert_eq!(dropped["no_background"].as_u64(), None, "{dropped}");
+    assert!(st["passed_through"]["no_background"].as_u64().unwrap() >= 3, "{st}");
     assert!(dropped["unpaired"].as_u64().unwrap() >= 3);
     // 28 malformed samples went out best-effort on loopback; the oversized: a wide image, a
     // padded one, an absurd one and a camera_info of a 100000 x 100000 camera.

@@ -274,7 +274,8 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let out_bag = a.out_dir.join("demo.mcap");
     let mut w = BagWriter::create(&out_bag).with_context(|| format!("creating {}", out_bag.display()))?;
     let mut translucent = 0usize;
-    for (stamp, img) in &peer_received.corrected {
+    // The object frames' outputs (the background frames came back as they went, `passthrough`).
+    for (stamp, img) in peer_received.corrected.iter().filter(|(s, _)| stamps.contains_key(s)) {
         w.write("/tof/translucent_tof/depth/corrected", *stamp, img)?;
         if let Some(m) = peer_received.mask.get(stamp) {
             w.write("/tof/translucent_tof/translucent_mask", *stamp, m)?;
@@ -312,13 +313,23 @@ pub fn run(a: DemoArgs) -> Result<()> {
         )?;
     }
     w.finish()?;
-    let last = peer_received.estimates.last();
+    // The last estimate of a recovered frame (those of frames passed through say why instead).
+    let last = peer_received
+        .estimates
+        .iter()
+        .rev()
+        .find(|e| !e.method.starts_with("passthrough"));
     let object_frames = stamps.len();
+    let object_frames_back = peer_received
+        .corrected
+        .keys()
+        .filter(|s| stamps.contains_key(s))
+        .count();
     let report = json!({
         "bag": bag.display().to_string(),
         "latch": latch_reply.message,
         "object_frames_played": object_frames,
-        "frames_received": peer_received.corrected.len(),
+        "frames_received": object_frames_back,
         "xi": last.map(|e| e.xi),
         "xi_interval": last.map(|e| [e.xi_lower, e.xi_upper]),
         "xi_method": last.map(|e| e.method.clone()),
@@ -332,8 +343,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     });
     let mut s = format!(
         "demo over DDS on loopback: {} of {} object frames came back from the node\n",
-        peer_received.corrected.len(),
-        object_frames
+        object_frames_back, object_frames
     );
     if let Some(e) = last {
         s.push_str(&format!(

@@ -170,6 +170,20 @@ pub const PARAMETERS: &[ParamSpec] = &[
         "latch the background as soon as frames flow",
     ),
     spec(
+        "passthrough",
+        "bool",
+        Some("true"),
+        false,
+        "publish the input uncorrected while nothing can be recovered (before the latch, xi unknown, camera moved)",
+    ),
+    spec(
+        "relatch_on_move",
+        "bool",
+        Some("false"),
+        false,
+        "latch again once a camera that moved after the latch holds still",
+    ),
+    spec(
         "prior_radius_px",
         "integer",
         Some("4"),
@@ -247,8 +261,12 @@ fn count(params: &std::collections::BTreeMap<String, ParamValue>, name: &str, de
 type Params = std::collections::BTreeMap<String, ParamValue>;
 
 fn flag(p: &Params, name: &str) -> Result<bool> {
+    flag_or(p, name, false)
+}
+
+fn flag_or(p: &Params, name: &str, default: bool) -> Result<bool> {
     match p.get(name) {
-        None => Ok(false),
+        None => Ok(default),
         Some(ParamValue::Bool(b)) => Ok(*b),
         Some(v) => bail!("parameter {name}: expected true or false, got {:?}", v.as_text()),
     }
@@ -370,6 +388,8 @@ pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
         background_frames: runtime.background_frames,
         latch_timeout: runtime.latch_timeout,
         latch_on_start: flag(p, "latch_on_start")?,
+        passthrough: flag_or(p, "passthrough", true)?,
+        relatch_on_move: flag(p, "relatch_on_move")?,
         queue_depth: count(p, "queue_depth", 2)?.max(1),
         pin_threads: flag(p, "pin_threads")?,
         service_mapping,

@@ -11,7 +11,7 @@ use crate::image::{depth_mm, ir_counts};
 use crate::msgs::{CameraInfo, Image, TriggerResponse};
 use crate::outputs::{companion_messages, corrected_message, Companions};
 use crate::physics::{ImageBuf, Intrinsics};
-use crate::pipeline::{Background, BackgroundLatch, DepthFrame, FrameOutput, Pipeline, PipelineConfig};
+use crate::pipeline::{Background, BackgroundLatch, DepthFrame, FrameOutput, Passthrough, Pipeline, PipelineConfig};
 
 /// Why a frame was dropped (each logged once, then counted).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize)]
@@ -40,6 +40,8 @@ pub enum DropCause {
     NoXiYet,
     /// The pipeline refused the frame.
     Pipeline,
+    /// The camera moved after the latch (with `passthrough` off).
+    CameraMoved,
 }
 
 impl DropCause {
@@ -61,6 +63,9 @@ impl DropCause {
             DropCause::QueueFull => "frames arrive faster than they are processed; the oldest are dropped",
             DropCause::NoXiYet => "xi is estimated from the translucent pixels seen so far; set -p xi:=X to fix it",
             DropCause::Pipeline => "see the message",
+            DropCause::CameraMoved => {
+                "the view no longer lines up with the background: call ~/latch_background, or set relatch_on_move"
+            }
         }
     }
 }
@@ -94,7 +99,8 @@ impl DropCounters {
 /// A background latch in progress, on behalf of a service request.
 #[derive(Debug)]
 struct LatchInProgress<T> {
-    token: T,
+    /// The service call waiting for the reply; `None` for the node's own relatch.
+    token: Option<T>,
     /// The frames so far and the camera they are of; `None` while waiting for
     /// the first camera_info.
     latch: Option<(BackgroundLatch, Intrinsics)>,
@@ -140,6 +146,22 @@ pub struct FrameResult<T> {
     pub dropped: Option<(DropCause, Option<String>)>,
     /// Service replies now due (a latch that completed or failed).
     pub replies: Vec<(T, TriggerResponse)>,
+    /// What the node should log (a camera moved, a relatch), with its level.
+    pub notes: Vec<(log::Level, String)>,
+}
+
+/// How long the view must hold still before a moved camera is relatched, frames.
+pub const STEADY_FRAMES: usize = 3;
+/// A view holds still while fewer than this share of its pixels change between frames.
+const STEADY_CHANGED_SHARE: f64 = 0.02;
+
+/// A camera seen to have moved after the latch.
+#[derive(Debug)]
+struct Moved {
+    /// Consecutive frames the view has held still.
+    steady: usize,
+    /// The last frame's readings, z mm.
+    last_z_mm: ImageBuf<f32>,
 }
 
 /// The node's state between frames. `T` identifies a pending service call.
@@ -155,6 +177,15 @@ pub struct NodeCore<T> {
     pub drops: DropCounters,
     /// Frames that produced outputs.
     pub processed: u64,
+    /// Frames passed through uncorrected, by reason.
+    pub passed: BTreeMap<Passthrough, u64>,
+    /// Times the camera was seen to move after a latch.
+    pub moves: u64,
+    /// Publish the input uncorrected while nothing can be recovered (`passthrough`).
+    passthrough: bool,
+    /// Latch again once a moved camera's view holds still (`relatch_on_move`).
+    relatch_on_move: bool,
+    moved: Option<Moved>,
 }
 
 impl<T> NodeCore<T> {
@@ -170,7 +201,25 @@ impl<T> NodeCore<T> {
             latch: None,
             drops: DropCounters::default(),
             processed: 0,
+            passed: BTreeMap::new(),
+            moves: 0,
+            passthrough: true,
+            relatch_on_move: false,
+            moved: None,
         }
+    }
+
+    /// `passthrough`: publish the input while nothing can be recovered (else drop it);
+    /// `relatch_on_move`: latch again once a moved camera's view holds still.
+    pub fn with_watch(mut self, passthrough: bool, relatch_on_move: bool) -> Self {
+        self.passthrough = passthrough;
+        self.relatch_on_move = relatch_on_move;
+        self
+    }
+
+    /// Whether the camera is taken to have moved since the latch.
+    pub fn camera_moved(&self) -> bool {
+        self.moved.is_some()
     }
 
     /// The latched background, if any.
@@ -245,12 +294,19 @@ impl<T> NodeCore<T> {
     }
 
     fn begin_latch(&mut self, token: T, expires: bool) -> Result<(), (T, TriggerResponse)> {
-        if self.latch.is_some() {
+        if let Some(l) = &mut self.latch {
+            if l.token.is_none() {
+                // The node's own relatch: the caller takes it over and gets its reply.
+                l.token = Some(token);
+                l.expires = expires;
+                l.started = std::time::Instant::now();
+                return Ok(());
+            }
             return Err((token, failure("a latch is already in progress; wait for its reply")));
         }
         let range_mm = self.config.model.sensor.unambiguous_range_mm();
         self.latch = Some(LatchInProgress {
-            token,
+            token: Some(token),
             latch: self
                 .info
                 .as_ref()
@@ -307,7 +363,9 @@ impl<T> NodeCore<T> {
         let cancelled = self
             .latch
             .take()
-            .map(|l| (l.token, failure("cancelled by ~/clear_background")));
+            .and_then(|l| l.token)
+            .map(|t| (t, failure("cancelled by ~/clear_background")));
+        self.moved = None;
         let had = self.background().is_some();
         if let Some(p) = &mut self.pipeline {
             p.clear_background();
@@ -336,7 +394,8 @@ impl<T> NodeCore<T> {
         if !late {
             return None;
         }
-        let l = self.latch.take()?;
+        let mut l = self.latch.take()?;
+        let token = l.token.take()?;
         let why = if l.latch.is_none() {
             format!(
                 "no camera_info arrived in {:.1} s: cannot latch without the intrinsics (is depth/camera_info remapped right?)",
@@ -350,7 +409,7 @@ impl<T> NodeCore<T> {
                 self.latch_timeout.as_secs_f64()
             )
         };
-        Some((l.token, failure(&why)))
+        Some((token, failure(&why)))
     }
 
     /// Handles one depth + IR pair (same stamp).
@@ -359,6 +418,7 @@ impl<T> NodeCore<T> {
             outputs: None,
             dropped: None,
             replies: vec![],
+            notes: vec![],
         };
         match self.frame(depth, ir, &mut result) {
             Ok(()) => {}
@@ -410,8 +470,19 @@ impl<T> NodeCore<T> {
             }
             if l.frames() >= self.background_frames {
                 if let Some(l) = self.latch.take() {
-                    result.replies.push(self.finish_latch(l));
+                    let (reply, note) = self.finish_latch(l);
+                    result.replies.extend(reply);
+                    result.notes.extend(note.map(|n| (log::Level::Info, n)));
                 }
+            }
+            if self.passthrough {
+                self.publish(
+                    depth,
+                    FrameOutput::passed_through(&frame, Passthrough::Latching),
+                    frame,
+                    k,
+                    result,
+                )?;
             }
             return Ok(());
         }
@@ -422,45 +493,162 @@ impl<T> NodeCore<T> {
             ));
         };
         if pipe.background().is_none() {
-            return Err((
+            let why = (
                 DropCause::NoBackground,
                 format!("frame at stamp {stamp} ns dropped: no background latched"),
-            ));
+            );
+            return self.pass_or_drop(Passthrough::NoBackground, why, depth, frame, k, result);
         }
         let mut obs = pipe
             .observe(&frame)
             .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns dropped: {e}")))?;
+        if let Some(d) = pipe.departure(&obs) {
+            if self.watch_move(&d, &frame, k, result) {
+                let why = (
+                    DropCause::CameraMoved,
+                    format!("frame at stamp {stamp} ns dropped: the camera moved after the latch"),
+                );
+                return self.pass_or_drop(Passthrough::CameraMoved, why, depth, frame, k, result);
+            }
+        }
+        let Some(pipe) = &mut self.pipeline else {
+            return Ok(());
+        };
         pipe.add_xi_evidence(&mut obs);
         let Some(out) = pipe.recover_regions(&frame, &obs) else {
-            return Err((
+            let why = (
                 DropCause::NoXiYet,
                 format!(
                     "frame at stamp {stamp} ns not published: xi not determined yet ({} translucent pixels)",
                     obs.translucent_pixels
                 ),
-            ));
+            );
+            return self.pass_or_drop(Passthrough::NoXiYet, why, depth, frame, k, result);
         };
+        self.publish(depth, out, frame, k, result)
+    }
+
+    /// The outputs of `out` (recovered or passed through) into `result`.
+    fn publish(
+        &mut self,
+        depth: &Image,
+        out: FrameOutput,
+        frame: DepthFrame,
+        k: Intrinsics,
+        result: &mut FrameResult<T>,
+    ) -> Result<(), (DropCause, String)> {
+        let stamp = frame.stamp_ns;
         let corrected = corrected_message(&depth.header, &out, &depth.encoding)
             .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns: {e}")))?;
-        self.processed += 1;
+        if let Some(why) = out.passthrough {
+            *self.passed.entry(why).or_insert(0) += 1;
+        } else {
+            self.processed += 1;
+        }
         let camera_info = CameraInfo {
             header: depth.header.clone(),
             ..self.info.as_ref().map(|(ci, _)| ci.clone()).unwrap_or_default()
         };
+        let rays = self
+            .pipeline
+            .as_ref()
+            .map(|p| p.shared_rays())
+            .unwrap_or_else(|| Arc::new(k.unit_ray_map()));
         result.outputs = Some(NodeOutputs {
             corrected,
             camera_info,
             frame: out,
             header: depth.header.clone(),
-            rays: pipe.shared_rays(),
+            rays,
             ir: frame.ir,
         });
         Ok(())
     }
 
-    fn finish_latch(&mut self, l: LatchInProgress<T>) -> (T, TriggerResponse) {
+    /// The input passed through (`passthrough` on) or dropped for `why`.
+    fn pass_or_drop(
+        &mut self,
+        reason: Passthrough,
+        why: (DropCause, String),
+        depth: &Image,
+        frame: DepthFrame,
+        k: Intrinsics,
+        result: &mut FrameResult<T>,
+    ) -> Result<(), (DropCause, String)> {
+        if !self.passthrough {
+            return Err(why);
+        }
+        self.publish(depth, FrameOutput::passed_through(&frame, reason), frame, k, result)
+    }
+
+    /// Follows whether the camera moved after the latch; true while it is taken to have.
+    /// With `relatch_on_move`, a latch starts once the view has held still for
+    /// [`STEADY_FRAMES`] frames.
+    fn watch_move(
+        &mut self,
+        d: &crate::pipeline::Departure,
+        frame: &DepthFrame,
+        k: Intrinsics,
+        result: &mut FrameResult<T>,
+    ) -> bool {
+        if !d.camera_moved() {
+            if self.moved.take().is_some() {
+                result.notes.push((
+                    log::Level::Info,
+                    "the view lines up with the background again: correcting".into(),
+                ));
+            }
+            return false;
+        }
+        let Some(m) = &mut self.moved else {
+            self.moves += 1;
+            let pct = |n: usize| 100.0 * n as f64 / d.valid.max(1) as f64;
+            result.notes.push((log::Level::Warn, format!(
+                "the camera moved after the latch: {:.0} % of the pixels read farther than the background, {:.0} % nearer; not correcting ({})",
+                pct(d.farther),
+                pct(d.nearer),
+                if self.relatch_on_move {
+                    "relatch_on_move: latching again once the view holds still"
+                } else {
+                    "call ~/latch_background to latch the new view, or set relatch_on_move"
+                }
+            )));
+            self.moved = Some(Moved {
+                steady: 0,
+                last_z_mm: frame.z_mm.clone(),
+            });
+            return true;
+        };
+        let still = held_still(&m.last_z_mm, &frame.z_mm, self.config.threshold_mm);
+        m.steady = if still { m.steady + 1 } else { 0 };
+        m.last_z_mm = frame.z_mm.clone();
+        if self.relatch_on_move && m.steady >= STEADY_FRAMES && self.latch.is_none() {
+            let range_mm = self.config.model.sensor.unambiguous_range_mm();
+            self.latch = Some(LatchInProgress {
+                token: None,
+                latch: Some((BackgroundLatch::new(k.width, k.height, range_mm), k)),
+                started: std::time::Instant::now(),
+                expires: false,
+            });
+            result.notes.push((
+                log::Level::Info,
+                format!(
+                    "relatch_on_move: the view held still for {STEADY_FRAMES} frames; latching {} frames",
+                    self.background_frames
+                ),
+            ));
+        }
+        true
+    }
+
+    /// The latch's reply to its caller, or for the node's own relatch a line to log.
+    fn finish_latch(&mut self, l: LatchInProgress<T>) -> (Option<(T, TriggerResponse)>, Option<String>) {
         let Some((latch, intrinsics)) = l.latch else {
-            return (l.token, failure("no camera_info: nothing latched"));
+            let r = failure("no camera_info: nothing latched");
+            return match l.token {
+                Some(t) => (Some((t, r)), None),
+                None => (None, Some(r.message)),
+            };
         };
         let reply = match latch.finish(&intrinsics, &self.config) {
             Ok(bg) => {
@@ -480,6 +668,7 @@ impl<T> NodeCore<T> {
                     .pipeline
                     .get_or_insert_with(|| Pipeline::new(self.config.clone(), intrinsics));
                 pipe.set_background(bg);
+                self.moved = None;
                 TriggerResponse {
                     success: true,
                     message: msg,
@@ -487,8 +676,24 @@ impl<T> NodeCore<T> {
             }
             Err(e) => failure(&format!("could not latch a background: {e}")),
         };
-        (l.token, reply)
+        match l.token {
+            Some(t) => (Some((t, reply)), None),
+            None => (None, Some(format!("relatch_on_move: {}", reply.message))),
+        }
     }
+}
+
+/// Whether fewer than [`STEADY_CHANGED_SHARE`] of the pixels valid in both frames moved by
+/// more than `threshold_mm` between them.
+fn held_still(before: &ImageBuf<f32>, now: &ImageBuf<f32>, threshold_mm: f64) -> bool {
+    let (mut valid, mut changed) = (0usize, 0usize);
+    for (&a, &b) in before.data.iter().zip(&now.data) {
+        if a.is_finite() && a > 0.0 && b.is_finite() && b > 0.0 {
+            valid += 1;
+            changed += usize::from(f64::from((a - b).abs()) > threshold_mm);
+        }
+    }
+    valid > 0 && (changed as f64) < STEADY_CHANGED_SHARE * valid as f64
 }
 
 fn failure(msg: &str) -> TriggerResponse {
@@ -586,5 +791,136 @@ mod tests {
         };
         assert!(core.on_camera_info(&lens).expect("usable").is_some());
         assert_ne!(core.intrinsics(), Some(k));
+    }
+
+    /// A wall tilted about the vertical axis, seen `shift` columns turned.
+    fn tilted_wall(k: &Intrinsics, stamp_ns: u64, shift: f32) -> (Image, Image) {
+        let header = Header::new(stamp_ns, "tof_optical_frame");
+        let mut z = ImageBuf::filled(k.width, k.height, 0.0f32);
+        for (i, v) in z.data.iter_mut().enumerate() {
+            *v = 1800.0 + 15.0 * ((i % k.width) as f32 + shift);
+        }
+        let ir = ImageBuf::filled(k.width, k.height, 900.0f32);
+        (
+            depth_image(&header, &z, "16UC1").expect("encodes"),
+            ir_image(&header, &ir, "16UC1").expect("encodes"),
+        )
+    }
+
+    fn latched_core(relatch_on_move: bool) -> (NodeCore<u32>, Intrinsics) {
+        let k = Intrinsics::from_fov(32, 24, 44.0, 35.0);
+        let mut core = NodeCore::new(PipelineConfig::default(), 3, std::time::Duration::from_secs(60))
+            .with_watch(true, relatch_on_move);
+        let header = Header::new(0, "tof_optical_frame");
+        assert_eq!(core.on_camera_info(&camera_info(&header, &k)), Ok(None));
+        assert!(core.start_latch(1).is_ok());
+        let mut replies = vec![];
+        for stamp in 1..=3 {
+            let (d, i) = tilted_wall(&k, stamp, 0.0);
+            replies.extend(core.on_frame(&d, &i).replies);
+        }
+        assert!(replies.len() == 1 && replies[0].1.success, "{replies:?}");
+        (core, k)
+    }
+
+    fn passed(r: &FrameResult<u32>) -> Option<Passthrough> {
+        r.outputs.as_ref().and_then(|o| o.frame.passthrough)
+    }
+
+    #[test]
+    fn before_the_latch_the_input_passes_through_and_says_why() {
+        let k = Intrinsics::from_fov(32, 24, 44.0, 35.0);
+        let header = Header::new(0, "tof_optical_frame");
+        for passthrough in [true, false] {
+            let mut core: NodeCore<u32> =
+                NodeCore::new(PipelineConfig::default(), 3, std::time::Duration::from_secs(60))
+                    .with_watch(passthrough, false);
+            assert_eq!(core.on_camera_info(&camera_info(&header, &k)), Ok(None));
+            let (d, i) = tilted_wall(&k, 1, 0.0);
+            let r = core.on_frame(&d, &i);
+            if !passthrough {
+                assert_eq!(r.dropped.map(|d| d.0), Some(DropCause::NoBackground));
+                assert!(r.outputs.is_none());
+                continue;
+            }
+            assert!(r.dropped.is_none());
+            let o = r.outputs.expect("the input published");
+            assert_eq!(o.frame.passthrough, Some(Passthrough::NoBackground));
+            assert_eq!(o.corrected.data, d.data, "the depth as it came");
+            let c = o.companions().expect("messages");
+            assert_eq!(c.estimates.len(), 1);
+            assert_eq!(c.estimates[0].method, "passthrough: no background latched");
+            assert!(c.mask.data.iter().all(|&m| m == 0));
+            assert_eq!(core.passed.get(&Passthrough::NoBackground), Some(&1));
+            // While latching, too.
+            assert!(core.start_latch(1).is_ok());
+            let (d, i) = tilted_wall(&k, 2, 0.0);
+            assert_eq!(passed(&core.on_frame(&d, &i)), Some(Passthrough::Latching));
+        }
+    }
+
+    #[test]
+    fn a_camera_turned_after_the_latch_is_detected_and_lines_up_again_when_turned_back() {
+        let (mut core, k) = latched_core(false);
+        // The view as latched: nothing moved.
+        let (d, i) = tilted_wall(&k, 10, 0.0);
+        let r = core.on_frame(&d, &i);
+        assert_ne!(passed(&r), Some(Passthrough::CameraMoved));
+        assert!(!core.camera_moved());
+        // Turned by 5 columns: every pixel reads 75 mm farther than the background.
+        let mut notes = vec![];
+        for stamp in 11..=15 {
+            let (d, i) = tilted_wall(&k, stamp, 5.0);
+            let r = core.on_frame(&d, &i);
+            assert_eq!(passed(&r), Some(Passthrough::CameraMoved), "frame {stamp}");
+            notes.extend(r.notes);
+        }
+        assert!(core.camera_moved());
+        assert_eq!(core.moves, 1);
+        assert_eq!(notes.len(), 1, "logged once: {notes:?}");
+        assert!(
+            notes[0].1.contains("moved after the latch") && notes[0].1.contains("100 % of the pixels read farther")
+        );
+        assert!(!core.latching(), "no relatch unless asked");
+        // Turned back: it lines up with the background again.
+        let (d, i) = tilted_wall(&k, 16, 0.0);
+        let r = core.on_frame(&d, &i);
+        assert_ne!(passed(&r), Some(Passthrough::CameraMoved));
+        assert!(!core.camera_moved());
+    }
+
+    #[test]
+    fn with_relatch_on_move_a_moved_camera_is_latched_again_once_still() {
+        let (mut core, k) = latched_core(true);
+        let mut notes = vec![];
+        let mut stamp = 10;
+        let mut frame = |core: &mut NodeCore<u32>, shift: f32| {
+            stamp += 1;
+            let (d, i) = tilted_wall(&k, stamp, shift);
+            let r = core.on_frame(&d, &i);
+            notes.extend(r.notes.iter().map(|n| n.1.clone()));
+            passed(&r)
+        };
+        // Moving: each frame differs from the last, so no relatch yet.
+        for shift in [5.0, 8.0, 11.0] {
+            assert_eq!(frame(&mut core, shift), Some(Passthrough::CameraMoved));
+        }
+        assert!(!core.latching());
+        // Still at 11 columns: after STEADY_FRAMES still frames the latch starts...
+        for _ in 0..STEADY_FRAMES {
+            assert_eq!(frame(&mut core, 11.0), Some(Passthrough::CameraMoved));
+        }
+        assert!(core.latching());
+        // ...takes background_frames frames, and the new view is the background.
+        for _ in 0..3 {
+            assert_eq!(frame(&mut core, 11.0), Some(Passthrough::Latching));
+        }
+        assert!(!core.latching() && !core.camera_moved());
+        assert_ne!(frame(&mut core, 11.0), Some(Passthrough::CameraMoved));
+        assert!(
+            notes.iter().any(|n| n.starts_with("relatch_on_move: latched 3 frames")),
+            "{notes:?}"
+        );
+        assert_eq!(core.moves, 1);
     }
 }

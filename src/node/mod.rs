@@ -101,6 +101,10 @@ pub struct NodeSettings {
     pub latch_timeout: Duration,
     /// Latch as soon as frames flow (`latch_on_start`).
     pub latch_on_start: bool,
+    /// Publish the input uncorrected while nothing can be recovered (`passthrough`).
+    pub passthrough: bool,
+    /// Latch again once a moved camera's view holds still (`relatch_on_move`).
+    pub relatch_on_move: bool,
     /// Paired frames waiting for processing; more and the oldest is dropped.
     pub queue_depth: usize,
     /// The processing pool's workers pinned one per CPU ([`crate::affinity`]).
@@ -148,6 +152,8 @@ pub struct NodeStats {
     pub published: u64,
     /// Frames averaged into backgrounds.
     pub latched_frames: u64,
+    /// Frames whose input was published uncorrected, by reason (`passthrough`).
+    pub passed_through: std::collections::BTreeMap<crate::pipeline::Passthrough, u64>,
     /// Drops by cause.
     pub dropped: std::collections::BTreeMap<DropCause, u64>,
     /// Latch requests, clear requests.
@@ -350,6 +356,8 @@ struct Live {
     published: u64,
     latched_frames: u64,
     dropped: BTreeMap<DropCause, u64>,
+    passed: BTreeMap<crate::pipeline::Passthrough, u64>,
+    camera_moved: bool,
     latch: &'static str,
     xi: Option<[f64; 3]>,
     xi_method: String,
@@ -389,6 +397,14 @@ fn diagnostics_message(node_fqn: &str, stamp_ns: u64, i: &Inputs, l: &Live) -> D
         kv("latched_frames", l.latched_frames.to_string()),
         kv("latch", l.latch.to_string()),
     ];
+    values.push(kv("camera_moved", l.camera_moved.to_string()));
+    for (why, n) in &l.passed {
+        let name = serde_json::to_value(why)
+            .ok()
+            .and_then(|v| v.as_str().map(String::from))
+            .unwrap_or_else(|| format!("{why:?}"));
+        values.push(kv(&format!("passed_through_{name}"), n.to_string()));
+    }
     for (cause, n) in &dropped {
         let name = serde_json::to_value(cause)
             .ok()
@@ -407,7 +423,12 @@ fn diagnostics_message(node_fqn: &str, stamp_ns: u64, i: &Inputs, l: &Live) -> D
         values.push(kv("processing_ms_p95", format!("{p95:.2}")));
         values.push(kv("processing_ms_max", format!("{max:.2}")));
     }
-    let (level, message) = if l.latch != "latched" {
+    let (level, message) = if l.camera_moved {
+        (
+            DiagnosticStatus::WARN,
+            "the camera moved after the latch: not correcting (relatch_on_move, or call ~/latch_background)".into(),
+        )
+    } else if l.latch != "latched" {
         (
             DiagnosticStatus::WARN,
             format!("no background latched ({}); call ~/latch_background", l.latch),
@@ -851,7 +872,8 @@ fn worker(
             None
         }
     };
-    let mut core: NodeCore<Token> = NodeCore::new(s.config.clone(), s.background_frames, s.latch_timeout);
+    let mut core: NodeCore<Token> = NodeCore::new(s.config.clone(), s.background_frames, s.latch_timeout)
+        .with_watch(s.passthrough, s.relatch_on_move);
     let mut latencies: Vec<f64> = Vec::with_capacity(LATENCY_WINDOW);
     let mut last_report = Instant::now();
     let (mut last_sample, mut last_trim) = (Instant::now(), Instant::now());
@@ -868,6 +890,8 @@ fn worker(
                     published: stats.published,
                     latched_frames: stats.latched_frames,
                     dropped: core.drops.by_cause.clone(),
+                    passed: core.passed.clone(),
+                    camera_moved: core.camera_moved(),
                     latch: if core.latching() {
                         "latching"
                     } else if core.background().is_some() {
@@ -935,17 +959,24 @@ fn worker(
             Next::Frame(pair) => {
                 let start = Instant::now();
                 let (depth, ir) = *pair;
-                let latching = core.background().is_none();
+                let latching = core.latching();
                 let res = core.on_frame(&depth, &ir);
                 for (t, r) in res.replies {
                     reply(t, r);
+                }
+                for (level, note) in &res.notes {
+                    log::log!(*level, "{note}");
                 }
                 if let Some((cause, first)) = res.dropped {
                     if let Some(msg) = first {
                         warn!("{msg}; further {cause:?} drops are counted");
                     }
-                } else if res.outputs.is_none() && latching {
+                } else if latching {
                     stats.latched_frames += 1;
+                }
+                let passed = res.outputs.as_ref().and_then(|o| o.frame.passthrough);
+                if let Some(why) = passed {
+                    *stats.passed_through.entry(why).or_insert(0) += 1;
                 }
                 if let Some(mut o) = res.outputs {
                     // The corrected depth first (most consumers wait for it alone), then the
@@ -972,29 +1003,32 @@ fn worker(
                             warn!("publishing an output failed ({kind}; a reliable reader is not keeping up?); further failures are counted (publish_failures)");
                         }
                     }
-                    stats.published += 1;
-                    let xi = &o.frame.xi;
-                    stats.xi = Some([xi.xi, xi.interval[0], xi.interval[1]]);
-                    if latencies.len() == LATENCY_WINDOW {
-                        latencies.remove(0);
-                    }
-                    latencies.push(start.elapsed().as_secs_f64() * 1e3);
-                    if let (Some(v), Some(rays)) = (&viz, core.shared_rays()) {
-                        let raw = crate::image::depth_mm(&depth).ok();
-                        if let Some(raw) = raw {
-                            v.log(FrameViz {
-                                stamp_ns: o.frame.stamp_ns,
-                                frame: stats.published,
-                                rays,
-                                raw_z_mm: raw,
-                                recovered_z_mm: o.frame.corrected_z_mm,
-                                mask: o.frame.mask,
-                                xi: Some((o.frame.xi.xi, o.frame.xi.interval)),
-                            });
+                    // A frame passed through is not a recovered one.
+                    if passed.is_none() {
+                        stats.published += 1;
+                        let xi = &o.frame.xi;
+                        stats.xi = Some([xi.xi, xi.interval[0], xi.interval[1]]);
+                        if latencies.len() == LATENCY_WINDOW {
+                            latencies.remove(0);
                         }
-                    }
-                    if s.max_frames.is_some_and(|m| stats.published >= m) {
-                        break;
+                        latencies.push(start.elapsed().as_secs_f64() * 1e3);
+                        if let (Some(v), Some(rays)) = (&viz, core.shared_rays()) {
+                            let raw = crate::image::depth_mm(&depth).ok();
+                            if let Some(raw) = raw {
+                                v.log(FrameViz {
+                                    stamp_ns: o.frame.stamp_ns,
+                                    frame: stats.published,
+                                    rays,
+                                    raw_z_mm: raw,
+                                    recovered_z_mm: o.frame.corrected_z_mm,
+                                    mask: o.frame.mask,
+                                    xi: Some((o.frame.xi.xi, o.frame.xi.interval)),
+                                });
+                            }
+                        }
+                        if s.max_frames.is_some_and(|m| stats.published >= m) {
+                            break;
+                        }
                     }
                 }
             }
