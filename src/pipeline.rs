@@ -1059,7 +1059,7 @@ impl Pipeline {
                 self.config.max_layer_sigma_mm,
             );
         }
-        let xi_share = self.xi_share(&observed, &held, &df, xi_estimate);
+        let xi_share = self.xi_share(&observed, &held, &df, region.width, xi_estimate);
         for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
             let (z, sigma) = if df[i].is_finite() {
                 out.tally.recovered += 1;
@@ -1078,13 +1078,16 @@ impl Pipeline {
     }
 
     /// ξ's share of each recovered layer's standard deviation (ray distance, mm, by the
-    /// rectangle's index): how far the layer moves between ξ and the ends of its 95 %
-    /// interval, the farther end taken as 1.96 σ. 0 for a given ξ (no interval).
+    /// index in the rectangle `width` wide): how far the layer moves between ξ and the ends
+    /// of its 95 % interval, the farther end taken as 1.96 σ; 0 for a given ξ (no interval).
+    /// Found at one pixel of each `prior_stride_px` square block (the layer moves with ξ as
+    /// smoothly as the surface runs) and taken by the block's other pixels.
     fn xi_share(
         &self,
         observed: &[(usize, usize)],
         held: &[PixelObservation],
         df: &[f64],
+        width: usize,
         xi: &XiEstimate,
     ) -> Vec<f64> {
         let mut share = vec![0.0; df.len()];
@@ -1097,12 +1100,23 @@ impl Pipeline {
         if ends.is_empty() {
             return share;
         }
-        let items: Vec<(usize, &PixelObservation)> = observed
+        let (w, stride) = (width.max(1), self.config.prior_stride_px.max(1));
+        let block = |i: usize| (i / w / stride) * w.div_ceil(stride) + (i % w) / stride;
+        let recovered: Vec<(usize, &PixelObservation)> = observed
             .iter()
             .zip(held)
             .filter(|((i, _), _)| df[*i].is_finite())
             .map(|(&(i, _), o)| (i, o))
             .collect();
+        // Each block's first recovered pixel stands for it.
+        let mut first_of_block = vec![usize::MAX; block(df.len().saturating_sub(1)) + 1];
+        let mut items: Vec<(usize, &PixelObservation)> = vec![];
+        for &(i, o) in &recovered {
+            if let Some(first) = first_of_block.get_mut(block(i)).filter(|f| **f == usize::MAX) {
+                *first = i;
+                items.push((i, o));
+            }
+        }
         let moves = map_ordered(&items, MIN_PARALLEL_PIXELS, 64, |&(i, o)| {
             let moved = ends.iter().filter_map(|&e| {
                 let est = foreground_distance_without_slopes(&self.config.model, o, e, &self.bounds, Some(df[i]))?;
@@ -1112,6 +1126,11 @@ impl Pipeline {
         });
         for (&(i, _), m) in items.iter().zip(moves) {
             share[i] = m.map_or(self.config.max_layer_sigma_mm, |m| m / 1.96);
+        }
+        for &(i, _) in &recovered {
+            if let Some(&first) = first_of_block.get(block(i)).filter(|f| **f != usize::MAX) {
+                share[i] = share[first];
+            }
         }
         share
     }

@@ -161,6 +161,9 @@ pub enum Case {
     /// [`Case::Recover`] without the smooth-surface prior (`prior_radius_px`
     /// 0): the per-pixel inversion and the noise gate alone.
     RecoverPerPixel,
+    /// [`Case::Recover`] at an estimated ξ with an interval (±0.05): the depth's standard
+    /// deviation then also carries ξ's share (the layer inverted at the interval's ends).
+    RecoverWithInterval,
     /// Segmentation (`Pipeline::observe`) of one frame.
     Observe,
     /// ξ estimation by shape on one frame: its profile over the ξ grid and the
@@ -177,6 +180,7 @@ impl Case {
         match self {
             Case::Recover => "recover",
             Case::RecoverPerPixel => "recover_per_pixel",
+            Case::RecoverWithInterval => "recover_with_interval",
             Case::Observe => "observe",
             Case::XiEstimate => "xi_estimate",
             Case::Replay => "replay",
@@ -387,6 +391,13 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
             per_pixel.config.prior_radius_px = 0;
             time_ms(samples, budget, pause, || {
                 std::hint::black_box(per_pixel.recover(frame, &obs, &xi));
+            })
+        }
+        Case::RecoverWithInterval => {
+            let mut estimated = xi.clone();
+            estimated.interval = [BENCH_XI - 0.05, BENCH_XI + 0.05];
+            time_ms(samples, budget, pause, || {
+                std::hint::black_box(scene.pipeline.recover(frame, &obs, &estimated));
             })
         }
         Case::Observe => time_ms(samples, budget, pause, || {

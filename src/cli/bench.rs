@@ -29,7 +29,7 @@ pub struct BenchArgs {
         long,
         value_enum,
         value_delimiter = ',',
-        default_value = "recover,recover_per_pixel,observe,xi_estimate,replay"
+        default_value = "recover,recover_per_pixel,recover_with_interval,observe,xi_estimate,replay"
     )]
     pub cases: Vec<CaseArg>,
     /// node_latency: object frames published (cycling the bag's).
@@ -83,6 +83,8 @@ pub enum CaseArg {
     Recover,
     /// Recovery without the smooth-surface prior.
     RecoverPerPixel,
+    /// Recovery at an estimated ξ with an interval (its share of the depth's sigma).
+    RecoverWithInterval,
     /// Segmentation of one frame.
     Observe,
     /// ξ estimation on one frame.
@@ -100,6 +102,7 @@ impl CaseArg {
         match self {
             CaseArg::Recover => Some(Case::Recover),
             CaseArg::RecoverPerPixel => Some(Case::RecoverPerPixel),
+            CaseArg::RecoverWithInterval => Some(Case::RecoverWithInterval),
             CaseArg::Observe => Some(Case::Observe),
             CaseArg::XiEstimate => Some(Case::XiEstimate),
             CaseArg::Replay => Some(Case::Replay),
