@@ -38,6 +38,9 @@ pub struct UDPSender {
   // sent immediately. Drained on write readiness by `flush_control`.
   // (see src/rtps/nonblocking_transmit_design.md)
   control_queues: RefCell<HashMap<SocketId, ControlQueue>>,
+
+  // Pacing of the DATAFRAG push path, shared by all Writers (src/rtps/pacer.rs).
+  pub(crate) push_pacer: RefCell<crate::rtps::pacer::PushPacer>,
 }
 
 impl UDPSender {
@@ -160,6 +163,7 @@ impl UDPSender {
       unicast_socket,
       multicast_sockets,
       control_queues: RefCell::new(HashMap::new()),
+      push_pacer: RefCell::new(crate::rtps::pacer::PushPacer::new()),
     };
     info!("UDPSender::new() --> {sender:?}");
     Ok(sender)

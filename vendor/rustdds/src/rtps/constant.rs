@@ -39,6 +39,19 @@ pub const REPAIR_INTERVAL_MAX: Duration = Duration::from_millis(100);
 // one reader. A round always sends at least one sample, even a larger one.
 pub const REPAIR_BATCH_MAX_BYTES: usize = 8192;
 
+// Most bytes of DATAFRAG one NACK_FRAG repair round sends to one reader; the
+// requested fragments go out as contiguous runs packed into datagrams of the
+// reader's path-MTU budget (patched in, see PATCHED.md). 64 KiB answers a
+// Fast DDS NACK_FRAG (up to 256 fragments of FRAGMENT_SIZE) in one round.
+pub const REPAIR_FRAGS_MAX_BYTES: usize = 64 * 1024;
+
+// Push pacing of fragmented samples, shared by the Writers of a participant
+// (src/rtps/pacer.rs; patched in, see PATCHED.md): at most this many bytes of
+// DATAFRAG datagrams back to back, then this rate. The burst stays below the
+// Linux default receive buffer (208 KiB) that a remote reader may be using.
+pub const PUSH_PACING_BURST_BYTES: usize = 128 * 1024;
+pub const PUSH_PACING_RATE_BYTES_PER_SEC: usize = 128 * 1024 * 1024;
+
 // Periodic HEARTBEAT period for reliable Writers. The period is adaptive: while
 // some matched reader is behind (has unacknowledged samples), heartbeats are
 // sent at the FAST period to prompt prompt repair (some peers rely on a

@@ -515,6 +515,17 @@ impl DPEventLoop {
         DpTimerEvent::Writer { entity_id, event } => {
           if let Some(writer) = self.writers.get_mut(&entity_id) {
             writer.handle_timed_event(event);
+            // A paced push resumed by the timer (TimedEvent::ResumePush) may
+            // have hit WouldBlock, or delivered to local readers: handle both
+            // as after a doorbell.
+            let resumed = matches!(event, crate::rtps::writer::TimedEvent::ResumePush);
+            let local_readers = if resumed { writer.local_readers() } else { vec![] };
+            for sid in writer.take_blocked_sockets() {
+              self.mark_writer_willing(sid, entity_id);
+            }
+            if resumed {
+              self.message_receiver.notify_data_to_readers(local_readers);
+            }
           } else if !preparing_to_stop {
             trace!("Timed event for unknown writer {entity_id:?}");
           }

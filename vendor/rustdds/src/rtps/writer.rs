@@ -31,7 +31,7 @@ use crate::{
       DEFAULT_WRITER_MAX_SAMPLES, FALLBACK_MAX_AGGREGATED_DATAGRAM_SIZE, FRAGMENT_SIZE,
       HEARTBEAT_PERIOD_FAST, HEARTBEAT_PERIOD_SLOW, HEARTBEAT_SUBMESSAGE_SERIALIZED_SIZE,
       NACK_RESPONSE_DELAY, NACK_SUPPRESSION_DURATION, REPAIR_BATCH_MAX_BYTES,
-      REPAIR_INTERVAL_DEFAULT, REPAIR_INTERVAL_MAX, REPAIR_INTERVAL_MIN,
+      REPAIR_FRAGS_MAX_BYTES, REPAIR_INTERVAL_DEFAULT, REPAIR_INTERVAL_MAX, REPAIR_INTERVAL_MIN,
     },
     outbound::{SocketId, TrafficClass},
     rtps_reader_proxy::RtpsReaderProxy,
@@ -108,6 +108,12 @@ pub(crate) enum SendProgress {
     cursor: SampleCursor,
     blocked: BTreeSet<SocketId>,
   },
+  /// The push pacer (src/rtps/pacer.rs) holds the next DATAFRAG datagram back:
+  /// resume at `cursor` after `after`.
+  Paced {
+    cursor: SampleCursor,
+    after: std::time::Duration,
+  },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -116,6 +122,8 @@ pub(crate) enum TimedEvent {
   CacheCleaning,
   SendRepairData { to_reader: GUID },
   SendRepairFrags { to_reader: GUID },
+  // Resume a push held back by the push pacer.
+  ResumePush,
 }
 
 // This is used to construct an actual Writer.
@@ -265,6 +273,9 @@ pub(crate) struct Writer {
   participant_status_sender: StatusChannelSender<DomainParticipantStatusEvent>,
 
   security_plugins: Option<SecurityPluginsHandle>,
+
+  // A TimedEvent::ResumePush is pending (the push pacer held a DATAFRAG back).
+  push_resume_armed: bool,
 }
 
 impl Writer {
@@ -364,6 +375,7 @@ impl Writer {
       participant_status_sender,
 
       security_plugins: i.security_plugins,
+      push_resume_armed: false,
     }
   }
 
@@ -541,6 +553,10 @@ impl Writer {
           self.schedule_repair_frags(reader_guid, self.repair_interval());
         }
       } // SendRepairFrags
+      TimedEvent::ResumePush => {
+        self.push_resume_armed = false;
+        self.process_pending();
+      }
     } // match
   } // fn
 
@@ -888,6 +904,16 @@ impl Writer {
             self.send_buffer.set_sent_frontier(sequence_number);
             self.mark_change_sent_to_all_readers(sequence_number);
           }
+          SendProgress::Paced { cursor, after } => {
+            // The push pacer holds the rest of this sample back: resume from
+            // `cursor` on a timer (also for best-effort: nothing is dropped).
+            self.sample_cursor = cursor;
+            if !self.push_resume_armed {
+              self.push_resume_armed = true;
+              self.schedule_timed_event(after, TimedEvent::ResumePush);
+            }
+            return;
+          }
           SendProgress::Blocked { cursor, blocked } => {
             // Reliable writers always back-pressure. Best-effort writers only if
             // this sample opted in via `best_effort_may_block`; otherwise the
@@ -1009,9 +1035,29 @@ impl Writer {
       FragmentationIter::new_resume(self, cc, target_reader_opt, send_also_heartbeat, cursor);
     let fragmentation_needed = messages_to_send.fragmentation_needed();
 
+    // Pace the DATAFRAG datagrams of a user writer's push (src/rtps/pacer.rs).
+    let paced = fragmentation_needed && class == TrafficClass::Bulk;
+
     // Send the messages, either to all readers or just one, stopping at the
     // first message that a socket could not accept.
     for (resume_cursor, msg) in messages_to_send {
+      if paced && matches!(resume_cursor, SampleCursor::Frag(_)) {
+        let len = 20
+          + msg
+            .submessages
+            .iter()
+            .map(|s| 4 + usize::from(s.header.content_length))
+            .sum::<usize>();
+        if let Some(after) = self.udp_sender.push_pacer.borrow_mut().wait_for(len) {
+          return (
+            fragmentation_needed,
+            SendProgress::Paced {
+              cursor: resume_cursor,
+              after,
+            },
+          );
+        }
+      }
       let blocked = match target_reader_opt {
         None => self.send_message_to_readers(
           DeliveryMode::Multicast,
@@ -1577,79 +1623,124 @@ impl Writer {
     }
   }
 
+  // One NACK_FRAG repair round for a reader (patched in, see PATCHED.md): the
+  // requested fragments of its lowest requested sample, as contiguous runs each
+  // packed into one DATAFRAG datagram of the reader's path-MTU budget, until
+  // REPAIR_FRAGS_MAX_BYTES have gone out. (Upstream sent 8 single-fragment
+  // datagrams per round: 2 KiB per repair interval, so a lost 64 KiB datagram
+  // of a large sample took 32 rounds, and a 10 Hz stream never caught up.)
   fn handle_repair_frags_send_worker(
     &mut self,
     reader_proxy: &mut RtpsReaderProxy, /* This is mutable proxy temporarily detached from the
                                          * set of reader proxies */
   ) {
-    // Decide the (max) number of frags to be sent
-    let max_send_count = 8;
-
     let reader_guid = reader_proxy.remote_reader_guid;
-
-    // Get (an iterator to) frags requested but not yet sent
-    // reader_proxy.
-    // Iterate over frags to be sent
-    for (seq_num, frag_num) in reader_proxy.frags_requested_iterator().take(max_send_count) {
-      // Sanity check request
-      // ^^^ TODO
-
-      if let Some(cache_change) = self.send_buffer.get_by_sn(seq_num) {
-        // If the data is meant for a single reader only, make sure it is the one we're
-        // about to send frags to.
-        if let Some(single_reader_guid) = cache_change.write_options.to_single_reader() {
-          if single_reader_guid != reader_guid {
-            error!(
-              "We were asked to send datafrags meant for the reader {single_reader_guid:?} to a \
-               different reader {reader_guid:?}. Not gonna happen."
-            );
-            return;
-          }
-        }
-
-        // Generate datafrag message
-        let mut message_builder = MessageBuilder::new();
-        if let Some(src_ts) = cache_change.write_options.source_timestamp() {
-          message_builder = message_builder.ts_msg(self.endianness, Some(src_ts));
-        }
-
-        let fragment_size: u32 = FRAGMENT_SIZE as u32;
-        let data_size: u32 = cache_change.data_value.payload_size() as u32; // TODO: overflow check
-
-        message_builder = message_builder.data_frag_msg(
-          &cache_change,
-          reader_guid.entity_id, // reader
-          self.my_guid,          // writer
-          frag_num,
-          // Repair responds to specifically-NACKed fragment numbers (possibly
-          // non-contiguous), so retransmit one fragment per submessage.
-          1,
-          fragment_size as u16, // TODO: overflow check
-          data_size,
-          self.endianness,
-          self.security_plugins.as_ref(),
-        );
-
-        // Repair frags are a reliability action (response to a NACK_FRAG), so
-        // they must actually reach the reader. Use the never-dropped `Control`
-        // queue: dropping repair on WouldBlock livelocks under sustained send
-        // congestion (reader re-NACKs, retransmit dropped again, forever).
-        let _blocked = self.send_message_to_readers(
-          DeliveryMode::Unicast,
-          message_builder.add_header_and_build(self.my_guid.prefix),
-          &mut std::iter::once(&*reader_proxy),
-          TrafficClass::Control,
-        );
-      } else {
-        error!(
-          "handle_repair_frags_send_worker: {:?} missing from send buffer. topic={:?}",
-          seq_num, self.my_topic_name
-        );
-        // TODO: Should we send a GAP message then?
+    let requested: Vec<(SequenceNumber, FragmentNumber)> =
+      reader_proxy.frags_requested_iterator().collect();
+    let Some(&(seq_num, _)) = requested.first() else {
+      return;
+    };
+    let Some(cache_change) = self.send_buffer.get_by_sn(seq_num) else {
+      // The sample has left the history (KeepLast): nothing to repair.
+      debug!(
+        "handle_repair_frags_send_worker: {:?} missing from send buffer. topic={:?}",
+        seq_num, self.my_topic_name
+      );
+      for (sn, frag_num) in &requested {
+        reader_proxy.mark_frag_sent(*sn, frag_num);
       }
+      return;
+    };
+    // If the data is meant for a single reader only, make sure it is the one we're
+    // about to send frags to.
+    if let Some(single_reader_guid) = cache_change.write_options.to_single_reader() {
+      if single_reader_guid != reader_guid {
+        error!(
+          "We were asked to send datafrags meant for the reader {single_reader_guid:?} to a \
+           different reader {reader_guid:?}. Not gonna happen."
+        );
+        return;
+      }
+    }
+    let data_size = cache_change.data_value.payload_size();
+    let (num_frags, fragment_size) = self.num_frags_and_frag_size(data_size);
+    let Ok(sample_size) = u32::try_from(data_size) else {
+      return;
+    };
+    let budget = reader_proxy.max_datagram_payload();
 
-      reader_proxy.mark_frag_sent(seq_num, &frag_num);
-    } // for
+    let mut round_bytes = 0;
+    let mut i = 0;
+    while i < requested.len() && round_bytes < REPAIR_FRAGS_MAX_BYTES {
+      let start = u32::from(requested[i].1);
+      if start == 0 || start > num_frags {
+        // Not a fragment of this sample: forget the request.
+        reader_proxy.mark_frag_sent(seq_num, &requested[i].1);
+        i += 1;
+        continue;
+      }
+      // Generate the datafrag message: timestamp, then one DATAFRAG carrying the
+      // contiguous run of requested fragments from `start` that fits the budget.
+      let mut message_builder = MessageBuilder::new();
+      if let Some(src_ts) = cache_change.write_options.source_timestamp() {
+        message_builder = message_builder.ts_msg(self.endianness, Some(src_ts));
+      }
+      let fits = frags_per_datafrag(
+        message_builder.len_serialized(),
+        budget,
+        start,
+        num_frags,
+        fragment_size,
+        data_size,
+      )
+      .min(u32::from(u16::MAX));
+      let mut k: u32 = 1;
+      while k < fits
+        && i + (k as usize) < requested.len()
+        && u32::from(requested[i + k as usize].1) == start + k
+      {
+        k += 1;
+      }
+      message_builder = message_builder.data_frag_msg(
+        &cache_change,
+        reader_guid.entity_id, // reader
+        self.my_guid,          // writer
+        FragmentNumber::new(start),
+        k as u16,
+        fragment_size,
+        sample_size,
+        self.endianness,
+        self.security_plugins.as_ref(),
+      );
+      let message = message_builder.add_header_and_build(self.my_guid.prefix);
+      // The repair shares the remote reader's receive buffer with the paced
+      // push: it waits for the push pacer (the round is retried after the
+      // repair interval) and is counted by it.
+      let len = k as usize * usize::from(fragment_size);
+      {
+        let mut pacer = self.udp_sender.push_pacer.borrow_mut();
+        if pacer.wait_for(len).is_some() {
+          break;
+        }
+        pacer.charge(len);
+      }
+      round_bytes += len;
+
+      // Repair frags are a reliability action (response to a NACK_FRAG), so
+      // they must actually reach the reader. Use the never-dropped `Control`
+      // queue: dropping repair on WouldBlock livelocks under sustained send
+      // congestion (reader re-NACKs, retransmit dropped again, forever).
+      let _blocked = self.send_message_to_readers(
+        DeliveryMode::Unicast,
+        message,
+        &mut std::iter::once(&*reader_proxy),
+        TrafficClass::Control,
+      );
+      for (sn, frag_num) in &requested[i..i + k as usize] {
+        reader_proxy.mark_frag_sent(*sn, frag_num);
+      }
+      i += k as usize;
+    }
   } // fn
 
   /// Removes permanently cacheChanges from DDSCache.
@@ -1814,6 +1905,10 @@ impl Writer {
             return blocked;
           }
         };
+        if class == TrafficClass::Bulk {
+          // A user Writer's push: counted by the push pacer (src/rtps/pacer.rs).
+          self.udp_sender.push_pacer.borrow_mut().charge(buffer.len());
+        }
 
         // De-duplication of narrowed (interface-aware) sends across readers.
         let mut sent_routes: BTreeSet<RouteKey> = BTreeSet::new();
@@ -2900,7 +2995,7 @@ mod tests {
               let to_reader = match event {
                 TimedEvent::SendRepairData { to_reader }
                 | TimedEvent::SendRepairFrags { to_reader } => Some(to_reader),
-                TimedEvent::Heartbeat | TimedEvent::CacheCleaning => None,
+                TimedEvent::Heartbeat | TimedEvent::CacheCleaning | TimedEvent::ResumePush => None,
               };
               if to_reader == Some(self.reader_guid) {
                 found.push(event);
