@@ -32,7 +32,9 @@ pub fn isolated(test: &str) -> bool {
     let status = Command::new("unshare")
         .args(["--net", "--", "sh", "-c", SETUP, "sh"])
         .arg(&exe)
-        .args([test, "--exact", "--nocapture", "--test-threads=1"])
+        // --include-ignored: the parent only gets here for a test it chose to run
+        // (an ignored one only under --ignored), so the child must run it too.
+        .args([test, "--exact", "--include-ignored", "--nocapture", "--test-threads=1"])
         .env("TTOF_NETNS", "1")
         .status()
         .unwrap_or_else(|e| panic!("running `unshare --net` for {test}: {e} (DDS tests need util-linux unshare and root or user namespaces)"));
