@@ -975,9 +975,6 @@ fn worker(
                     stats.latched_frames += 1;
                 }
                 let passed = res.outputs.as_ref().and_then(|o| o.frame.passthrough);
-                if let Some(why) = passed {
-                    *stats.passed_through.entry(why).or_insert(0) += 1;
-                }
                 if let Some(mut o) = res.outputs {
                     // The corrected depth first (most consumers wait for it alone), then the
                     // rest is made and published.
@@ -1057,6 +1054,7 @@ fn worker(
     }
     sample_memory(&mut stats);
     stats.dropped = core.drops.by_cause.clone();
+    stats.passed_through = core.passed.clone();
     stats.added_latency_ms = percentiles(&mut latencies);
     if let Some(v) = viz {
         stats.rerun_dropped = v.dropped();

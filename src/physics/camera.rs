@@ -169,17 +169,7 @@ impl Intrinsics {
     /// A pinhole from a row-major camera matrix `K`, the whole sensor;
     /// `None` when the focal lengths are not positive and finite.
     pub fn from_k(width: usize, height: usize, k: &[f64; 9]) -> Option<Self> {
-        check_k(k).ok()?;
-        Some(Self {
-            width,
-            height,
-            fx: k[0],
-            fy: k[4],
-            cx: k[2],
-            cy: k[5],
-            distortion: Distortion::None,
-            window: SensorWindow::full(width, height),
-        })
+        Self::calibrated(k, Distortion::None, SensorWindow::full(width, height)).ok()
     }
 
     /// A calibrated camera: full-resolution row-major `K`, the lens, and
