@@ -37,11 +37,9 @@ pub fn output_messages(
 ) -> Result<OutputMessages, ImageError> {
     let corrected = corrected_message(header, out, depth_encoding)?;
     let Companions {
-        mask,
-        sigma,
-        points,
-        estimates,
-    } = companion_messages(header, rays, out, ir)?;
+        mask, sigma, estimates, ..
+    } = companion_messages(header, None, out, ir)?;
+    let points = cloud_message(header, rays, out, ir);
     Ok(OutputMessages {
         corrected,
         mask,
@@ -65,8 +63,8 @@ pub struct Companions {
     pub mask: Image,
     /// `~/depth/corrected_sigma`.
     pub sigma: Image,
-    /// `~/points`.
-    pub points: PointCloud2,
+    /// `~/points` (none without the camera's rays).
+    pub points: Option<PointCloud2>,
     /// `~/translucency`: one per region (one for the frame when it has none).
     pub estimates: Vec<TranslucencyEstimate>,
 }
@@ -74,16 +72,10 @@ pub struct Companions {
 /// The mask, cloud and estimates of [`output_messages`].
 pub fn companion_messages(
     header: &Header,
-    rays: &ImageBuf<Vector3<f64>>,
+    rays: Option<&ImageBuf<Vector3<f64>>>,
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
 ) -> Result<Companions, ImageError> {
-    let xyz = points_m(rays, &out.corrected_z_mm);
-    let sigma_m = ImageBuf {
-        width: out.corrected_sigma_mm.width,
-        height: out.corrected_sigma_mm.height,
-        data: out.corrected_sigma_mm.data.iter().map(|s| s / 1000.0).collect(),
-    };
     let count = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
     let estimate = |xi: &XiEstimate, region_id: u32, region_pixels: usize, opaque: bool| TranslucencyEstimate {
         header: header.clone(),
@@ -114,9 +106,20 @@ pub fn companion_messages(
     Ok(Companions {
         mask: mask_image(header, &out.mask),
         sigma: sigma_image(header, &out.corrected_sigma_mm)?,
-        points: organized_cloud(header, &xyz, ir, &out.mask, &sigma_m),
+        points: rays.map(|r| cloud_message(header, r, out, ir)),
         estimates,
     })
+}
+
+/// `~/points`: the corrected depth along the camera's unit `rays`, with IR,
+/// mask and sigma (m) per point.
+fn cloud_message(header: &Header, rays: &ImageBuf<Vector3<f64>>, out: &FrameOutput, ir: &ImageBuf<f32>) -> PointCloud2 {
+    let sigma_m = ImageBuf {
+        width: out.corrected_sigma_mm.width,
+        height: out.corrected_sigma_mm.height,
+        data: out.corrected_sigma_mm.data.iter().map(|s| s / 1000.0).collect(),
+    };
+    organized_cloud(header, &points_m(rays, &out.corrected_z_mm), ir, &out.mask, &sigma_m)
 }
 
 /// Points in the optical frame (REP 103: x right, y down, z forward), metres,

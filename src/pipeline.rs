@@ -475,6 +475,8 @@ impl Departure {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Passthrough {
+    /// No camera_info received yet: the depth alone is passed on (no cloud, no camera_info).
+    NoCameraInfo,
     /// No background latched yet.
     NoBackground,
     /// A background latch is in progress.
@@ -489,6 +491,7 @@ impl Passthrough {
     /// Why, in words (the estimate's `method` says `passthrough: <this>`).
     pub fn as_str(self) -> &'static str {
         match self {
+            Passthrough::NoCameraInfo => "no camera_info yet",
             Passthrough::NoBackground => "no background latched",
             Passthrough::Latching => "latching the background",
             Passthrough::NoXiYet => "xi not determined yet",

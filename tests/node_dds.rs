@@ -263,12 +263,25 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
         .unwrap();
         peer.wait_for_node(Duration::from_secs(30)).await.unwrap();
         let (d0, i0) = &pairs[0];
-        // 1. Frames before any camera_info.
+        // 1. Frames before any camera_info: the depth is passed on as it came,
+        //    with no cloud (no rays without the intrinsics).
+        let mut early = vec![];
         for _ in 0..2 {
             let s = next();
             peer.publish_one(true, &stamped(d0, s)).unwrap();
             peer.publish_one(false, &stamped(i0, s)).unwrap();
+            early.push(s);
             pause();
+        }
+        assert!(
+            peer.wait_for(early[1], Duration::from_secs(10)).await,
+            "no corrected depth before camera_info"
+        );
+        for s in &early {
+            if let Some(c) = peer.received.corrected.get(s) {
+                assert_eq!(c.data, stamped(d0, *s).data, "a frame before camera_info was changed");
+            }
+            assert!(!peer.received.points.contains_key(s), "a cloud without intrinsics");
         }
         // 2. A latch before camera_info waits for it, then (none coming) fails with the reason.
         let r = peer.call(true, Duration::from_secs(10)).await.unwrap();
@@ -384,14 +397,7 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
     let (st, log) = node.stop_with_log();
     eprintln!("{}", serde_json::to_string_pretty(&st).unwrap());
     let dropped = &st["dropped"];
-    for cause in [
-        "no_camera_info",
-        "bad_image",
-        "size_mismatch",
-        "unpaired",
-        "malformed",
-        "oversized",
-    ] {
+    for cause in ["bad_image", "size_mismatch", "unpaired", "malformed", "oversized"] {
         assert!(
             dropped[cause].as_u64().unwrap_or(0) >= 1,
             "no {cause} drop counted: {dropped}"
@@ -400,6 +406,8 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
     // Frames without a background are published as they came (`passthrough`), not dropped.
     assert_eq!(dropped["no_background"].as_u64(), None, "{dropped}");
     assert!(st["passed_through"]["no_background"].as_u64().unwrap() >= 3, "{st}");
+    assert!(st["passed_through"]["no_camera_info"].as_u64().unwrap() >= 1, "{st}");
+    assert_eq!(dropped["no_camera_info"].as_u64(), None, "{dropped}");
     assert!(dropped["unpaired"].as_u64().unwrap() >= 3);
     // 28 malformed samples went out best-effort on loopback; the oversized: a wide image, a
     // padded one, an absurd one and a camera_info of a 100000 x 100000 camera.

@@ -174,7 +174,7 @@ pub const PARAMETERS: &[ParamSpec] = &[
         "bool",
         Some("true"),
         false,
-        "publish the input uncorrected while nothing can be recovered (before the latch, xi unknown, camera moved)",
+        "publish the input uncorrected while nothing can be recovered (before camera_info or the latch, xi unknown, camera moved)",
     ),
     spec(
         "relatch_on_move",

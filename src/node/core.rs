@@ -121,19 +121,22 @@ impl<T> LatchInProgress<T> {
 pub struct NodeOutputs {
     /// `~/depth/corrected`.
     pub corrected: Image,
-    /// `~/depth/camera_info`: the camera's, with the corrected depth's header.
-    pub camera_info: CameraInfo,
+    /// `~/depth/camera_info`: the camera's, with the corrected depth's header
+    /// (none before the first camera_info).
+    pub camera_info: Option<CameraInfo>,
     /// The recovery it was made from.
     pub frame: FrameOutput,
     header: crate::msgs::Header,
-    rays: Arc<ImageBuf<Vector3<f64>>>,
+    /// The camera's rays (none before the first camera_info: no cloud then).
+    rays: Option<Arc<ImageBuf<Vector3<f64>>>>,
     ir: ImageBuf<f32>,
 }
 
 impl NodeOutputs {
-    /// The sigma image, mask, cloud and estimates (the same as `replay` writes).
+    /// The sigma image, mask, cloud and estimates (the same as `replay` writes);
+    /// before the first camera_info, no cloud.
     pub fn companions(&self) -> Result<Companions, crate::image::ImageError> {
-        companion_messages(&self.header, &self.rays, &self.frame, &self.ir)
+        companion_messages(&self.header, self.rays.as_deref(), &self.frame, &self.ir)
     }
 }
 
@@ -432,17 +435,32 @@ impl<T> NodeCore<T> {
 
     fn frame(&mut self, depth: &Image, ir: &Image, result: &mut FrameResult<T>) -> Result<(), (DropCause, String)> {
         let stamp = depth.header.stamp.as_log_time_ns();
-        let Some((_, k)) = &self.info else {
-            return Err((
-                DropCause::NoCameraInfo,
-                format!("frame at stamp {stamp} ns dropped: no camera_info yet"),
-            ));
-        };
-        let k = *k;
         let z_mm =
             depth_mm(depth).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
         let ir_buf =
             ir_counts(ir).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
+        let Some((_, k)) = &self.info else {
+            if (z_mm.width, z_mm.height) != (ir_buf.width, ir_buf.height) {
+                return Err((
+                    DropCause::SizeMismatch,
+                    format!(
+                        "frame at stamp {stamp} ns dropped: depth is {}x{} but IR {}x{}",
+                        z_mm.width, z_mm.height, ir_buf.width, ir_buf.height
+                    ),
+                ));
+            }
+            let why = (
+                DropCause::NoCameraInfo,
+                format!("frame at stamp {stamp} ns dropped: no camera_info yet"),
+            );
+            let frame = DepthFrame {
+                stamp_ns: stamp,
+                z_mm,
+                ir: ir_buf,
+            };
+            return self.pass_or_drop(Passthrough::NoCameraInfo, why, depth, frame, result);
+        };
+        let k = *k;
         for (what, w, h) in [("depth", z_mm.width, z_mm.height), ("IR", ir_buf.width, ir_buf.height)] {
             if w != k.width || h != k.height {
                 return Err((
@@ -480,7 +498,6 @@ impl<T> NodeCore<T> {
                     depth,
                     FrameOutput::passed_through(&frame, Passthrough::Latching),
                     frame,
-                    k,
                     result,
                 )?;
             }
@@ -497,7 +514,7 @@ impl<T> NodeCore<T> {
                 DropCause::NoBackground,
                 format!("frame at stamp {stamp} ns dropped: no background latched"),
             );
-            return self.pass_or_drop(Passthrough::NoBackground, why, depth, frame, k, result);
+            return self.pass_or_drop(Passthrough::NoBackground, why, depth, frame, result);
         }
         let mut obs = pipe
             .observe(&frame)
@@ -508,7 +525,7 @@ impl<T> NodeCore<T> {
                     DropCause::CameraMoved,
                     format!("frame at stamp {stamp} ns dropped: the camera moved after the latch"),
                 );
-                return self.pass_or_drop(Passthrough::CameraMoved, why, depth, frame, k, result);
+                return self.pass_or_drop(Passthrough::CameraMoved, why, depth, frame, result);
             }
         }
         let Some(pipe) = &mut self.pipeline else {
@@ -523,9 +540,9 @@ impl<T> NodeCore<T> {
                     obs.translucent_pixels
                 ),
             );
-            return self.pass_or_drop(Passthrough::NoXiYet, why, depth, frame, k, result);
+            return self.pass_or_drop(Passthrough::NoXiYet, why, depth, frame, result);
         };
-        self.publish(depth, out, frame, k, result)
+        self.publish(depth, out, frame, result)
     }
 
     /// The outputs of `out` (recovered or passed through) into `result`.
@@ -534,7 +551,6 @@ impl<T> NodeCore<T> {
         depth: &Image,
         out: FrameOutput,
         frame: DepthFrame,
-        k: Intrinsics,
         result: &mut FrameResult<T>,
     ) -> Result<(), (DropCause, String)> {
         let stamp = frame.stamp_ns;
@@ -545,15 +561,11 @@ impl<T> NodeCore<T> {
         } else {
             self.processed += 1;
         }
-        let camera_info = CameraInfo {
+        let camera_info = self.info.as_ref().map(|(ci, _)| CameraInfo {
             header: depth.header.clone(),
-            ..self.info.as_ref().map(|(ci, _)| ci.clone()).unwrap_or_default()
-        };
-        let rays = self
-            .pipeline
-            .as_ref()
-            .map(|p| p.shared_rays())
-            .unwrap_or_else(|| Arc::new(k.unit_ray_map()));
+            ..ci.clone()
+        });
+        let rays = self.pipeline.as_ref().map(|p| p.shared_rays());
         result.outputs = Some(NodeOutputs {
             corrected,
             camera_info,
@@ -572,13 +584,12 @@ impl<T> NodeCore<T> {
         why: (DropCause, String),
         depth: &Image,
         frame: DepthFrame,
-        k: Intrinsics,
         result: &mut FrameResult<T>,
     ) -> Result<(), (DropCause, String)> {
         if !self.passthrough {
             return Err(why);
         }
-        self.publish(depth, FrameOutput::passed_through(&frame, reason), frame, k, result)
+        self.publish(depth, FrameOutput::passed_through(&frame, reason), frame, result)
     }
 
     /// Follows whether the camera moved after the latch; true while it is taken to have.
@@ -835,6 +846,20 @@ mod tests {
             let mut core: NodeCore<u32> =
                 NodeCore::new(PipelineConfig::default(), 3, std::time::Duration::from_secs(60))
                     .with_watch(passthrough, false);
+            // Before camera_info: the depth alone, no camera_info, no cloud.
+            let (d, i) = tilted_wall(&k, 0, 0.0);
+            let r = core.on_frame(&d, &i);
+            if passthrough {
+                let o = r.outputs.expect("the input published before camera_info");
+                assert_eq!(o.frame.passthrough, Some(Passthrough::NoCameraInfo));
+                assert_eq!(o.corrected.data, d.data);
+                assert!(o.camera_info.is_none());
+                let c = o.companions().expect("messages");
+                assert!(c.points.is_none(), "no cloud without rays");
+                assert_eq!(c.estimates[0].method, "passthrough: no camera_info yet");
+            } else {
+                assert_eq!(r.dropped.map(|d| d.0), Some(DropCause::NoCameraInfo));
+            }
             assert_eq!(core.on_camera_info(&camera_info(&header, &k)), Ok(None));
             let (d, i) = tilted_wall(&k, 1, 0.0);
             let r = core.on_frame(&d, &i);

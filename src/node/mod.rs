@@ -979,13 +979,15 @@ fn worker(
                     // The corrected depth first (most consumers wait for it alone), then the
                     // rest is made and published.
                     let first = out.corrected.publish(std::mem::take(&mut o.corrected)).err();
-                    let info = out.corrected_info.publish(std::mem::take(&mut o.camera_info)).err();
+                    let info = o.camera_info.take().and_then(|ci| out.corrected_info.publish(ci).err());
                     let mut results = vec![first.map(|e| format!("{e:?}")), info.map(|e| format!("{e:?}"))];
                     match o.companions() {
                         Ok(c) => {
                             results.push(out.sigma.publish(c.sigma).err().map(|e| format!("{e:?}")));
                             results.push(out.mask.publish(c.mask).err().map(|e| format!("{e:?}")));
-                            results.push(out.points.publish(c.points).err().map(|e| format!("{e:?}")));
+                            if let Some(points) = c.points {
+                                results.push(out.points.publish(points).err().map(|e| format!("{e:?}")));
+                            }
                             for e in c.estimates {
                                 results.push(out.estimate.publish(e).err().map(|e| format!("{e:?}")));
                             }
