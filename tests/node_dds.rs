@@ -426,6 +426,85 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
     assert_eq!(st["services"], serde_json::json!([2, 2]));
 }
 
+/// `depth` as a camera pulled back by `mm` would read it (every valid pixel farther).
+fn pulled_back(depth: &Image, mm: f32) -> Image {
+    let mut d = depth.clone();
+    match d.encoding.as_str() {
+        "32FC1" => d.data.chunks_exact_mut(4).for_each(|c| {
+            let v = f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+            if v.is_finite() && v > 0.0 {
+                c.copy_from_slice(&(v + mm / 1000.0).to_le_bytes());
+            }
+        }),
+        _ => d.data.chunks_exact_mut(2).for_each(|c| {
+            let v = u16::from_le_bytes([c[0], c[1]]);
+            if v > 0 {
+                c.copy_from_slice(&v.saturating_add(mm as u16).to_le_bytes());
+            }
+        }),
+    }
+    d
+}
+
+#[test]
+fn a_camera_moved_after_the_latch_is_reported_passed_through_and_relatched() {
+    if !isolated("a_camera_moved_after_the_latch_is_reported_passed_through_and_relatched") {
+        return;
+    }
+    let node = NodeChild::start(&["background_frames:=3", "xi:=0.65", "relatch_on_move:=true"]);
+    let (info, pairs, bg) = frames();
+    let rt = rt();
+    let last = rt.block_on(async {
+        let ctx = translucent_tof::node::context(0, false).unwrap();
+        let mut peer = Peer::new(
+            &ctx,
+            "moving_peer",
+            "/tof",
+            "/tof/translucent_tof",
+            ros2_client::ServiceMapping::Enhanced,
+        )
+        .unwrap();
+        peer.wait_for_node(Duration::from_secs(30)).await.unwrap();
+        let mut t = 7_000_000_000u64;
+        let reply = peer
+            .latch_while_streaming(&info, &pairs[..bg], Duration::from_millis(40), &mut t, 33_000_000)
+            .await
+            .unwrap();
+        assert!(reply.success, "{reply:?}");
+        // The camera is bumped 300 mm back and stays there: the empty scene, read farther.
+        let (d0, i0) = &pairs[0];
+        let moved = pulled_back(d0, 300.0);
+        for _ in 0..20 {
+            t += 33_000_000;
+            peer.publish(&info, &stamped(&moved, t), &stamped(i0, t)).unwrap();
+            tokio::time::sleep(Duration::from_millis(60)).await;
+            peer.drain();
+        }
+        assert!(
+            peer.wait_for(t, Duration::from_secs(20)).await,
+            "no output for the last frame"
+        );
+        let c = &peer.received.corrected[&t];
+        assert_eq!(c.data, stamped(&moved, t).data, "the relatched view was corrected");
+        let m = &peer.received.mask[&t];
+        assert!(m.data.iter().all(|&v| v == 0), "the relatched empty view is masked");
+        t
+    });
+    let (st, log) = node.stop_with_log();
+    assert!(last > 0);
+    let passed = &st["passed_through"];
+    assert!(passed["camera_moved"].as_u64().unwrap_or(0) >= 1, "{st}");
+    // Relatched: the first latch's 3 frames and the second's.
+    assert!(st["latched_frames"].as_u64().unwrap() >= 6, "{st}");
+    let moved_lines = log
+        .lines()
+        .filter(|l| l.contains("the camera moved after the latch"))
+        .count();
+    assert_eq!(moved_lines, 1, "the move logged once:\n{log}");
+    assert!(log.contains("relatch_on_move"), "{log}");
+    assert!(!log.contains("[ERROR]"), "{log}");
+}
+
 #[test]
 fn overload_drops_the_oldest_frames_and_memory_stays_bounded() {
     if !isolated("overload_drops_the_oldest_frames_and_memory_stays_bounded") {
