@@ -293,7 +293,7 @@ fn clouds_arrive(bag: &Path, frames: usize, rate_hz: u32) {
         bag,
         10,
         &["--rate", &rate_hz.to_string(), "--frames", &frames.to_string()],
-        &[("FASTRTPS_DEFAULT_PROFILES_FILE", &profile)],
+        &[("FASTDDS_DEFAULT_PROFILES_FILE", &profile)],
     );
     let log = node.stop("-INT");
     for qos in ["default", "sensor"] {

@@ -231,6 +231,9 @@ def main():
     peer.spin_for(0.5)
     out["sent"] = len(sent)
     out["received"] = {key: sum(1 for s in sent if s in v) for key, v in peer.got.items()}
+    # Which frames (by index in the order sent) an output is missing for.
+    out["missing"] = {key: [i for i, s in enumerate(sent) if s not in v] for key, v in peer.got.items()}
+    out["missing"] = {k: v for k, v in out["missing"].items() if v}
     out["rate_hz"] = a.rate
     out["size"] = [objects[0][0].width, objects[0][0].height]
 

@@ -46,11 +46,19 @@ pub const REPAIR_BATCH_MAX_BYTES: usize = 8192;
 pub const REPAIR_FRAGS_MAX_BYTES: usize = 64 * 1024;
 
 // Push pacing of fragmented samples, shared by the Writers of a participant
-// (src/rtps/pacer.rs; patched in, see PATCHED.md): at most this many bytes of
-// DATAFRAG datagrams back to back, then this rate. The burst stays below the
-// Linux default receive buffer (208 KiB) that a remote reader may be using.
+// (src/rtps/pacer.rs; patched in, see PATCHED.md): at most a burst of DATAFRAG
+// datagrams back to back, then a rate. The rate follows the participant's own
+// push load (PUSH_PACING_LOAD_FACTOR times it, within the bounds below): a
+// light load goes out as single datagrams spread in time, so that a remote
+// reader on the Linux default receive buffer (208 KiB) has time to drain it;
+// a heavy one as fast as the upper bound allows.
 pub const PUSH_PACING_BURST_BYTES: usize = 128 * 1024;
 pub const PUSH_PACING_RATE_BYTES_PER_SEC: usize = 128 * 1024 * 1024;
+pub const PUSH_PACING_SMALL_BURST_BYTES: usize = 64 * 1024;
+pub const PUSH_PACING_MIN_RATE_BYTES_PER_SEC: usize = 24 * 1024 * 1024;
+pub const PUSH_PACING_LOAD_FACTOR: f64 = 4.0;
+// Time constant of the push load's running average.
+pub const PUSH_PACING_LOAD_TAU_SECS: f64 = 0.25;
 
 // Periodic HEARTBEAT period for reliable Writers. The period is adaptive: while
 // some matched reader is behind (has unacknowledged samples), heartbeats are

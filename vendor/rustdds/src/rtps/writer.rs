@@ -1037,6 +1037,15 @@ impl Writer {
 
     // Pace the DATAFRAG datagrams of a user writer's push (src/rtps/pacer.rs).
     let paced = fragmentation_needed && class == TrafficClass::Bulk;
+    if class == TrafficClass::Bulk && matches!(cursor, SampleCursor::Fresh) {
+      // The push load counts a sample when it starts, so that a burst of large
+      // samples raises the pacing rate before it queues up behind it.
+      self
+        .udp_sender
+        .push_pacer
+        .borrow_mut()
+        .announce(cc.data_value.payload_size());
+    }
 
     // Send the messages, either to all readers or just one, stopping at the
     // first message that a socket could not accept.
