@@ -169,6 +169,20 @@ fn stamped(img: &Image, ns: u64) -> Image {
     restamp(img, ns)
 }
 
+/// A driver, client and listener of the node at `/tof/translucent_tof`, once the node is up.
+async fn driver(ctx: &ros2_client::Context, name: &str) -> Peer {
+    let peer = Peer::new(
+        ctx,
+        name,
+        "/tof",
+        "/tof/translucent_tof",
+        ros2_client::ServiceMapping::Enhanced,
+    )
+    .unwrap();
+    peer.wait_for_node(Duration::from_secs(30)).await.unwrap();
+    peer
+}
+
 fn rt() -> tokio::runtime::Runtime {
     tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
@@ -253,15 +267,7 @@ fn faults_are_dropped_counted_and_the_node_keeps_running() {
     let pause = || std::thread::sleep(Duration::from_millis(60));
     rt.block_on(async {
         let ctx = translucent_tof::node::context(0, false).unwrap();
-        let mut peer = Peer::new(
-            &ctx,
-            "fault_peer",
-            "/tof",
-            "/tof/translucent_tof",
-            ros2_client::ServiceMapping::Enhanced,
-        )
-        .unwrap();
-        peer.wait_for_node(Duration::from_secs(30)).await.unwrap();
+        let mut peer = driver(&ctx, "fault_peer").await;
         let (d0, i0) = &pairs[0];
         // 1. Frames before any camera_info: the depth is passed on as it came,
         //    with no cloud (no rays without the intrinsics).
@@ -456,15 +462,7 @@ fn a_camera_moved_after_the_latch_is_reported_passed_through_and_relatched() {
     let rt = rt();
     let last = rt.block_on(async {
         let ctx = translucent_tof::node::context(0, false).unwrap();
-        let mut peer = Peer::new(
-            &ctx,
-            "moving_peer",
-            "/tof",
-            "/tof/translucent_tof",
-            ros2_client::ServiceMapping::Enhanced,
-        )
-        .unwrap();
-        peer.wait_for_node(Duration::from_secs(30)).await.unwrap();
+        let mut peer = driver(&ctx, "moving_peer").await;
         let mut t = 7_000_000_000u64;
         let reply = peer
             .latch_while_streaming(&info, &pairs[..bg], Duration::from_millis(40), &mut t, 33_000_000)
@@ -517,15 +515,7 @@ fn overload_drops_the_oldest_frames_and_memory_stays_bounded() {
     let n_burst = 300u64;
     rt.block_on(async {
         let ctx = translucent_tof::node::context(0, false).unwrap();
-        let mut peer = Peer::new(
-            &ctx,
-            "load_peer",
-            "/tof",
-            "/tof/translucent_tof",
-            ros2_client::ServiceMapping::Enhanced,
-        )
-        .unwrap();
-        peer.wait_for_node(Duration::from_secs(30)).await.unwrap();
+        let mut peer = driver(&ctx, "load_peer").await;
         let mut t = 5_000_000_000u64;
         let reply = peer
             .latch_while_streaming(&info, &pairs[..bg], Duration::from_millis(40), &mut t, 1_000_000)
