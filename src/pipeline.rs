@@ -15,7 +15,8 @@ use crate::physics::emitted_light::{emitted_light_from_plane, fill_off_plane, Em
 use crate::physics::materials::{Material, Materials};
 use crate::physics::parallel::{map_chunks_ordered, map_ordered};
 use crate::physics::segmentation::{
-    changed_pixels, label_regions, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
+    change_threshold_mm, changed_pixels, label_regions, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM,
+    NOISE_SIGMAS,
 };
 use crate::physics::stats::median_and_sigma;
 use crate::physics::surface::{LocalSurfaces, Windows};
@@ -1149,10 +1150,7 @@ impl Pipeline {
             }
             out.valid += 1;
             let sigma = self.change_noise.as_ref().map_or(0.0, |n| n.data[i]);
-            let threshold = self
-                .config
-                .threshold_mm
-                .max(NOISE_SIGMAS * if sigma.is_finite() { sigma } else { 0.0 });
+            let threshold = change_threshold_mm(self.config.threshold_mm, sigma);
             let diff = wrapped_difference(d, db, range);
             out.nearer += usize::from(diff < -threshold);
             out.farther += usize::from(diff > threshold);
@@ -1393,7 +1391,7 @@ pub fn detect_scene_change(
                 } else {
                     global
                 };
-                changed.data[i] = diff[i].abs() > threshold_mm.max(NOISE_SIGMAS * sigma);
+                changed.data[i] = diff[i].abs() > change_threshold_mm(threshold_mm, sigma);
             }
             let (clean, _) = remove_small_regions(&changed, min_region_pixels);
             let count = clean.data.iter().filter(|&&c| c).count();

@@ -20,6 +20,13 @@ pub fn wrapped_difference(a: f64, b: f64, range_mm: f64) -> f64 {
 /// How many standard deviations of a pixel's own noise a change must exceed.
 pub const NOISE_SIGMAS: f64 = 3.0;
 
+/// The change a pixel must exceed to count as changed: `threshold_mm`, or
+/// [`NOISE_SIGMAS`] times the pixel's change noise `sigma_mm` where that is larger.
+#[inline(always)]
+pub fn change_threshold_mm(threshold_mm: f64, sigma_mm: f64) -> f64 {
+    threshold_mm.max(NOISE_SIGMAS * if sigma_mm.is_finite() { sigma_mm } else { 0.0 })
+}
+
 /// `|d - db| > threshold_mm`, compared as wrapped phases (range `range_mm`),
 /// where both readings are valid (finite, > 0). With `change_noise_mm` (the
 /// standard deviation of `d - db` per pixel, where known), the threshold is
@@ -37,7 +44,7 @@ pub fn changed_pixels(
     // difference. The few valid pixels beyond it are wrapped afterwards.
     let half = range_mm / 2.0;
     // (`move`: the constant copied in, so the loops do not read it back at every pixel.)
-    let threshold = move |sigma: f64| threshold_mm.max(NOISE_SIGMAS * if sigma.is_finite() { sigma } else { 0.0 });
+    let threshold = move |sigma: f64| change_threshold_mm(threshold_mm, sigma);
     let (d, b) = (&distance_mm.data, &background_mm.data);
     let mut data = vec![false; d.len()];
     let far = match change_noise_mm {
