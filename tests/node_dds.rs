@@ -460,7 +460,7 @@ fn a_camera_moved_after_the_latch_is_reported_passed_through_and_relatched() {
     let node = NodeChild::start(&["background_frames:=3", "xi:=0.65", "relatch_on_move:=true"]);
     let (info, pairs, bg) = frames();
     let rt = rt();
-    let last = rt.block_on(async {
+    rt.block_on(async {
         let ctx = translucent_tof::node::context(0, false).unwrap();
         let mut peer = driver(&ctx, "moving_peer").await;
         let mut t = 7_000_000_000u64;
@@ -486,10 +486,8 @@ fn a_camera_moved_after_the_latch_is_reported_passed_through_and_relatched() {
         assert_eq!(c.data, stamped(&moved, t).data, "the relatched view was corrected");
         let m = &peer.received.mask[&t];
         assert!(m.data.iter().all(|&v| v == 0), "the relatched empty view is masked");
-        t
     });
     let (st, log) = node.stop_with_log();
-    assert!(last > 0);
     let passed = &st["passed_through"];
     assert!(passed["camera_moved"].as_u64().unwrap_or(0) >= 1, "{st}");
     // Relatched: the first latch's 3 frames and the second's.

@@ -439,36 +439,18 @@ impl<T> NodeCore<T> {
             depth_mm(depth).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
         let ir_buf =
             ir_counts(ir).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
-        let Some((_, k)) = &self.info else {
-            if (z_mm.width, z_mm.height) != (ir_buf.width, ir_buf.height) {
-                return Err((
-                    DropCause::SizeMismatch,
-                    format!(
-                        "frame at stamp {stamp} ns dropped: depth is {}x{} but IR {}x{}",
-                        z_mm.width, z_mm.height, ir_buf.width, ir_buf.height
-                    ),
-                ));
-            }
-            let why = (
-                DropCause::NoCameraInfo,
-                format!("frame at stamp {stamp} ns dropped: no camera_info yet"),
-            );
-            let frame = DepthFrame {
-                stamp_ns: stamp,
-                z_mm,
-                ir: ir_buf,
-            };
-            return self.pass_or_drop(Passthrough::NoCameraInfo, why, depth, frame, result);
-        };
-        let k = *k;
+        // Both images the camera's size; before any camera_info, the depth's.
+        let (want_w, want_h, by) = self
+            .info
+            .as_ref()
+            .map_or((z_mm.width, z_mm.height, "the depth image"), |(_, k)| {
+                (k.width, k.height, "camera_info (with its ROI and binning)")
+            });
         for (what, w, h) in [("depth", z_mm.width, z_mm.height), ("IR", ir_buf.width, ir_buf.height)] {
-            if w != k.width || h != k.height {
+            if (w, h) != (want_w, want_h) {
                 return Err((
                     DropCause::SizeMismatch,
-                    format!(
-                        "frame at stamp {stamp} ns dropped: {what} is {w}x{h} but camera_info (with its ROI and binning) gives {}x{}",
-                        k.width, k.height
-                    ),
+                    format!("frame at stamp {stamp} ns dropped: {what} is {w}x{h} but {by} gives {want_w}x{want_h}"),
                 ));
             }
         }
@@ -477,6 +459,14 @@ impl<T> NodeCore<T> {
             z_mm,
             ir: ir_buf,
         };
+        let Some((_, k)) = &self.info else {
+            let why = (
+                DropCause::NoCameraInfo,
+                format!("frame at stamp {stamp} ns dropped: no camera_info yet"),
+            );
+            return self.pass_or_drop(Passthrough::NoCameraInfo, why, depth, frame, result);
+        };
+        let k = *k;
         if let Some(l) = &mut self.latch {
             if let Some((latch, k)) = &mut l.latch {
                 latch.push(&frame, k).map_err(|e| {

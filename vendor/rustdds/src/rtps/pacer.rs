@@ -12,8 +12,9 @@
 //! datagrams of the push path: a burst of at most `burst` bytes, then
 //! `rate` bytes per second.
 //!
-//! The rate follows the participant's push load, a running average of the bytes
-//! of the user samples it starts to push per second: `PUSH_PACING_LOAD_FACTOR` times that load, between
+//! The rate follows the participant's push load, a running average of the
+//! bytes of the user samples it starts to push per second:
+//! `PUSH_PACING_LOAD_FACTOR` times that load, between
 //! `PUSH_PACING_MIN_RATE_BYTES_PER_SEC` and `PUSH_PACING_RATE_BYTES_PER_SEC`,
 //! with single-datagram bursts while the rate is below half the upper bound.
 //! A light load (a 0.6 MB cloud at 10 Hz) thus leaves a remote reader time to
@@ -36,7 +37,7 @@ pub(crate) struct PushPacer {
   rate: f64, // bytes per second
   tokens: f64,
   last: Instant,
-  /// Running average of the bytes pushed per second.
+  /// Running average of the bytes of user samples started per second.
   load: f64,
   /// Burst and rate fixed by the environment: no adaptation.
   fixed: bool,
