@@ -10,6 +10,7 @@ pub mod buffer;
 
 pub use buffer::{ImageBuf, Region, SparseImage};
 pub mod model;
+pub mod multifreq;
 pub mod sensor;
 
 pub use model::{ForwardModel, IrMode, LayerScene, Measurement, ModelOptions, Preset, Return};
