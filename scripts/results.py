@@ -1,6 +1,10 @@
 """Measures `translucent_tof replay` on ground-truthed bags against their truth.
 
-usage: results.py [--json OUT] [--replay-arg ARG ...] BAG...
+usage: results.py [--json OUT] [--check BASELINE] [--write-baseline OUT] [--markdown]
+                  [--exe EXE] [--replay-arg ARG ...] [BAG...]
+
+With no BAG, every rendered scene in bags/rendered (but the white wall and the
+calibration sequence, which hold no scene to recover).
 
 Each BAG is replayed with the given replay arguments (none: the defaults a user
 gets); its sidecar `BAG.toml` names the materials (`[[materials]]`: id, xi,
@@ -12,13 +16,28 @@ Per bag it reports:
   translucent materials that are in the mask and have a recovered depth, the
   same for the raw reading over those pixels, and the share of the
   translucent materials' pixels that got a recovered depth;
+- the same mean over frames of the per-frame RMS z error over *every* pixel
+  of a translucent material with truth (`all_pixels_rms_mm`): the published
+  depth where it was corrected, the reading where it was left as read (a
+  frame the pipeline passed through counts at its reading), beside the raw
+  reading's over the same pixels (`all_pixels_rms_raw_mm`): the figure that
+  says whether a scene came out worse than raw;
 - per translucent material: the ξ estimate of the region its pixels mostly
   fell in, its interval, whether the truth lies inside, and the poses seen;
-- per opaque material: the share of its pixels not in the mask and the
-  median |z error| (mm) of the published depth there;
+- per opaque material: the share of its pixels not in the mask, the
+  median |z error| (mm) of the published depth there beside the reading's, and whether the
+  interval of the region it fell in holds 0 (opaque);
 - over those recovered pixels, the share whose error lies within twice the
   published standard deviation (`depth/corrected_sigma`), and pooled over
   every bag at the end.
+
+`--check BASELINE` compares the run with a committed baseline (the rows of an
+earlier run and the failures known then) and exits 1 on a failure that is
+not known: a scene worse than raw, an opaque object flagged or moved, a
+paper setup above the paper's figure, coverage or σ below their stated
+levels, or a scene or object worse than the baseline beyond noise.
+`--write-baseline OUT` writes this run as a baseline, its failures as the
+known ones.
 """
 
 import argparse
@@ -79,41 +98,54 @@ def evaluate(bag, replay_args, exe):
         cmd = [exe, "replay", bag, "--out", out_bag, "--json", out_json, *replay_args]
         run = subprocess.run(cmd, capture_output=True, text=True)
         if run.returncode != 0:
-            return {"bag": bag, "error": run.stderr.strip()}
+            return {"bag": os.path.basename(bag), "error": run.stderr.strip()}
         report = json.load(open(out_json))
         inp = read(bag, ["ground_truth/depth", "ground_truth/material", "depth/image_raw"])
         res = read(out_bag, ["depth/corrected", "translucent_mask", "regions", "depth/corrected_sigma"])
     est = {m["id"]: m for m in report.get("materials", [])}
     frame_rms, frame_raw, covered, total = [], [], 0, 0
+    every_rms, every_raw = [], []
     within_2sigma, with_sigma = 0, 0
     region_votes = defaultdict(Counter)
     opaque_flagged, opaque_total, opaque_err = defaultdict(int), defaultdict(int), defaultdict(list)
+    opaque_raw_err = defaultdict(list)
     stages = defaultdict(set)
-    for stamp, corr in sorted(res["depth/corrected"].items()):
-        if stamp not in inp["ground_truth/depth"]:
+    for stamp, truth_msg in sorted(inp["ground_truth/depth"].items()):
+        if stamp not in inp["ground_truth/material"] or stamp not in inp["depth/image_raw"]:
             continue
-        truth = [x * 1000.0 if math.isfinite(x) else math.nan for x in image_values(inp["ground_truth/depth"][stamp])]
         mat = image_values(inp["ground_truth/material"][stamp])
+        if not any(m in materials for m in mat):
+            continue  # background frames: nothing to recover
+        truth = [x * 1000.0 if math.isfinite(x) else math.nan for x in image_values(truth_msg)]
         raw = z_mm(inp["depth/image_raw"][stamp])
-        z = z_mm(corr)
-        mask = image_values(res["translucent_mask"][stamp])
+        corr = res["depth/corrected"].get(stamp)
+        # A frame with no output (no estimate yet) is published as read (the node passes it through).
+        z = z_mm(corr) if corr is not None else raw
+        mask = image_values(res["translucent_mask"][stamp]) if stamp in res["translucent_mask"] else [0] * len(z)
         regions = image_values(res["regions"][stamp]) if stamp in res["regions"] else [0] * len(z)
         sigma = z_mm(res["depth/corrected_sigma"][stamp]) if stamp in res["depth/corrected_sigma"] else [math.nan] * len(z)
         e2, r2, n = 0.0, 0.0, 0
+        a2, ar2, an = 0.0, 0.0, 0
         for i, m in enumerate(mat):
             info = materials.get(m)
             if info is None or not math.isfinite(truth[i]):
                 continue
+            if regions[i]:
+                region_votes[m][regions[i]] += 1
             if info.get("opaque"):
                 opaque_total[m] += 1
                 opaque_flagged[m] += mask[i] > 0
                 if math.isfinite(z[i]):
                     opaque_err[m].append(abs(z[i] - truth[i]))
+                if math.isfinite(raw[i]):
+                    opaque_raw_err[m].append(abs(raw[i] - truth[i]))
                 continue
             total += 1
-            if regions[i]:
-                region_votes[m][regions[i]] += 1
-            if mask[i] and math.isfinite(z[i]):
+            if math.isfinite(z[i]) and math.isfinite(raw[i]):
+                a2 += (z[i] - truth[i]) ** 2
+                ar2 += (raw[i] - truth[i]) ** 2
+                an += 1
+            if corr is not None and mask[i] and math.isfinite(z[i]):
                 covered += 1
                 if math.isfinite(sigma[i]):
                     with_sigma += 1
@@ -123,35 +155,49 @@ def evaluate(bag, replay_args, exe):
                 n += 1
         for m in set(mat):
             if m in materials and not materials[m].get("opaque"):
-                stages[m].add(round(statistics.median(t for t, k in zip(truth, mat) if k == m and math.isfinite(t)), -1))
+                ts = [t for t, k in zip(truth, mat) if k == m and math.isfinite(t)]
+                if ts:
+                    stages[m].add(round(statistics.median(ts), -1))
         if n:
             frame_rms.append(math.sqrt(e2 / n))
             frame_raw.append(math.sqrt(r2 / n))
+        if an:
+            every_rms.append(math.sqrt(a2 / an))
+            every_raw.append(math.sqrt(ar2 / an))
     out = {
         "bag": os.path.basename(bag),
         "description": side.get("description", ""),
-        "frames": len(frame_rms),
+        "frames": len(every_rms),
         "mean_frame_rms_mm": statistics.fmean(frame_rms) if frame_rms else None,
         "mean_frame_rms_raw_mm": statistics.fmean(frame_raw) if frame_raw else None,
+        "all_pixels_rms_mm": statistics.fmean(every_rms) if every_rms else None,
+        "all_pixels_rms_raw_mm": statistics.fmean(every_raw) if every_raw else None,
         "recovered_share": covered / total if total else None,
         "within_2sigma": [within_2sigma, with_sigma],
         "materials": [],
         "opaque": [],
     }
     for mid, info in sorted(materials.items()):
-        if info.get("opaque"):
-            if opaque_total[mid]:
-                errs = sorted(opaque_err[mid])
-                out["opaque"].append({
-                    "id": mid,
-                    "not_flagged": 1.0 - opaque_flagged[mid] / opaque_total[mid],
-                    "median_error_mm": errs[len(errs) // 2] if errs else None,
-                    "kept_share": len(errs) / opaque_total[mid],
-                })
-            continue
         votes = region_votes.get(mid)
         rid = votes.most_common(1)[0][0] if votes else None
         e = est.get(rid) if rid is not None else None
+        if info.get("opaque"):
+            if opaque_total[mid]:
+                errs, raws = sorted(opaque_err[mid]), sorted(opaque_raw_err[mid])
+                row = {
+                    "id": mid,
+                    "not_flagged": 1.0 - opaque_flagged[mid] / opaque_total[mid],
+                    "median_error_mm": errs[len(errs) // 2] if errs else None,
+                    "median_raw_error_mm": raws[len(raws) // 2] if raws else None,
+                    "kept_share": len(errs) / opaque_total[mid],
+                    "region": rid,
+                }
+                if e:
+                    lo, hi = e["xi_interval"]
+                    # Opaque is xi 0: the interval must hold it.
+                    row.update({"xi": e["xi"], "xi_interval": [lo, hi], "inside": lo <= 0.0, "width": hi - lo})
+                out["opaque"].append(row)
+            continue
         row = {"id": mid, "xi_true": info["xi"], "poses": len(stages[mid]), "region": rid}
         if e:
             lo, hi = e["xi_interval"]
@@ -165,52 +211,188 @@ def fmt(v, spec=".1f"):
     return "-" if v is None else format(v, spec)
 
 
+# What the README claims, as limits (the paper's figures, the stated levels; issue texts name them).
+PAPER_MM = {"paper_document_holder.mcap": 10.6, "paper_file_box.mcap": 51.7}
+COVERAGE_MIN = 0.90        # intervals stated at 95 %: at least 90 % over the set
+SIGMA_BAND = (0.90, 0.98)  # +-2 sigma stated at 95 %
+OPAQUE_NOT_FLAGGED_MIN = 0.90
+OPAQUE_KEPT_MM = 1.0  # an opaque object keeps its reading: no worse than it by more than this
+# Replays are deterministic up to the order of parallel sums: beyond this is a change.
+NOISE_REL, NOISE_MM = 0.05, 1.0
+
+
+def worse(now, before):
+    return now is not None and before is not None and now > before * (1 + NOISE_REL) + NOISE_MM
+
+
+def objects(rows):
+    return [o for r in rows for o in r.get("materials", []) + r.get("opaque", []) if "inside" in o]
+
+
+def pooled_sigma(rows):
+    w = [r["within_2sigma"] for r in rows if r.get("within_2sigma", [0, 0])[1]]
+    return (sum(a for a, _ in w) / sum(b for _, b in w), w) if w else (None, w)
+
+
+def failures(rows):
+    """Every way this run falls short of a stated claim: {key: figure}."""
+    out = {}
+    for r in rows:
+        b = r["bag"]
+        if "error" in r:
+            out[f"{b}:replay"] = r["error"][:200]
+            continue
+        now, raw = r.get("all_pixels_rms_mm"), r.get("all_pixels_rms_raw_mm")
+        if now is not None and raw is not None and now > raw * 1.01 + 0.5:
+            out[f"{b}:worse_than_raw"] = f"{now:.1f} mm against raw {raw:.1f} mm over every pixel"
+        if b in PAPER_MM and (r.get("mean_frame_rms_mm") or math.inf) > PAPER_MM[b]:
+            out[f"{b}:paper"] = f"{fmt(r.get('mean_frame_rms_mm'))} mm against the paper's {PAPER_MM[b]}"
+        for o in r.get("opaque", []):
+            if o["not_flagged"] < OPAQUE_NOT_FLAGGED_MIN:
+                out[f"{b}:opaque_{o['id']}_flagged"] = f"{100 * o['not_flagged']:.0f} % not flagged"
+            now, raw = o.get("median_error_mm"), o.get("median_raw_error_mm")
+            if now is not None and raw is not None and now > raw + OPAQUE_KEPT_MM:
+                out[f"{b}:opaque_{o['id']}_moved"] = f"median {now:.1f} mm, the reading's {raw:.1f} mm"
+    obj = objects(rows)
+    if obj and sum(o["inside"] for o in obj) / len(obj) < COVERAGE_MIN:
+        out["set:coverage"] = f"{sum(o['inside'] for o in obj)} of {len(obj)}"
+    share, _ = pooled_sigma(rows)
+    if share is not None and not SIGMA_BAND[0] <= share <= SIGMA_BAND[1]:
+        out["set:sigma"] = f"{100 * share:.1f} % within 2 sigma"
+    return out
+
+
+def regressions(rows, base_rows):
+    """Where this run is worse than the baseline's rows beyond noise: {key: figure}."""
+    out = {}
+    before = {r["bag"]: r for r in base_rows}
+    for r in rows:
+        b = before.get(r["bag"])
+        if b is None or "error" in r:
+            continue
+        for key in ("all_pixels_rms_mm", "mean_frame_rms_mm"):
+            if worse(r.get(key), b.get(key)):
+                out[f"{r['bag']}:{key}"] = f"{r[key]:.1f} mm, baseline {b[key]:.1f} mm"
+        was = {(o["id"], "xi_true" in o): o.get("inside") for o in b.get("materials", []) + b.get("opaque", [])}
+        for o in r.get("materials", []) + r.get("opaque", []):
+            if was.get((o["id"], "xi_true" in o)) and not o.get("inside"):
+                out[f"{r['bag']}:object_{o['id']}_interval"] = f"{o.get('xi_interval')} no longer holds the truth"
+    now_in, base_in = sum(o["inside"] for o in objects(rows)), sum(o["inside"] for o in objects(base_rows))
+    if now_in < base_in:
+        out["set:coverage_fell"] = f"{now_in} objects inside, baseline {base_in}"
+    now_s, base_s = pooled_sigma(rows)[0], pooled_sigma(base_rows)[0]
+    if now_s is not None and base_s is not None and now_s < base_s - 0.02:
+        out["set:sigma_fell"] = f"{100 * now_s:.1f} %, baseline {100 * base_s:.1f} %"
+    return out
+
+
+def print_row(r):
+    if "error" in r:
+        print(f"{r['bag']}: replay failed: {r['error']}")
+        return
+    mats = "; ".join(
+        f"xi {m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.2f')}, "
+        f"{fmt((m.get('xi_interval') or [None, None])[1], '.2f')}]{'' if m.get('inside') else ' MISS'}"
+        for m in r["materials"]
+    )
+    opq = "; ".join(
+        f"opaque {o['id']}: {100 * o['not_flagged']:.0f} % unflagged, median {fmt(o['median_error_mm'])} mm "
+        f"(reading {fmt(o.get('median_raw_error_mm'))} mm)"
+        f"{'' if o.get('inside', True) else ' (interval excludes 0)'}"
+        for o in r["opaque"]
+    )
+    print(
+        f"{r['bag']}: raw {fmt(r['mean_frame_rms_raw_mm'])} -> {fmt(r['mean_frame_rms_mm'])} mm over recovered pixels "
+        f"(recovered {fmt(None if r['recovered_share'] is None else 100 * r['recovered_share'], '.0f')} %), "
+        f"every pixel {fmt(r['all_pixels_rms_raw_mm'])} -> {fmt(r['all_pixels_rms_mm'])} mm; "
+        f"{mats}{'; ' + opq if opq else ''}; "
+        f"within 2 sigma {fmt(100 * r['within_2sigma'][0] / r['within_2sigma'][1] if r['within_2sigma'][1] else None, '.0f')} %"
+    )
+
+
+def print_summary(rows):
+    obj = objects(rows)
+    if obj:
+        inside = sum(o["inside"] for o in obj)
+        print(f"coverage: {inside} of {len(obj)} objects' true xi inside their interval "
+              f"({100 * inside / len(obj):.0f} %; opaque objects count when the interval holds 0); "
+              f"median width {statistics.median(o['width'] for o in obj):.2f}")
+    share, w = pooled_sigma(rows)
+    if share is not None:
+        shares = [a / b for a, b in w]
+        print(f"sigma: {100 * share:.1f} % of recovered pixels within 2 sigma "
+              f"(pooled over {len(w)} bags; per bag median {100 * statistics.median(shares):.0f} %, "
+              f"range {100 * min(shares):.0f}-{100 * max(shares):.0f} %)")
+
+
+def markdown(rows):
+    print("| bag | true ξ: estimate [interval] | recovered pixels: raw → recovered, mm (share) | every pixel: raw → published, mm | opaque objects |")
+    print("| --- | --- | --- | --- | --- |")
+    for r in rows:
+        if "error" in r:
+            print(f"| `{r['bag']}` | replay failed | | | |")
+            continue
+        mats = "; ".join(
+            f"{m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.3f')}, "
+            f"{fmt((m.get('xi_interval') or [None, None])[1], '.3f')}]{'' if m.get('inside') else ' ✗'}"
+            for m in r["materials"]) or "-"
+        opq = "; ".join(f"{100 * o['not_flagged']:.0f} % not flagged, median error {fmt(o['median_error_mm'])} mm "
+                        f"(reading {fmt(o.get('median_raw_error_mm'))})" for o in r["opaque"]) or "-"
+        share = "-" if r["recovered_share"] is None else f"{100 * r['recovered_share']:.0f} %"
+        print(f"| `{os.path.splitext(r['bag'])[0]}` | {mats} | {fmt(r['mean_frame_rms_raw_mm'])} → {fmt(r['mean_frame_rms_mm'])} ({share}) "
+              f"| {fmt(r['all_pixels_rms_raw_mm'])} → {fmt(r['all_pixels_rms_mm'])} | {opq} |")
+
+
+def default_bags():
+    d = os.path.join(REPO, "bags", "rendered")
+    skip = {"white_wall_lin.mcap", "calibration_sequence.mcap"}  # no object to recover / the audit's
+    return [os.path.join(d, f) for f in sorted(os.listdir(d)) if f.endswith(".mcap") and f not in skip]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("bags", nargs="+")
+    ap.add_argument("bags", nargs="*")
     ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--check", help="a baseline to hold this run to (exit 1 on a failure not known there)")
+    ap.add_argument("--write-baseline", help="write this run as a baseline, its failures as the known ones")
+    ap.add_argument("--markdown", action="store_true", help="also print the rows as the README's table")
     ap.add_argument("--replay-arg", action="append", default=[], help="an argument for replay (repeat)")
     ap.add_argument("--exe", default=os.path.join(REPO, "target", "release", "translucent_tof"))
     a = ap.parse_args()
+    bags = a.bags or default_bags()
     rows = []
-    for i, bag in enumerate(a.bags):
+    for i, bag in enumerate(bags):
         if sys.stderr.isatty():
-            print(f"[{i + 1}/{len(a.bags)}] {os.path.basename(bag)}", file=sys.stderr)
+            print(f"[{i + 1}/{len(bags)}] {os.path.basename(bag)}", file=sys.stderr)
         r = evaluate(bag, a.replay_arg, a.exe)
         rows.append(r)
-        if "error" in r:
-            print(f"{r['bag']}: replay failed: {r['error']}")
-            continue
-        mats = "; ".join(
-            f"xi {m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.2f')}, "
-            f"{fmt((m.get('xi_interval') or [None, None])[1], '.2f')}]{'' if m.get('inside') else ' MISS'}"
-            for m in r["materials"]
-        )
-        opq = "; ".join(
-            f"opaque {o['id']}: {100 * o['not_flagged']:.0f} % unflagged, median {fmt(o['median_error_mm'])} mm"
-            for o in r["opaque"]
-        )
-        print(
-            f"{r['bag']}: raw {fmt(r['mean_frame_rms_raw_mm'])} -> {fmt(r['mean_frame_rms_mm'])} mm "
-            f"(recovered {fmt(None if r['recovered_share'] is None else 100 * r['recovered_share'], '.0f')} %); "
-            f"{mats}{'; ' + opq if opq else ''}; "
-            f"within 2 sigma {fmt(100 * r['within_2sigma'][0] / r['within_2sigma'][1] if r['within_2sigma'][1] else None, '.0f')} %"
-        )
-    ok = [m for r in rows for m in r.get("materials", []) if "inside" in m]
-    if ok:
-        inside = sum(m["inside"] for m in ok)
-        print(f"coverage: {inside} of {len(ok)} materials' true xi inside their interval "
-              f"({100 * inside / len(ok):.0f} %); median width {statistics.median(m['width'] for m in ok):.2f}")
-    w = [r["within_2sigma"] for r in rows if r.get("within_2sigma", [0, 0])[1]]
-    if w:
-        shares = [a / b for a, b in w]
-        print(f"sigma: {100 * sum(a for a, _ in w) / sum(b for _, b in w):.1f} % of recovered pixels within 2 sigma "
-              f"(pooled over {len(w)} bags; per bag median {100 * statistics.median(shares):.0f} %, "
-              f"range {100 * min(shares):.0f}-{100 * max(shares):.0f} %)")
+        print_row(r)
+    print_summary(rows)
+    if a.markdown:
+        markdown(rows)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=1)
+    fails = failures(rows)
+    if a.write_baseline:
+        with open(a.write_baseline, "w") as f:
+            json.dump({"replay_args": a.replay_arg, "known_failures": fails, "rows": rows}, f, indent=1)
+    if not a.check:
+        for k, v in sorted(fails.items()):
+            print(f"falls short: {k}: {v}")
+        return 0
+    base = json.load(open(a.check))
+    known = base.get("known_failures", {})
+    fails.update(regressions(rows, base.get("rows", [])))
+    new = {k: v for k, v in fails.items() if k not in known}
+    for k, v in sorted(fails.items()):
+        print(f"{'known' if k in known else 'FAILED'}: {k}: {v}")
+    for k in sorted(set(known) - set(fails)):
+        print(f"no longer fails (remove from the baseline's known failures): {k}")
+    print(f"check: {len(rows)} scenes, {len(new)} failed, {len(fails) - len(new)} known failures, "
+          f"{len(set(known) - set(fails))} known failures that no longer occur")
+    return 1 if new else 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

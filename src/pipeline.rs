@@ -12,7 +12,7 @@ use thiserror::Error;
 
 use crate::physics::camera::z_to_ray_distance;
 use crate::physics::emitted_light::{emitted_light_from_plane, fill_off_plane, EmittedLightError};
-use crate::physics::materials::{Material, Materials};
+use crate::physics::materials::{Material, Materials, RegionEvidence};
 use crate::physics::parallel::{map_chunks_ordered, map_ordered};
 use crate::physics::segmentation::{
     change_threshold_mm, changed_pixels, label_regions, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM,
@@ -706,9 +706,9 @@ impl Pipeline {
         })
     }
 
-    /// Adds a frame's evidence about ξ (no-op for a fixed ξ), region by region: each
-    /// region's evidence joins the material it is consistent with, or starts one, and
-    /// that material's estimate is renewed. Records the material in `obs.regions`.
+    /// Adds a frame's evidence about ξ (no-op for a fixed ξ), region by region: the objects
+    /// stage ([`Materials::add_frame`]) gives each region the object it continues, or starts
+    /// one, and that object's estimate is renewed. Records the object in `obs.regions`.
     pub fn add_xi_evidence(&mut self, obs: &mut Observed) {
         let XiChoice::Estimate(method) = self.config.xi else {
             return;
@@ -723,27 +723,40 @@ impl Pipeline {
                 p.push(i as u32);
             }
         }
-        for (k, pixels) in pixels.iter().enumerate() {
-            let observations = if single {
-                Some(std::borrow::Cow::Borrowed(&obs.observations))
-            } else {
-                region_observations(obs, k as u32 + 1).map(std::borrow::Cow::Owned)
-            };
-            let profile = observations.and_then(|observations| {
-                let sample = FrameSample::from_image(&observations, &self.rays, None, settings.max_pixels_per_frame);
-                (sample.pixel_count() >= settings.min_group_pixels).then(|| {
-                    translucency::frame_profile(
-                        &self.config.model,
-                        &self.bounds,
-                        &sample,
-                        &settings,
-                        translucency::ProfileUse::Estimation,
-                    )
-                })
-            });
-            obs.regions[k].material = self
-                .materials
-                .add(pixels, profile, self.evidence_frames, method, &settings);
+        let regions: Vec<RegionEvidence> = pixels
+            .iter()
+            .enumerate()
+            .map(|(k, pixels)| {
+                let observations = if single {
+                    Some(std::borrow::Cow::Borrowed(&obs.observations))
+                } else {
+                    region_observations(obs, k as u32 + 1).map(std::borrow::Cow::Owned)
+                };
+                let profile = observations.and_then(|observations| {
+                    let sample =
+                        FrameSample::from_image(&observations, &self.rays, None, settings.max_pixels_per_frame);
+                    (sample.pixel_count() >= settings.min_group_pixels).then(|| {
+                        translucency::frame_profile(
+                            &self.config.model,
+                            &self.bounds,
+                            &sample,
+                            &settings,
+                            translucency::ProfileUse::Estimation,
+                        )
+                    })
+                });
+                RegionEvidence {
+                    pixels,
+                    distance_mm: median_distance(&obs.distance_mm, pixels),
+                    profile,
+                }
+            })
+            .collect();
+        let ids = self
+            .materials
+            .add_frame(regions, self.evidence_frames, obs.stamp_ns, method, &settings);
+        for (region, id) in obs.regions.iter_mut().zip(ids) {
+            region.material = id;
         }
     }
 
@@ -775,7 +788,9 @@ impl Pipeline {
         Some(self.region_estimates_with(obs, &self.xi()?))
     }
 
-    /// [`Self::region_estimates`] with the frame's ξ already found.
+    /// [`Self::region_estimates`] with the frame's ξ already found. With ξ estimated, a
+    /// region of no object with an estimate (too small to carry evidence) is kept as read:
+    /// another object's evidence is not its own.
     fn region_estimates_with(&self, obs: &Observed, fallback: &XiEstimate) -> Vec<RegionOutput> {
         obs.regions
             .iter()
@@ -786,7 +801,8 @@ impl Pipeline {
                     material.and_then(|m| m.estimate.as_ref().map(|e| (m.id, e))),
                 ) {
                     (XiChoice::Estimate(_), Some((id, e))) => (id, e.clone()),
-                    _ => (0, fallback.clone()),
+                    (XiChoice::Estimate(method), None) => (0, without_evidence(method)),
+                    (XiChoice::Fixed(_), _) => (0, fallback.clone()),
                 };
                 RegionOutput {
                     id,
@@ -1318,6 +1334,34 @@ fn restrict(all: &SparseImage<PixelObservation>, mask: &ImageBuf<bool>) -> Optio
 }
 
 /// The observations of the region labelled `label`.
+/// The estimate of a region that carries no evidence of its own: opaque, the null
+/// hypothesis, with every ξ possible.
+fn without_evidence(method: XiMethod) -> XiEstimate {
+    XiEstimate {
+        xi: 0.0,
+        interval: [0.0, 1.0],
+        method,
+        frames: 0,
+        pixels: 0,
+        profile: vec![],
+        note: "too small to carry evidence of its own: kept as read".into(),
+    }
+}
+
+/// Median of the finite distances at `pixels` (NaN if none), mm.
+fn median_distance(distance_mm: &ImageBuf<f64>, pixels: &[u32]) -> f64 {
+    let mut d: Vec<f64> = pixels
+        .iter()
+        .filter_map(|&i| distance_mm.data.get(i as usize).copied())
+        .filter(|d| d.is_finite())
+        .collect();
+    if d.is_empty() {
+        return f64::NAN;
+    }
+    let mid = d.len() / 2;
+    *d.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
 fn region_observations(obs: &Observed, label: u32) -> Option<SparseImage<PixelObservation>> {
     restrict(&obs.observations, &label_mask(obs, |l| l == label))
 }

@@ -43,10 +43,22 @@ fn demo_runs_the_graph_and_recovers_the_document_holder() {
         "{got} of {played} frames came back"
     );
     let (raw, rec) = (r["rmse_raw_mm"].as_f64().unwrap(), r["rmse_mm"].as_f64().unwrap());
+    // The paper's 10.6 mm is over four poses offline; the node estimates online, as frames
+    // arrive. Its claim here: recovered well under raw (the README's demo figures).
     assert!(rec < raw / 5.0, "recovered {rec} mm vs raw {raw} mm");
-    let xi = r["xi"].as_f64().unwrap();
+    // Against the truth the demo's bag was rendered with (its sidecar: xi 0.65), four poses
+    // of one sheet: the data determine xi, so the interval is also bounded in width.
     let iv = r["xi_interval"].as_array().unwrap();
-    assert!(iv[0].as_f64().unwrap() <= xi && xi <= iv[1].as_f64().unwrap());
+    let (lo, hi) = (iv[0].as_f64().unwrap(), iv[1].as_f64().unwrap());
+    assert!(
+        lo <= 0.65 && 0.65 <= hi,
+        "[{lo}, {hi}] misses the true xi 0.65 (estimate {})",
+        r["xi"]
+    );
+    assert!(
+        hi - lo <= 0.2,
+        "[{lo}, {hi}]: four poses of one sheet should pin xi to +-0.1"
+    );
     let passed: u64 = r["node"]["passed_through"]
         .as_object()
         .map_or(0, |m| m.values().filter_map(|v| v.as_u64()).sum());

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::netns::isolated;
+use common::netns::{isolated, skipped};
 use serde_json::Value;
 
 fn python() -> String {
@@ -276,37 +276,58 @@ fn params_file_and_qos_override_reach_the_publishers_and_sigterm_is_clean() {
 /// socket buffers that hold a cloud (`config/fastdds_large_data.xml`); with
 /// the OS default (208 KiB) a best-effort reader loses some: measured by
 /// `scripts/cloud-delivery`, docs/performance.md.
-fn clouds_arrive(bag: &Path, frames: usize, rate_hz: u32) {
-    let py = check_python();
+/// Whether the kernel lets `config/fastdds_large_data.xml` have its 4 MiB socket buffers
+/// (`net.core.rmem_max`, which a network namespace cannot raise), and rmem_max.
+fn profile_buffers_hold() -> (bool, u64) {
     let rmem_max: u64 = std::fs::read_to_string("/proc/sys/net/core/rmem_max")
         .ok()
         .and_then(|s| s.trim().parse().ok())
         .unwrap_or(0);
-    if rmem_max < 4 << 20 {
-        // The kernel caps the profile's buffers at rmem_max, which a network namespace
-        // cannot raise: on such a host the profile is not what is measured here.
-        eprintln!(
-            "SKIPPED: net.core.rmem_max is {rmem_max}, below the profile's 4 MiB (sysctl -w net.core.rmem_max=4194304)"
-        );
-        return;
-    }
+    (rmem_max >= 4 << 20, rmem_max)
+}
+
+fn clouds_arrive(test: &str, bag: &Path, frames: usize, rate_hz: u32) {
+    let py = check_python();
+    let (profile_holds, rmem_max) = profile_buffers_hold();
     let node = Node::start(&["-p", "background_frames:=4", "-p", "xi:=0.65", "-p", "queue_depth:=100"]);
     let profile = root().join("config/fastdds_large_data.xml");
+    let env: Vec<(&str, &Path)> = if profile_holds {
+        vec![("FASTDDS_DEFAULT_PROFILES_FILE", &profile)]
+    } else {
+        vec![]
+    };
     let r = peer_with(
         &py,
         bag,
         10,
         &["--rate", &rate_hz.to_string(), "--frames", &frames.to_string()],
-        &[("FASTDDS_DEFAULT_PROFILES_FILE", &profile)],
+        &env,
     );
     let log = node.stop("-INT");
+    no_error_lines(&log);
+    if !profile_holds {
+        // The kernel caps the profile's buffers at rmem_max, which a network namespace cannot
+        // raise. What this host can show: a reliable reader as installed gets every frame
+        // (docs/performance.md: 100 % at 176x144 and 10 Hz); the profile's claim is not measured.
+        let f = fraction(&r, "corrected_default");
+        eprintln!(
+            "reader as installed: corrected {f:.3}, points {:.3} (reliable)",
+            fraction(&r, "points_default")
+        );
+        assert!(f >= 0.99, "corrected with default QoS, no profile: {f:.3} delivered");
+        skipped(
+            test,
+            true,
+            &format!("net.core.rmem_max is {rmem_max}, below the profile's 4 MiB (sysctl -w net.core.rmem_max=4194304): every-cloud delivery not measured"),
+        );
+        return;
+    }
     for qos in ["default", "sensor"] {
         for topic in ["points", "corrected"] {
             let f = fraction(&r, &format!("{topic}_{qos}"));
             assert!(f >= 0.99, "{topic} with {qos} QoS: {f:.3} delivered");
         }
     }
-    no_error_lines(&log);
 }
 
 #[test]
@@ -315,13 +336,29 @@ fn clouds_reach_fast_dds_readers_at_176x144_10hz() {
     if !isolated("clouds_reach_fast_dds_readers_at_176x144_10hz") {
         return;
     }
-    clouds_arrive(&root().join("bags/document_holder.mcap"), 100, 10);
+    clouds_arrive(
+        "clouds_reach_fast_dds_readers_at_176x144_10hz",
+        &root().join("bags/document_holder.mcap"),
+        100,
+        10,
+    );
 }
 
 #[test]
 fn clouds_reach_fast_dds_readers_at_640x480_30hz() {
     let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     if !isolated("clouds_reach_fast_dds_readers_at_640x480_30hz") {
+        return;
+    }
+    let (holds, rmem_max) = profile_buffers_hold();
+    if !holds {
+        // Without the profile's buffers a reader gets about 62 % of these (docs/performance.md):
+        // the 176x144 test measures the reader as installed on such a host.
+        skipped(
+            "clouds_reach_fast_dds_readers_at_640x480_30hz",
+            true,
+            &format!("net.core.rmem_max is {rmem_max}, below the profile's 4 MiB: every-cloud delivery at 640x480 not measured"),
+        );
         return;
     }
     // The document holder rendered at 640x480 (7.4 MB clouds, 221 MB/s at 30 Hz).
@@ -338,5 +375,5 @@ fn clouds_reach_fast_dds_readers_at_640x480_30hz() {
         .status()
         .unwrap();
     assert!(st.success(), "simulate at 640x480: {st}");
-    clouds_arrive(&bag, 90, 30);
+    clouds_arrive("clouds_reach_fast_dds_readers_at_640x480_30hz", &bag, 90, 30);
 }

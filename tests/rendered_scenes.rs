@@ -52,7 +52,7 @@ fn summary(r: &Value) -> (f64, [f64; 2], f64) {
 }
 
 #[test]
-fn the_papers_file_box_with_the_defaults_beats_the_paper() {
+fn the_papers_file_box_with_the_defaults_is_under_the_papers_error() {
     let dir = tempfile::tempdir().expect("temp dir");
     let r = replay(dir.path(), "paper_file_box.mcap", &[]);
     let (xi, iv, rms) = summary(&r);
@@ -64,25 +64,34 @@ fn the_papers_file_box_with_the_defaults_beats_the_paper() {
     assert!(rms <= 51.7, "{rms} mm");
 }
 
-/// The document holder's first three distances recover to a few millimetres with the true ξ;
-/// the last, 250 mm before the wall, is where the rendered light departs most from two
-/// returns (the paper's errors jump there too): the mean stays within twice the paper's 10.6 mm.
+/// The document holder against the paper's figure and its truth: ξ 0.65 inside the interval,
+/// which four poses of one sheet bound to ±0.1, and the error under the paper's 10.6 mm.
 #[test]
-fn the_papers_document_holder_with_the_defaults() {
+#[ignore = "issue 31: 20.3 mm and [0.665, 0.691] (misses 0.65): the last distance, 250 mm before the wall, departs from two returns and pulls xi up"]
+fn the_papers_document_holder_with_the_defaults_is_under_the_papers_error() {
     let dir = tempfile::tempdir().expect("temp dir");
     let r = replay(dir.path(), "paper_document_holder.mcap", &[]);
     let (xi, iv, rms) = summary(&r);
-    // (Its interval, about [0.67, 0.69], misses the true 0.65: the last distance pulls ξ up; README, Limits.)
     println!(
         "document holder (xi 0.65): xi {xi:.3} [{:.3}, {:.3}], mean per-frame RMS {rms:.1} mm (paper 10.6)",
         iv[0], iv[1]
     );
-    assert!((xi - 0.65).abs() <= 0.05, "{xi}");
-    assert!(rms <= 2.0 * 10.6, "{rms} mm");
-    // The paper's model on the same recording does worse: the default is the better-supported one.
-    let paper = replay(dir.path(), "paper_document_holder.mcap", &["--physics", "paper"]);
-    let (_, _, paper_rms) = summary(&paper);
-    println!("document holder with --physics paper: {paper_rms:.1} mm");
+    assert!(iv[0] <= 0.65 && 0.65 <= iv[1] && iv[1] - iv[0] <= 0.2, "{iv:?}");
+    assert!(rms <= 10.6, "{rms} mm");
+}
+
+/// The paper's model on the same recording does worse than the default: the default is the
+/// better-supported one (physics.md §6).
+#[test]
+fn the_papers_document_holder_recovers_better_with_the_defaults_than_with_the_papers_model() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (_, _, rms) = summary(&replay(dir.path(), "paper_document_holder.mcap", &[]));
+    let (_, _, paper_rms) = summary(&replay(
+        dir.path(),
+        "paper_document_holder.mcap",
+        &["--physics", "paper"],
+    ));
+    println!("document holder: {rms:.1} mm with the defaults, {paper_rms:.1} mm with --physics paper");
     assert!(rms < paper_rms, "default {rms} mm, paper {paper_rms} mm");
 }
 
@@ -96,8 +105,11 @@ fn a_tilted_sheet_before_a_gray_cluttered_background() {
         "tilted sheet (xi {truth}): xi {xi:.3} [{:.3}, {:.3}], mean per-frame RMS {rms:.1} mm",
         iv[0], iv[1]
     );
-    assert!(iv[0] <= truth && truth <= iv[1], "{iv:?}");
-    assert!(rms <= 30.0, "{rms} mm");
+    // Four poses of one sheet determine xi: the truth inside an interval of at most +-0.1.
+    assert!(iv[0] <= truth && truth <= iv[1] && iv[1] - iv[0] <= 0.2, "{iv:?}");
+    // The paper's figure for its nearest setup (the document holder, 10.6 mm) is for a sheet
+    // facing the camera before a white wall; tilted before gray boxes, under its file box's.
+    assert!(rms <= 51.7, "{rms} mm");
 }
 
 /// The audit on a rendered calibration sequence: from the paper's model it names the
@@ -132,9 +144,17 @@ fn the_audits_loop_closes_on_a_rendered_calibration_sequence() {
     }
     let physics = dir.path().join("physics.toml");
     let physics = physics.to_str().expect("utf-8");
+    // The paper's protocol under each physics: the material calibrated once on the calibration
+    // sequence (known distances, Sec. V-A), then the scenes recovered with it.
+    let recovered = |bag: &str, physics: &str| -> f64 {
+        let c = run(dir.path(), &["calibrate-xi", cal, "--physics", physics]);
+        let xi = format!("{}", num(&c, "xi"));
+        let (_, _, rms) = summary(&replay(dir.path(), bag, &["--physics", physics, "--xi", &xi]));
+        rms
+    };
     for bag in ["calibration_sequence.mcap", "paper_document_holder.mcap"] {
-        let (_, _, with) = summary(&replay(dir.path(), bag, &["--physics", physics]));
-        let (_, _, without) = summary(&replay(dir.path(), bag, &["--physics", "paper"]));
+        let with = recovered(bag, physics);
+        let without = recovered(bag, "paper");
         println!("{bag}: {without:.1} mm with the paper's model, {with:.1} mm with the audit's physics file");
         assert!(with < without, "{bag}: {with} against {without}");
     }
@@ -142,4 +162,39 @@ fn the_audits_loop_closes_on_a_rendered_calibration_sequence() {
     let left_out = d["final"]["effects"].as_array().expect("effects");
     println!("audit from the default physics: {left_out:?}");
     assert!(left_out.is_empty(), "{d}");
+}
+
+/// The whole rendered set against its committed baseline (`bags/rendered/baseline.json`,
+/// written by `scripts/results --write-baseline`): fails on a scene worse than raw, an opaque
+/// object flagged or moved, a paper setup above the paper's figure, interval coverage or σ
+/// below their stated levels, or a scene or object worse than the baseline beyond noise,
+/// unless the baseline lists that failure as known. The README's tables come from the same
+/// script (`scripts/results --markdown`).
+#[test]
+fn the_rendered_set_holds_its_baseline() {
+    let python = std::env::var("TTOF_PYTHON").unwrap_or_else(|_| {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join(".venv/bin/python")
+            .display()
+            .to_string()
+    });
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = Command::new(&python)
+        .arg(root.join("scripts/results.py"))
+        .args(["--exe", exe(), "--check"])
+        .arg(root.join("bags/rendered/baseline.json"))
+        .output()
+        .unwrap_or_else(|e| panic!("running {python} scripts/results.py: {e} (scripts/setup-python.sh makes .venv)"));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert!(
+        out.status.success(),
+        "the rendered set fell below its baseline:\n{}\n{}",
+        stdout
+            .lines()
+            .filter(|l| l.starts_with("FAILED") || l.starts_with("check:"))
+            .collect::<Vec<_>>()
+            .join("\n"),
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

@@ -1,30 +1,55 @@
-//! The materials a scene shows, each with its own ξ (physics.md §3, "one
-//! material"): every region of a frame brings its evidence (a [`FrameProfile`]),
-//! which joins the material of the object it continues, or starts a new one.
+//! The objects a scene shows, each with its own ξ (physics.md §3, "one
+//! material"; shared/design/objects.md): every region of a frame brings its
+//! evidence (a [`FrameProfile`]), which joins the object it continues, or
+//! starts a new one. Evidence of different objects is never pooled.
 //!
-//! A region continues a material when it covers much of the image that the
-//! material's region covered in an earlier frame: an object moves, it does not
-//! jump. Regions are never joined on albedo alone: two objects seen in one pose
-//! each can nearly always be given one ξ at which their albedos agree, and
-//! pooling them would make an undetermined ξ look determined (and on rendered
-//! scenes, the same object in two frames of one pose failed a chi-square test
-//! of its albedos at high ξ, where the implied albedo is noisiest).
+//! A region continues an object when it is where the object can be (issue 31):
+//! it covers much of the image the object covered in an earlier frame, and its
+//! measured distance moved by no more than an object can move in the time
+//! between (`max_object_speed_m_s`). Each object takes at most one region of a
+//! frame, and each region one object, the pairs that share most pixels first:
+//! two regions seen at once are two objects. An object that reappears
+//! elsewhere, or farther than it could have moved, is a new one. Regions are
+//! never joined on albedo alone: two objects seen in one pose each can nearly
+//! always be given one ξ at which their albedos agree, and pooling them would
+//! make an undetermined ξ look determined.
 
 use super::translucency::{self, FrameProfile, XiEstimate, XiMethod, XiSettings};
 
 /// Least share of the smaller of two regions that the other must cover for the later to
-/// continue the earlier's object.
-const MIN_OVERLAP: f64 = 0.3;
+/// continue the earlier's object: an object moves across the image by less than half
+/// its size between two frames (a 300 mm object 2 m away carried at 1 m/s and seen at
+/// 10 Hz moves by a third of its size; one that moved farther jumped: a cut).
+const MIN_OVERLAP: f64 = 0.5;
 
 /// Most materials kept: past it the one seen longest ago is forgotten.
 pub const MAX_MATERIALS: usize = 16;
 
-/// The pixels a material's regions covered in one frame.
+/// Reading noise and a region's changing outline move its median distance by this much
+/// between frames even when the object stands still, mm.
+const DISTANCE_SLACK_MM: f64 = 100.0;
+
+/// Where an object's region was in one frame.
 #[derive(Debug, Clone, Default)]
 struct Footprint {
     frame: u64,
+    /// The frame's stamp, ns.
+    stamp_ns: u64,
+    /// Median measured distance over the region, mm.
+    distance_mm: f64,
     /// Pixel indices, ascending.
     pixels: Vec<u32>,
+}
+
+/// One region of a frame as the objects stage takes it.
+#[derive(Debug, Clone)]
+pub struct RegionEvidence<'a> {
+    /// Its pixel indices, ascending.
+    pub pixels: &'a [u32],
+    /// Median measured distance over it, mm.
+    pub distance_mm: f64,
+    /// Its evidence about ξ (`None` when too small to carry any).
+    pub profile: Option<FrameProfile>,
 }
 
 impl Footprint {
@@ -87,17 +112,25 @@ impl Material {
             .find(|f| f.frame < frame && !f.pixels.is_empty())
     }
 
-    fn record(&mut self, frame: u64, pixels: &[u32]) {
-        if self.latest.frame == frame {
-            self.latest.pixels.extend_from_slice(pixels);
-            self.latest.pixels.sort_unstable();
-        } else {
-            self.before = std::mem::take(&mut self.latest);
-            self.latest = Footprint {
-                frame,
-                pixels: pixels.to_vec(),
-            };
+    /// Pools a frame's evidence and renews the estimate.
+    fn pool(&mut self, profile: FrameProfile, method: XiMethod, settings: &XiSettings) {
+        if self.profiles.len() >= settings.max_frames_pooled.max(1) {
+            self.profiles.remove(0);
         }
+        self.profiles.push(profile);
+        self.estimate = estimate(&self.profiles, method).or(self.estimate.take());
+    }
+
+    fn record(&mut self, footprint: Footprint) {
+        self.before = std::mem::replace(&mut self.latest, footprint);
+    }
+
+    /// Whether a region at `distance_mm` in a frame at `stamp_ns` is where this object could
+    /// be, having been at `before`: moved no faster than `max_speed_m_s`.
+    fn reachable(before: &Footprint, distance_mm: f64, stamp_ns: u64, max_speed_m_s: f64) -> bool {
+        let dt_s = stamp_ns.saturating_sub(before.stamp_ns) as f64 * 1e-9;
+        let moved = (distance_mm - before.distance_mm).abs();
+        !(moved > max_speed_m_s * 1e3 * dt_s + DISTANCE_SLACK_MM)
     }
 }
 
@@ -125,51 +158,87 @@ impl Materials {
         self.materials.iter().find(|m| m.id == id)
     }
 
-    /// Adds a region of frame `frame` (a running count, from 1), its `pixels` ascending, with
-    /// its evidence if it carries any: it joins the material of the object it continues, or
-    /// (with evidence) starts one. Returns the material's id; `None` for a region without
-    /// evidence that continues nothing.
-    pub fn add(
+    /// Adds the regions of frame `frame` (a running count, from 1, stamped `stamp_ns`): each
+    /// joins the object it continues (one region an object), or, with evidence, starts one.
+    /// Returns each region's object id; `None` for a region without evidence that continues
+    /// nothing.
+    pub fn add_frame(
         &mut self,
-        pixels: &[u32],
-        profile: Option<FrameProfile>,
+        regions: Vec<RegionEvidence>,
         frame: u64,
+        stamp_ns: u64,
         method: XiMethod,
         settings: &XiSettings,
-    ) -> Option<u32> {
-        let index = match (self.continued(pixels, frame), profile) {
-            (Some(i), Some(p)) => {
-                let m = &mut self.materials[i];
-                if m.profiles.len() >= settings.max_frames_pooled.max(1) {
-                    m.profiles.remove(0);
+    ) -> Vec<Option<u32>> {
+        let pairs = self.assignment(&regions, frame, stamp_ns, settings.max_object_speed_m_s);
+        let mut ids = vec![None; regions.len()];
+        let mut new = vec![];
+        for (k, region) in regions.into_iter().enumerate() {
+            let footprint = Footprint {
+                frame,
+                stamp_ns,
+                distance_mm: region.distance_mm,
+                pixels: region.pixels.to_vec(),
+            };
+            match (pairs[k], region.profile) {
+                (Some(i), profile) => {
+                    let m = &mut self.materials[i];
+                    if let Some(p) = profile {
+                        m.pool(p, method, settings);
+                    }
+                    m.record(footprint);
+                    ids[k] = Some(m.id);
                 }
-                m.profiles.push(p);
-                m.estimate = estimate(&m.profiles, method).or(m.estimate.take());
-                i
+                (None, Some(p)) => new.push((k, p, footprint)),
+                (None, None) => {}
             }
-            (Some(i), None) => i,
-            (None, Some(p)) => self.start(p, method),
-            (None, None) => return None,
-        };
-        let m = &mut self.materials[index];
-        m.record(frame, pixels);
-        Some(m.id)
+        }
+        // New objects last: starting one may forget the oldest, which moves the indices.
+        for (k, p, footprint) in new {
+            let i = self.start(p, method);
+            let m = &mut self.materials[i];
+            m.record(footprint);
+            ids[k] = Some(m.id);
+        }
+        ids
     }
 
-    /// The material whose earlier region this one covers most (at least [`MIN_OVERLAP`] of
-    /// the smaller of the two).
-    fn continued(&self, pixels: &[u32], frame: u64) -> Option<usize> {
-        self.materials
-            .iter()
-            .enumerate()
-            .filter_map(|(i, m)| {
-                let before = m.earlier_than(frame)?;
-                let shared = before.overlap(pixels) as f64;
-                let smaller = before.pixels.len().min(pixels.len()).max(1) as f64;
-                (shared / smaller >= MIN_OVERLAP).then_some((i, shared))
-            })
-            .max_by(|a, b| a.1.total_cmp(&b.1))
-            .map(|(i, _)| i)
+    /// Which object each region continues: among the pairs where the region covers at least
+    /// [`MIN_OVERLAP`] of the smaller of it and the object's earlier region, and the object
+    /// could have moved there, the pairs sharing most pixels first, each region and each
+    /// object taken once.
+    fn assignment(
+        &self,
+        regions: &[RegionEvidence],
+        frame: u64,
+        stamp_ns: u64,
+        max_speed_m_s: f64,
+    ) -> Vec<Option<usize>> {
+        // (pixels shared, distance moved, region, object)
+        let mut pairs: Vec<(usize, f64, usize, usize)> = vec![];
+        for (i, m) in self.materials.iter().enumerate() {
+            let Some(before) = m.earlier_than(frame) else {
+                continue;
+            };
+            for (k, r) in regions.iter().enumerate() {
+                let shared = before.overlap(r.pixels);
+                let smaller = before.pixels.len().min(r.pixels.len()).max(1);
+                let overlaps = shared as f64 / smaller as f64 >= MIN_OVERLAP;
+                if overlaps && Material::reachable(before, r.distance_mm, stamp_ns, max_speed_m_s) {
+                    pairs.push((shared, (r.distance_mm - before.distance_mm).abs(), k, i));
+                }
+            }
+        }
+        pairs.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.total_cmp(&b.1)));
+        let mut region_to = vec![None; regions.len()];
+        let mut taken = vec![false; self.materials.len()];
+        for (_, _, k, i) in pairs {
+            if region_to[k].is_none() && !taken[i] {
+                region_to[k] = Some(i);
+                taken[i] = true;
+            }
+        }
+        region_to
     }
 
     /// A new material of this evidence; the one seen longest ago goes if there are too many.
@@ -196,5 +265,112 @@ fn estimate(profiles: &[FrameProfile], method: XiMethod) -> Option<XiEstimate> {
     match method {
         XiMethod::Eq12Residual => translucency::eq12_residual(profiles),
         _ => translucency::one_material(profiles),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::physics::translucency::xi_grid;
+
+    /// Evidence that carries no estimate: identity is what these tests look at.
+    fn evidence() -> FrameProfile {
+        let n = xi_grid().len();
+        FrameProfile {
+            groups: vec![vec![]; n],
+            pinned_fraction: vec![0.0; n],
+            eq12: vec![0.0; n],
+            truth: vec![Default::default(); n],
+            pixels: 100,
+            median_distance_mm: f64::NAN,
+        }
+    }
+
+    fn region(pixels: &[u32], distance_mm: f64) -> RegionEvidence<'_> {
+        RegionEvidence {
+            pixels,
+            distance_mm,
+            profile: Some(evidence()),
+        }
+    }
+
+    const FRAME_NS: u64 = 100_000_000; // 10 Hz
+
+    fn add(objects: &mut Materials, frame: u64, regions: Vec<RegionEvidence>) -> Vec<Option<u32>> {
+        objects.add_frame(
+            regions,
+            frame,
+            frame * FRAME_NS,
+            XiMethod::OneMaterial,
+            &XiSettings::default(),
+        )
+    }
+
+    #[test]
+    fn an_object_that_moves_a_little_keeps_its_identity() {
+        let mut objects = Materials::default();
+        let a: Vec<u32> = (0..400).collect();
+        let b: Vec<u32> = (40..440).collect();
+        let first = add(&mut objects, 1, vec![region(&a, 1000.0)]);
+        let second = add(&mut objects, 2, vec![region(&b, 1040.0)]);
+        assert_eq!(first, second);
+        assert_eq!(objects.get(first[0].unwrap()).unwrap().frames(), 2);
+    }
+
+    #[test]
+    fn two_regions_seen_at_once_are_two_objects() {
+        let mut objects = Materials::default();
+        let whole: Vec<u32> = (0..800).collect();
+        let left: Vec<u32> = (0..400).collect();
+        let right: Vec<u32> = (400..800).collect();
+        let first = add(&mut objects, 1, vec![region(&whole, 1000.0)]);
+        let ids = add(&mut objects, 2, vec![region(&left, 1000.0), region(&right, 1500.0)]);
+        assert_ne!(ids[0], ids[1]);
+        // The one object continues into one of them only, the other is new.
+        assert_eq!(ids.iter().filter(|&&id| id == first[0]).count(), 1);
+        assert_eq!(objects.iter().count(), 2);
+    }
+
+    #[test]
+    fn a_jump_farther_than_an_object_moves_is_a_new_object() {
+        let mut objects = Materials::default();
+        let a: Vec<u32> = (0..400).collect();
+        let first = add(&mut objects, 1, vec![region(&a, 1000.0)]);
+        // 10 m/s for 0.1 s is 1 m (with 100 mm slack): 1.5 m is another object.
+        let second = add(&mut objects, 2, vec![region(&a, 2500.0)]);
+        assert_ne!(first, second);
+        // Within reach, the same place continues the latest one.
+        let third = add(&mut objects, 3, vec![region(&a, 2400.0)]);
+        assert_eq!(second, third);
+    }
+
+    #[test]
+    fn an_object_that_reappears_elsewhere_after_a_cut_is_a_new_one() {
+        let mut objects = Materials::default();
+        let here: Vec<u32> = (0..400).collect();
+        let there: Vec<u32> = (5000..5400).collect();
+        let first = add(&mut objects, 1, vec![region(&here, 1000.0)]);
+        let second = add(&mut objects, 2, vec![region(&there, 1000.0)]);
+        assert_ne!(first, second);
+        // Evidence never pooled across them.
+        for id in first.iter().chain(&second) {
+            assert_eq!(objects.get(id.unwrap()).unwrap().frames(), 1);
+        }
+    }
+
+    #[test]
+    fn a_region_without_evidence_continues_an_object_but_starts_none() {
+        let mut objects = Materials::default();
+        let a: Vec<u32> = (0..400).collect();
+        let far: Vec<u32> = (9000..9010).collect();
+        let first = add(&mut objects, 1, vec![region(&a, 1000.0)]);
+        let bare = |pixels| RegionEvidence {
+            pixels,
+            distance_mm: 1000.0,
+            profile: None,
+        };
+        let ids = add(&mut objects, 2, vec![bare(&a), bare(&far)]);
+        assert_eq!(ids, vec![first[0], None]);
+        assert_eq!(objects.get(first[0].unwrap()).unwrap().frames(), 1);
     }
 }

@@ -87,9 +87,11 @@ impl XiEstimate {
         0.5 * (self.interval[1] - self.interval[0])
     }
 
-    /// The data say the material is opaque: its whole interval lies below [`OPAQUE_XI`].
+    /// Opaque, the null hypothesis (issue 31): the data do not reject a layer that passes
+    /// less than [`OPAQUE_XI`], its interval reaches down to it. Such an object keeps its
+    /// reading: a correction is applied only where the data support one.
     pub fn is_opaque(&self) -> bool {
-        self.interval[1] <= OPAQUE_XI
+        self.interval[0] <= OPAQUE_XI
     }
 }
 
@@ -126,6 +128,10 @@ pub struct XiSettings {
     /// so that a node running for hours keeps its memory and per-frame time
     /// bounded and follows a material that changes.
     pub max_frames_pooled: usize,
+    /// Fastest an object moves along the camera's rays, m/s: a region farther from
+    /// where an object was than this allows in the time between is another object
+    /// (faster than a hand or a robot carries one: a jump beyond it is a cut).
+    pub max_object_speed_m_s: f64,
 }
 
 impl Default for XiSettings {
@@ -137,6 +143,7 @@ impl Default for XiSettings {
             groups_per_frame: 3,
             min_group_pixels: 40,
             max_frames_pooled: 64,
+            max_object_speed_m_s: 10.0,
         }
     }
 }
@@ -215,6 +222,10 @@ const CENSORED_ALBEDO: f64 = 2.0;
 /// Largest albedo a surface can have, relative to the bound on `X`, with room for
 /// the noise of one pixel's estimate.
 const MAX_ALBEDO: f64 = 1.1;
+
+/// The bound on `X` at ξ = 0 (opaque): none that a real surface reaches, so only
+/// pixels without a usable normal are censored there.
+const OPAQUE_ALBEDO_BOUND: f64 = 1e3;
 
 /// Robust summary of `log rho` in one group of pixels at one ξ.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -320,6 +331,23 @@ pub fn frame_profile(
     let observations: Vec<PixelObservation> = observed.iter().map(|&(_, o)| o).collect();
     // Each ξ on its own (in parallel over the current rayon pool), gathered in grid order.
     let per_xi = |xi: f64| -> (Vec<GroupStat>, f64, f64, TruthFit) {
+        // Opaque (xi 0) is judged by its albedos' consistency alone: the bound on X comes from
+        // `Lin`, which rests on an assumed background albedo, and an opaque object brighter
+        // than its background exceeds it (such an object is not a layer, whatever the bound).
+        let unbounded;
+        let (bounds, max_albedo, censored_albedo) = if xi == 0.0 {
+            unbounded = InversionBounds {
+                max_albedo_cos: OPAQUE_ALBEDO_BOUND,
+                ..*bounds
+            };
+            (
+                &unbounded,
+                MAX_ALBEDO * OPAQUE_ALBEDO_BOUND,
+                CENSORED_ALBEDO * OPAQUE_ALBEDO_BOUND,
+            )
+        } else {
+            (bounds, max_albedo, censored_albedo)
+        };
         let mut points = ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
         let mut xs = vec![f64::NAN; w * h];
         let mut pinned = 0usize;
@@ -515,10 +543,24 @@ fn group_stat(mut v: Vec<f64>, min_count: usize) -> GroupStat {
 /// ξ values a method may pick: those at which no more pixels are pinned at a
 /// bound than at the best ξ, give or take sampling noise (pinned pixels drop
 /// out of the albedo statistics, so a ξ that pins many must not win by it).
+///
+/// ξ = 0 (opaque, no layer to invert) is always eligible, and does not set the best
+/// share: it is evaluated without the albedo bound (see [`frame_profile`]).
 fn eligible(profiles: &[FrameProfile]) -> Vec<bool> {
-    let grid = xi_grid();
+    let frac = pooled_pinned_fraction(profiles);
     let total: usize = profiles.iter().map(|p| p.pixels).sum();
-    let frac: Vec<f64> = (0..grid.len())
+    let best = frac.iter().skip(1).copied().fold(f64::INFINITY, f64::min);
+    let tol = 0.05f64.max(3.0 * (best * (1.0 - best) / total.max(1) as f64).sqrt());
+    frac.iter()
+        .enumerate()
+        .map(|(k, &f)| k == 0 || f <= best + tol)
+        .collect()
+}
+
+/// Per ξ of the grid: the share of the pooled pixels pinned at a bound or without a root.
+fn pooled_pinned_fraction(profiles: &[FrameProfile]) -> Vec<f64> {
+    let total: usize = profiles.iter().map(|p| p.pixels).sum();
+    (0..xi_grid().len())
         .map(|k| {
             profiles
                 .iter()
@@ -526,10 +568,7 @@ fn eligible(profiles: &[FrameProfile]) -> Vec<bool> {
                 .sum::<f64>()
                 / total.max(1) as f64
         })
-        .collect();
-    let best = frac.iter().copied().fold(f64::INFINITY, f64::min);
-    let tol = 0.05f64.max(3.0 * (best * (1.0 - best) / total.max(1) as f64).sqrt());
-    frac.iter().map(|&f| f <= best + tol).collect()
+        .collect()
 }
 
 /// The one-material objective at each ξ: the groups' median log-albedos
@@ -573,13 +612,16 @@ fn distinct_poses(profiles: &[FrameProfile]) -> usize {
 
 /// ξ as one material (physics.md §3, item 2), pooled over the frames given.
 ///
-/// The interval is where `Q` rises by less than 3.84 times the overdispersion
-/// `max(1, Q_min / (G - 2))` above its minimum (a profile-likelihood interval
-/// that widens when the groups scatter more than their errors say), widened
-/// by half a grid step. With fewer than three groups, or the object seen in
-/// one pose only, it is the whole admissible range: the data cannot tell
-/// (physics.md §3 measured one frame of one tilted plane: a profile that
-/// falls through the truth).
+/// Opaque is the null hypothesis: an object is a layer only where its evidence rejects
+/// ξ = 0. Otherwise the estimate is ξ 0 with an interval from 0 to what the data allow.
+///
+/// Where the data determine ξ (three groups or more, two poses or more, an interior
+/// minimum), the interval is where `Q` rises by less than 3.84 times the overdispersion
+/// `max(1, Q_min / (G - 2))` above its minimum (a profile-likelihood interval that widens
+/// when the groups scatter more than their errors say), widened by half a grid step, and
+/// opaque is rejected when `Q(0)` lies above that level. Where they do not (physics.md §3
+/// measured one frame of one tilted plane: a profile that falls through the truth), the
+/// interval is every ξ.
 pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let grid = xi_grid();
     let ok = eligible(profiles);
@@ -591,50 +633,60 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         .collect();
     let (kmin, qmin) = argmin(&q)?;
     let groups = obj[kmin].1;
-    let pixels = profiles.iter().map(|p| p.pixels).sum();
-    let profile: Vec<(f64, f64)> = grid.iter().copied().zip(q.iter().copied()).collect();
-    let xi = refine_minimum(&grid, &q, kmin);
-    let poses = distinct_poses(profiles);
-    let at_edge = |j: Option<usize>| j.is_none_or(|j| !q[j].is_finite());
-    // ξ = 0 is the physical end of the range (opaque), not an edge of what the data admit: a
-    // minimum there is an estimate, with a one-sided interval.
-    let boundary = (kmin > 0 && at_edge(kmin.checked_sub(1))) || at_edge((kmin + 1 < q.len()).then_some(kmin + 1));
-    if groups < 3 || poses < 2 || boundary {
-        let (lo, hi) = admissible_range(&grid, &q);
-        let why = if groups < 3 {
-            format!("{groups} pixel group(s): too few to compare albedos")
-        } else if boundary {
-            format!(
-                "the albedo-consistency objective has no interior minimum (it falls to xi {:.2}, the edge of the admissible range): the data do not determine xi",
-                grid[kmin]
-            )
-        } else {
-            "the object has been seen in one pose only: one view of one surface does not determine xi (physics.md §3); move it to another distance or give xi".to_string()
-        };
-        return Some(XiEstimate {
-            xi,
-            interval: [lo, hi],
-            method: XiMethod::OneMaterial,
-            frames: profiles.len(),
-            pixels,
-            profile,
-            note: why,
-        });
-    }
-    let phi = (qmin / (groups as f64 - 2.0)).max(1.0);
-    let interval = cover(threshold_interval(&grid, &q, kmin, qmin + 3.84 * phi), xi);
-    Some(XiEstimate {
+    let estimate = |xi: f64, interval: [f64; 2], note: String| XiEstimate {
         xi,
         interval,
         method: XiMethod::OneMaterial,
         frames: profiles.len(),
-        pixels,
-        profile,
-        note: format!(
-            "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi:.2}",
-            profiles.len()
-        ),
-    })
+        pixels: profiles.iter().map(|p| p.pixels).sum(),
+        profile: grid.iter().copied().zip(q.iter().copied()).collect(),
+        note,
+    };
+    let poses = distinct_poses(profiles);
+    if let Some(why) = undetermined(&grid, &q, kmin, groups, poses) {
+        // Every ξ: even the albedo bound that pins pixels at high ξ rests on the background
+        // albedo `Lin` assumes, so it does not exclude them either.
+        return Some(estimate(
+            0.0,
+            [0.0, 1.0],
+            format!("taken as opaque, the data do not say otherwise: {why}"),
+        ));
+    }
+    let xi = refine_minimum(&grid, &q, kmin);
+    let phi = (qmin / (groups as f64 - 2.0)).max(1.0);
+    let level = qmin + 3.84 * phi;
+    let interval = cover(threshold_interval(&grid, &q, kmin, level), xi);
+    let evidence = format!(
+        "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi:.2}",
+        profiles.len()
+    );
+    if q[0] <= level || interval[0] <= OPAQUE_XI {
+        return Some(estimate(
+            0.0,
+            [0.0, interval[1]],
+            format!("taken as opaque: the evidence does not reject xi 0 ({evidence})"),
+        ));
+    }
+    Some(estimate(xi, interval, evidence))
+}
+
+/// Why the albedo-consistency objective does not determine ξ, if it does not.
+fn undetermined(grid: &[f64], q: &[f64], kmin: usize, groups: usize, poses: usize) -> Option<String> {
+    let at_edge = |j: Option<usize>| j.is_none_or(|j| !q[j].is_finite());
+    // ξ = 0 is the physical end of the range (opaque), not an edge of what the data admit.
+    let boundary = (kmin > 0 && at_edge(kmin.checked_sub(1))) || at_edge((kmin + 1 < q.len()).then_some(kmin + 1));
+    if groups < 3 {
+        Some(format!("{groups} pixel group(s): too few to compare albedos"))
+    } else if boundary {
+        Some(format!(
+            "the albedo-consistency objective has no interior minimum (it falls to xi {:.2}, the edge of the admissible range)",
+            grid[kmin]
+        ))
+    } else if poses < 2 {
+        Some("the object has been seen in one pose only: one view of one surface does not determine xi (physics.md §3); move it to another distance or give xi".to_string())
+    } else {
+        None
+    }
 }
 
 /// ξ fitted to frames with known foreground distances (paper Sec. V-A):
@@ -797,19 +849,6 @@ fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2]
 /// minimum can sit between grid points outside a coarse crossing).
 fn cover(iv: [f64; 2], xi: f64) -> [f64; 2] {
     [iv[0].min(xi), iv[1].max(xi)]
-}
-
-fn admissible_range(grid: &[f64], v: &[f64]) -> (f64, f64) {
-    let ok: Vec<f64> = grid
-        .iter()
-        .zip(v)
-        .filter(|(_, x)| x.is_finite())
-        .map(|(g, _)| *g)
-        .collect();
-    (
-        ok.first().copied().unwrap_or(0.0),
-        ok.last().map(|&x| if x >= 0.99 { 1.0 } else { x }).unwrap_or(1.0),
-    )
 }
 
 /// Two-sided 97.5 % quantile of Student's t.

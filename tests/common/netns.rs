@@ -44,3 +44,13 @@ pub fn isolated(test: &str) -> bool {
     );
     false
 }
+
+/// Says that a test could not measure what it is for, where `scripts/test`'s
+/// summary counts it (`N skipped`): written to the process's stderr itself, not
+/// through the test harness's capture. `claim`: the test guards a README claim,
+/// and `scripts/test` fails when it skips.
+pub fn skipped(test: &str, claim: bool, why: &str) {
+    use std::io::Write;
+    let tag = if claim { "SKIPPED(claim)" } else { "SKIPPED" };
+    let _ = writeln!(std::io::stderr().lock(), "{tag}: {test}: {why}");
+}
