@@ -571,43 +571,114 @@ fn pooled_pinned_fraction(profiles: &[FrameProfile]) -> Vec<f64> {
         .collect()
 }
 
-/// The one-material objective at each ξ: the groups' median log-albedos
-/// compared with their pooled mean, weighted by their standard errors
-/// (`Q = sum_g (m_g - m)^2 / se_g^2`, about chi-square with G - 1 degrees of
-/// freedom at the true ξ). Returns `(Q, groups)` per ξ.
-fn one_material_objective(profiles: &[FrameProfile]) -> Vec<(f64, usize)> {
-    let grid = xi_grid();
-    (0..grid.len())
+/// The groups' log-albedo sums of each pose at one ξ: `(S, T, U, groups)` with
+/// `S = sum w`, `T = sum w m`, `U = sum w m^2` over the groups, `w = 1 / se^2`.
+type PoseSums = (f64, f64, f64, usize);
+
+fn pose_sums(profiles: &[FrameProfile], pose: &[usize], poses: usize, k: usize) -> Vec<PoseSums> {
+    let mut sums = vec![(0.0, 0.0, 0.0, 0); poses];
+    for (p, &j) in profiles.iter().zip(pose) {
+        let Some(s) = sums.get_mut(j) else { continue };
+        for g in p.groups[k].iter().filter(|g| g.median.is_finite()) {
+            let w = 1.0 / (g.std_error * g.std_error);
+            *s = (s.0 + w, s.1 + w * g.median, s.2 + w * g.median * g.median, s.3 + 1);
+        }
+    }
+    sums
+}
+
+/// The one-material objective at one ξ: the groups' median log-albedos fitted by one mean,
+/// the groups of each pose sharing an offset of variance `tau2` (the model's misfit between
+/// poses, a random effect) besides their own standard errors: generalised least squares,
+/// `Q = sum_p (U_p - tau2 T_p^2 a_p) - B^2 / A` with `a_p = 1 / (1 + tau2 S_p)`,
+/// `A = sum S_p a_p`, `B = sum T_p a_p`. With `tau2 = 0` it is `sum_g (m_g - m)^2 / se_g^2`,
+/// about chi-square with G - 1 degrees of freedom at the true ξ. NaN with fewer than 2 groups.
+fn objective_at(sums: &[PoseSums], tau2: f64) -> f64 {
+    if sums.iter().map(|s| s.3).sum::<usize>() < 2 {
+        return f64::NAN;
+    }
+    let (mut a, mut b, mut u) = (0.0, 0.0, 0.0);
+    for &(s, t, uu, _) in sums {
+        let ap = 1.0 / (1.0 + tau2 * s);
+        a += s * ap;
+        b += t * ap;
+        u += uu - tau2 * t * t * ap;
+    }
+    (u - b * b / a).max(0.0)
+}
+
+/// The groups' scatter about their own pose's mean beyond their standard errors: the
+/// overdispersion within poses, `max(1, Q_within / (G - P))` (1 when it cannot be told).
+/// A group's standard error comes from its pixels' spread over the square root of their
+/// number, which neighbouring pixels' shared normals make too small.
+fn within_pose_overdispersion(sums: &[PoseSums]) -> f64 {
+    let seen: Vec<&PoseSums> = sums.iter().filter(|s| s.3 > 0).collect();
+    let groups: usize = seen.iter().map(|s| s.3).sum();
+    if groups <= seen.len() {
+        return 1.0;
+    }
+    let q_within: f64 = seen.iter().map(|s| (s.2 - s.1 * s.1 / s.0).max(0.0)).sum();
+    (q_within / (groups - seen.len()) as f64).max(1.0)
+}
+
+/// The sums with every group's variance scaled by `phi`.
+fn scaled(sums: &[PoseSums], phi: f64) -> Vec<PoseSums> {
+    sums.iter()
+        .map(|&(s, t, u, n)| (s / phi, t / phi, u / phi, n))
+        .collect()
+}
+
+/// The variance of the poses' offsets (DerSimonian-Laird from the spread of the poses' mean
+/// log-albedos beyond their errors), 0 with fewer than two poses.
+fn pose_variance(sums: &[PoseSums]) -> f64 {
+    let seen: Vec<&PoseSums> = sums.iter().filter(|s| s.3 > 0).collect();
+    if seen.len() < 2 {
+        return 0.0;
+    }
+    let (sw, sw2, st) = seen
+        .iter()
+        .fold((0.0, 0.0, 0.0), |a, s| (a.0 + s.0, a.1 + s.0 * s.0, a.2 + s.1));
+    let mean = st / sw;
+    let q_between: f64 = seen.iter().map(|s| s.0 * (s.1 / s.0 - mean).powi(2)).sum();
+    ((q_between - (seen.len() - 1) as f64) / (sw - sw2 / sw)).max(0.0)
+}
+
+/// The one-material objective at each ξ of the grid, the groups' variances scaled by `phi`
+/// and the poses' offsets of variance `tau2`. Returns `(Q, groups)` per ξ.
+fn one_material_objective(
+    profiles: &[FrameProfile],
+    pose: &[usize],
+    poses: usize,
+    (phi, tau2): (f64, f64),
+) -> Vec<(f64, usize)> {
+    (0..xi_grid().len())
         .map(|k| {
-            let gs: Vec<GroupStat> = profiles
-                .iter()
-                .flat_map(|p| p.groups[k].iter().copied())
-                .filter(|g| g.median.is_finite())
-                .collect();
-            if gs.len() < 2 {
-                return (f64::NAN, gs.len());
-            }
-            let wsum: f64 = gs.iter().map(|g| 1.0 / (g.std_error * g.std_error)).sum();
-            let mean = gs.iter().map(|g| g.median / (g.std_error * g.std_error)).sum::<f64>() / wsum;
-            let q = gs.iter().map(|g| ((g.median - mean) / g.std_error).powi(2)).sum();
-            (q, gs.len())
+            let sums = scaled(&pose_sums(profiles, pose, poses, k), phi);
+            (objective_at(&sums, tau2), sums.iter().map(|s| s.3).sum())
         })
         .collect()
 }
 
-/// Poses among the frames: their median distances, clustered with a gap of
-/// more than 5 % (and 50 mm) between clusters.
-fn distinct_poses(profiles: &[FrameProfile]) -> usize {
-    let mut d: Vec<f64> = profiles
+/// Poses among the frames: their median distances clustered, a gap of more than 5 % (and
+/// 50 mm) between clusters. Returns each frame's pose (`usize::MAX` without a distance) and
+/// the number of poses.
+fn pose_labels(profiles: &[FrameProfile]) -> (Vec<usize>, usize) {
+    let mut order: Vec<(f64, usize)> = profiles
         .iter()
-        .map(|p| p.median_distance_mm)
-        .filter(|d| d.is_finite())
+        .enumerate()
+        .map(|(i, p)| (p.median_distance_mm, i))
+        .filter(|(d, _)| d.is_finite())
         .collect();
-    d.sort_by(f64::total_cmp);
-    if d.is_empty() {
-        return 0;
+    order.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut labels = vec![usize::MAX; profiles.len()];
+    let mut pose = 0;
+    for (j, &(d, i)) in order.iter().enumerate() {
+        if j > 0 && d - order[j - 1].0 > (0.05 * order[j - 1].0).max(50.0) {
+            pose += 1;
+        }
+        labels[i] = pose;
     }
-    1 + d.windows(2).filter(|w| w[1] - w[0] > (0.05 * w[0]).max(50.0)).count()
+    (labels, if order.is_empty() { 0 } else { pose + 1 })
 }
 
 /// ξ as one material (physics.md §3, item 2), pooled over the frames given.
@@ -619,18 +690,30 @@ fn distinct_poses(profiles: &[FrameProfile]) -> usize {
 /// minimum), the interval is where `Q` rises by less than 3.84 times the overdispersion
 /// `max(1, Q_min / (G - 2))` above its minimum (a profile-likelihood interval that widens
 /// when the groups scatter more than their errors say), widened by half a grid step, and
+/// `Q` carries the model's misfit between poses as a random offset per pose (issue 31,
+/// item 4: what the model cannot explain between poses widens the interval), and
 /// opaque is rejected when `Q(0)` lies above that level. Where they do not (physics.md §3
 /// measured one frame of one tilted plane: a profile that falls through the truth), the
 /// interval is every ξ.
 pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let grid = xi_grid();
     let ok = eligible(profiles);
-    let obj = one_material_objective(profiles);
-    let q: Vec<f64> = obj
-        .iter()
-        .zip(&ok)
-        .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
-        .collect();
+    let (pose, poses) = pose_labels(profiles);
+    let admissible = |obj: &[(f64, usize)]| -> Vec<f64> {
+        obj.iter()
+            .zip(&ok)
+            .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
+            .collect()
+    };
+    // The groups' scatter within poses and the poses' misfit, from the ξ the plain objective
+    // prefers, then held over the grid.
+    let plain = admissible(&one_material_objective(profiles, &pose, poses, (1.0, 0.0)));
+    let (k0, _) = argmin(&plain)?;
+    let at_k0 = pose_sums(profiles, &pose, poses, k0);
+    let phi_within = within_pose_overdispersion(&at_k0);
+    let tau2 = pose_variance(&scaled(&at_k0, phi_within));
+    let obj = one_material_objective(profiles, &pose, poses, (phi_within, tau2));
+    let q = admissible(&obj);
     let (kmin, qmin) = argmin(&q)?;
     let groups = obj[kmin].1;
     let estimate = |xi: f64, interval: [f64; 2], note: String| XiEstimate {
@@ -642,7 +725,6 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         profile: grid.iter().copied().zip(q.iter().copied()).collect(),
         note,
     };
-    let poses = distinct_poses(profiles);
     if let Some(why) = undetermined(&grid, &q, kmin, groups, poses) {
         // Every ξ: even the albedo bound that pins pixels at high ξ rests on the background
         // albedo `Lin` assumes, so it does not exclude them either.
@@ -657,8 +739,9 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     let level = qmin + 3.84 * phi;
     let interval = cover(threshold_interval(&grid, &q, kmin, level), xi);
     let evidence = format!(
-        "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi:.2}",
-        profiles.len()
+        "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi_within:.2} within poses and {phi:.2} left, pose misfit sd {:.3} in log albedo",
+        profiles.len(),
+        tau2.sqrt()
     );
     if q[0] <= level || interval[0] <= OPAQUE_XI {
         return Some(estimate(

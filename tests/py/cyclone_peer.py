@@ -222,7 +222,10 @@ def main():
     stamp = [1_700_000_000_000_000_000]
 
     def play(pair):
-        stamp[0] += 33_000_000
+        # The bag's own frame period (10 Hz): its sheet steps 250-750 mm between poses, which
+        # 33 ms apart would be jumps no carried object makes (the node would start a new
+        # object at every pose, each seen in one pose and kept as read).
+        stamp[0] += 100_000_000
         d, i = pair
         w_info.write(camera_info(info, stamp[0]))
         w_depth.write(image(d, stamp[0]))
@@ -273,17 +276,21 @@ def main():
         "estimates": len(estimates),
     }
     if clouds:
-        c = clouds[max(clouds)]
+        # The cloud with the most translucent points (a pose whose object the data determine).
+        flagged = {s: sum(c.data[i + 16] for i in range(0, len(c.data), c.point_step)) for s, c in clouds.items()}
+        c = clouds[max(flagged, key=flagged.get)]
         out["cloud"] = {
             "width": c.width, "height": c.height, "point_step": c.point_step,
             "fields": [[f.name, f.offset, f.datatype, f.count] for f in c.fields],
             "bytes": len(c.data),
-            "translucent_points": sum(c.data[i + 16] for i in range(0, len(c.data), c.point_step)),
+            "translucent_points": max(flagged.values()),
         }
     if estimates:
-        e = estimates[-1]
+        # The estimate pooled over the most frames (the latest of those).
+        e = max(reversed(estimates), key=lambda e: e.frames_pooled)
         out["estimate"] = {"xi": e.xi, "xi_lower": e.xi_lower, "xi_upper": e.xi_upper, "method": e.method,
-                           "translucent_pixels": e.translucent_pixels, "frames_pooled": e.frames_pooled}
+                           "translucent_pixels": e.translucent_pixels, "frames_pooled": e.frames_pooled,
+                           "opaque": e.opaque}
     print(json.dumps(out))
 
 
