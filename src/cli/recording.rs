@@ -12,7 +12,7 @@ use crate::msgs::{CameraInfo, Header, Image};
 use crate::physics::{ImageBuf, Intrinsics};
 use crate::pipeline::{detect_scene_change, DepthFrame, Pipeline, PipelineConfig};
 
-use super::common::TopicArgs;
+use super::common::{ModelArgs, PhysicsChoice, PhysicsFile, RecordedPhysics, TopicArgs};
 
 /// Everything the pipeline needs from a bag.
 pub struct Recording {
@@ -33,12 +33,73 @@ pub struct Recording {
     /// Where reading stopped short of a file's end (a recording cut short or
     /// damaged), in words; the frames before it are read. Empty for a whole bag.
     pub read_stops: Vec<String>,
+    /// The physics the recording says it was made with (its
+    /// [`PHYSICS_RECORD`](crate::bag::PHYSICS_RECORD), else a sidecar `BAG.toml`'s
+    /// `physics = "PRESET"`); `Err` when what it says cannot be read.
+    pub physics: Result<Option<RecordedPhysics>, String>,
+}
+
+/// The physics a bag names: its metadata record, else (a bag file) the
+/// `physics = "PRESET"` of the sidecar `BAG.toml` beside it. A sidecar
+/// without a `physics` string (a scene file's `[physics]` table, say) names none.
+fn recorded_physics(path: &Path, reader: &BagReader) -> Result<Option<RecordedPhysics>, String> {
+    use crate::bag::{PHYSICS_RECORD, PHYSICS_RECORD_KEY};
+    if let Some(m) = reader.metadata().iter().rev().find(|m| m.name == PHYSICS_RECORD) {
+        let from = format!("named by its metadata record {PHYSICS_RECORD}");
+        let text = m.entries.get(PHYSICS_RECORD_KEY).ok_or_else(|| {
+            format!(
+                "bag {}: its {PHYSICS_RECORD} record has no {PHYSICS_RECORD_KEY:?} entry",
+                path.display()
+            )
+        })?;
+        let file = PhysicsFile::parse(text, &format!("bag {}: its {PHYSICS_RECORD} record", path.display()))
+            .map_err(|e| format!("{e:#}"))?;
+        return Ok(Some(RecordedPhysics {
+            file,
+            text: text.clone(),
+            from,
+        }));
+    }
+    if path.is_dir() {
+        return Ok(None);
+    }
+    let sidecar = path.with_extension("toml");
+    let Ok(text) = std::fs::read_to_string(&sidecar) else {
+        return Ok(None);
+    };
+    let Ok(table) = text.parse::<toml::Table>() else {
+        return Ok(None);
+    };
+    let Some(toml::Value::String(name)) = table.get("physics") else {
+        return Ok(None);
+    };
+    let from = format!(
+        "named by the sidecar {} (physics = {name:?}), the bag itself having no {PHYSICS_RECORD} record",
+        sidecar.display()
+    );
+    let Some(preset) = crate::physics::Preset::from_name(name) else {
+        let names: Vec<&str> = crate::physics::Preset::ALL.iter().map(|p| p.name()).collect();
+        return Err(format!(
+            "{}: physics = {name:?} is not a preset ({})",
+            sidecar.display(),
+            names.join(", ")
+        ));
+    };
+    Ok(Some(RecordedPhysics {
+        file: PhysicsFile {
+            preset: Some(preset),
+            ..PhysicsFile::default()
+        },
+        text: format!("preset = {name:?}\n"),
+        from,
+    }))
 }
 
 /// Reads a bag: picks topics, pairs depth and IR by exact stamp, decodes.
 pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
     let reader = BagReader::open(path).with_context(|| format!("opening bag {}", path.display()))?;
     let read_stops: Vec<String> = reader.stops().iter().map(|s| s.to_string()).collect();
+    let physics = recorded_physics(path, &reader);
     let infos = reader.topics();
     let sel = select_topics(&infos, &topics.overrides()).with_context(|| format!("bag {}", path.display()))?;
     let mut depth: BTreeMap<u64, Image> = BTreeMap::new();
@@ -130,6 +191,7 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
         truth,
         unpaired,
         read_stops,
+        physics,
     })
 }
 
@@ -142,6 +204,11 @@ pub struct BackgroundChoice {
 }
 
 impl Recording {
+    /// The physics for this recording: `--physics`, else the recording's own, else the default.
+    pub fn physics_choice(&self, args: &ModelArgs) -> Result<PhysicsChoice> {
+        args.choose(self.physics.as_ref().map(Option::as_ref).map_err(String::as_str))
+    }
+
     /// A pipeline with the first `background` frames latched as the background.
     pub fn latched_pipeline(&self, config: PipelineConfig, background: usize) -> Result<Pipeline> {
         Pipeline::latched(config, self.intrinsics, &self.frames[..background]).context("latching the background")

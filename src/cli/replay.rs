@@ -134,6 +134,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         None => XiChoice::Estimate(method),
     };
     let rec = load(&a.bag, &a.pipeline.topics)?;
+    let physics = rec.physics_choice(&a.pipeline.model)?;
+    config.model = physics.model.clone();
     let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
     let mut pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];
@@ -260,8 +262,9 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "background_choice": bg.how,
         "background_noise_mm": bgd.median_noise_mm,
         "lin_source": bgd.lin_source,
-        "warnings": rec.read_stops.iter().chain(&bgd.warnings).collect::<Vec<_>>(),
+        "warnings": rec.read_stops.iter().chain(&physics.warning).chain(&bgd.warnings).collect::<Vec<_>>(),
         "read_stops": rec.read_stops,
+        "physics": physics.json(),
         "sensor": {
             "modulation_frequency_hz": pipe.config.model.sensor.modulation_frequency_hz,
             "unambiguous_range_mm": pipe.config.model.sensor.unambiguous_range_mm(),
@@ -399,6 +402,7 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         sensor["modulation_frequency_hz"].as_f64().unwrap_or(f64::NAN) / 1e6,
         sensor["waveform"].as_str().unwrap_or("?").to_lowercase()
     ));
+    s.push_str(&format!("physics: {}\n", r["physics"]["text"].as_str().unwrap_or("")));
     for w in r["warnings"].as_array().into_iter().flatten() {
         s.push_str(&format!("WARNING: {}\n", w.as_str().unwrap_or("")));
     }
