@@ -1579,3 +1579,155 @@ fn audit_rerun_writes_a_recording_or_is_refused() {
         assert_clean_failure(&out, &["rerun"], dir.path(), &[]);
     }
 }
+
+// ------------------------------------------------- the first hour (issue 34)
+
+fn stdout_of(out: &Output) -> String {
+    text(&out.stdout)
+}
+
+/// A recording says the physics it was made with: `simulate` records it in
+/// the bag, and replay and calibrate-xi use it when no `--physics` is given,
+/// say so, and warn when a given one differs.
+#[test]
+fn bags_say_their_physics_and_the_tools_use_it() {
+    let dir = temp();
+    let scene = repo().join("bags/model_validation_xi072.toml");
+    let out = run(dir.path(), &["simulate", scene.to_str().unwrap(), "-o", "mv.mcap"]);
+    assert_ok(&out);
+    assert!(
+        stdout_of(&out).contains("physics: paper (recorded in the bag"),
+        "{}",
+        describe(&out)
+    );
+    let r = BagReader::open(&dir.path().join("mv.mcap")).expect("the simulated bag");
+    let record = r
+        .metadata()
+        .iter()
+        .find(|m| m.name == translucent_tof::bag::PHYSICS_RECORD)
+        .expect("simulate records the physics");
+    assert!(
+        record.entries[translucent_tof::bag::PHYSICS_RECORD_KEY].contains("preset = \"paper\""),
+        "{record:?}"
+    );
+
+    // calibrate-xi on the bundled bag, as the issue ran it: the 0.72 material, not 0.565.
+    let bag = bundled("model_validation_xi072.mcap");
+    let out = run(
+        dir.path(),
+        &["calibrate-xi", bag.to_str().unwrap(), "--json", "xi.json"],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("xi.json"));
+    assert_in_interval(&r, 0.72);
+    assert_eq!(r["physics"]["source"], "recording", "{}", r["physics"]);
+    let s = stdout_of(&out);
+    assert!(
+        s.contains("physics: paper, the recording's own, named by its metadata record")
+            && s.contains("--physics paper")
+            && !s.contains("WARNING"),
+        "{s}"
+    );
+    // A --physics that is not the recording's: used, with a warning.
+    let out = run(
+        dir.path(),
+        &[
+            "calibrate-xi",
+            bag.to_str().unwrap(),
+            "--physics",
+            "physical",
+            "--json",
+            "xi.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("xi.json"));
+    assert_eq!(r["physics"]["source"], "option");
+    assert!(
+        stdout_of(&out).contains("WARNING: --physics physical differs from the physics the recording was made with"),
+        "{}",
+        describe(&out)
+    );
+    // The shipped double-pass file is the physics model_validation_xi091 was made with.
+    let out = run(
+        dir.path(),
+        &[
+            "calibrate-xi",
+            bundled("model_validation_xi091.mcap").to_str().unwrap(),
+            "--physics",
+            repo().join("bags/physics/double_pass.toml").to_str().unwrap(),
+            "--json",
+            "xi.json",
+        ],
+    );
+    assert_ok(&out);
+    assert_in_interval(&read_json(&dir.path().join("xi.json")), 0.91);
+    assert!(!stdout_of(&out).contains("WARNING"), "{}", describe(&out));
+
+    // replay as the issue ran it: the 0.65 document holder, not 0.370.
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            bundled("document_holder.mcap").to_str().unwrap(),
+            "--out",
+            "out.mcap",
+            "--json",
+            "report.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("report.json"));
+    assert_in_interval(&r, 0.65);
+    assert_eq!(r["physics"]["source"], "recording");
+    assert!(
+        stdout_of(&out).contains("physics: paper, the recording's own"),
+        "{}",
+        describe(&out)
+    );
+}
+
+/// A bag with no physics record takes it from its sidecar `BAG.toml`
+/// (`physics = "PRESET"`), says so, and refuses a sidecar naming no preset;
+/// with neither, the default, said to be one.
+#[test]
+fn a_sidecar_names_the_physics_of_a_bag_without_a_record() {
+    let dir = temp();
+    let spec = BagSpec {
+        truth: true,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.path().join("scene.mcap"), &small_scene(3, true), &spec);
+    let replay = |dir: &Path| run(dir, &["replay", "scene.mcap", "--out", "out.mcap", "--json", "r.json"]);
+    let out = replay(dir.path());
+    assert_ok(&out);
+    assert!(
+        stdout_of(&out).contains("physics: physical, the default (the recording does not say"),
+        "{}",
+        describe(&out)
+    );
+    assert_eq!(read_json(&dir.path().join("r.json"))["physics"]["source"], "default");
+
+    std::fs::write(dir.path().join("scene.toml"), "name = \"x\"\nphysics = \"paper\"\n").unwrap();
+    let out = replay(dir.path());
+    assert_ok(&out);
+    assert!(
+        stdout_of(&out).contains("physics: paper, the recording's own, named by the sidecar scene.toml"),
+        "{}",
+        describe(&out)
+    );
+    let r = read_json(&dir.path().join("r.json"));
+    assert_eq!(r["physics"]["source"], "recording");
+    assert_eq!(r["physics"]["model_options"]["ir_mode"], "sum", "{}", r["physics"]);
+
+    let bad = temp();
+    write_bag(&bad.path().join("scene.mcap"), &small_scene(3, true), &spec);
+    std::fs::write(bad.path().join("scene.toml"), "physics = \"phyiscal\"\n").unwrap();
+    let out = replay(bad.path());
+    assert_clean_failure(
+        &out,
+        &["scene.toml", "phyiscal", "not a preset", "--physics"],
+        bad.path(),
+        &["scene.mcap", "scene.toml"],
+    );
+}
