@@ -1731,3 +1731,51 @@ fn a_sidecar_names_the_physics_of_a_bag_without_a_record() {
         &["scene.mcap", "scene.toml"],
     );
 }
+
+/// A bag cut short says where, and what was read, before any scene analysis,
+/// even when too little is left for a background; it is not sent the wrong way.
+#[test]
+fn a_bag_cut_short_says_so_before_the_scene_analysis() {
+    let dir = temp();
+    let bytes = std::fs::read(bundled("document_holder.mcap")).unwrap();
+    std::fs::write(dir.path().join("half.mcap"), &bytes[..bytes.len() / 2]).unwrap();
+    let out = run(
+        dir.path(),
+        &["replay", "half.mcap", "--out", "out.mcap", "--json", "r.json"],
+    );
+    assert_clean_failure(
+        &out,
+        &[
+            "half.mcap is cut short",
+            &format!("the file ends at byte {}", bytes.len() / 2),
+            "read before the cut:",
+            "paired depth + IR frame(s)",
+            "a whole recording is needed",
+        ],
+        dir.path(),
+        &["half.mcap"],
+    );
+    let err = text(&out.stderr);
+    assert!(!err.contains("pass --background-frames"), "{err}");
+    assert!(err.starts_with("WARNING: bag half.mcap is cut short"), "{err}");
+
+    // At three quarters it replays, the cut said first, then in the summary and the report.
+    std::fs::write(dir.path().join("q3.mcap"), &bytes[..bytes.len() * 3 / 4]).unwrap();
+    let out = run(
+        dir.path(),
+        &["replay", "q3.mcap", "--out", "out.mcap", "--json", "r.json"],
+    );
+    assert_ok(&out);
+    assert!(
+        text(&out.stderr).starts_with("WARNING: bag q3.mcap is cut short"),
+        "{}",
+        describe(&out)
+    );
+    assert!(
+        stdout_of(&out).contains("WARNING: bag q3.mcap is cut short"),
+        "{}",
+        describe(&out)
+    );
+    let r = read_json(&dir.path().join("r.json"));
+    assert!(r["warnings"].to_string().contains("cut short"), "{}", r["warnings"]);
+}

@@ -77,7 +77,7 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
         "profile": est.profile,
         "note": est.note,
         "physics": physics.json(),
-        "warnings": physics.warning.iter().collect::<Vec<_>>(),
+        "warnings": rec.cut.iter().chain(&physics.warning).collect::<Vec<_>>(),
     });
     // ξ is that of a model: say which, and how to give the same one elsewhere.
     let (replay_physics, node_physics) = match physics.option.as_deref() {
@@ -86,7 +86,7 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
         None => (" --physics FILE".to_string(), " -p physics:=FILE".to_string()),
     };
     let mut summary = format!("physics: {}\n", physics.text);
-    if let Some(w) = &physics.warning {
+    for w in rec.cut.iter().chain(&physics.warning) {
         summary += &format!("WARNING: {w}\n");
     }
     summary += &format!(

@@ -262,7 +262,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "background_choice": bg.how,
         "background_noise_mm": bgd.median_noise_mm,
         "lin_source": bgd.lin_source,
-        "warnings": rec.read_stops.iter().chain(&physics.warning).chain(&bgd.warnings).collect::<Vec<_>>(),
+        "warnings": rec.cut.iter().chain(&physics.warning).chain(&bgd.warnings).collect::<Vec<_>>(),
         "read_stops": rec.read_stops,
         "physics": physics.json(),
         "sensor": {
