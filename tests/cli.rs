@@ -1779,3 +1779,60 @@ fn a_bag_cut_short_says_so_before_the_scene_analysis() {
     let r = read_json(&dir.path().join("r.json"));
     assert!(r["warnings"].to_string().contains("cut short"), "{}", r["warnings"]);
 }
+
+/// One error metric, named: replay's summary prints the mean of per-frame RMS
+/// its report names (`error_metric`), and the report's pooled `rmse_mm` is
+/// what its name says.
+#[test]
+fn replay_names_its_error_metric() {
+    let dir = temp();
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            bundled("document_holder.mcap").to_str().unwrap(),
+            "--out",
+            "out.mcap",
+            "--json",
+            "r.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("r.json"));
+    let rows: Vec<(f64, f64, f64)> = r["per_frame"]
+        .as_array()
+        .expect("per_frame")
+        .iter()
+        .filter_map(|f| {
+            Some((
+                f["rmse_mm"].as_f64()?,
+                f["rmse_raw_mm"].as_f64()?,
+                f["truth_pixels"].as_f64()?,
+            ))
+        })
+        .collect();
+    assert_eq!(rows.len(), 8);
+    let k = rows.len() as f64;
+    let mean = rows.iter().map(|f| f.0).sum::<f64>() / k;
+    let mean_raw = rows.iter().map(|f| f.1).sum::<f64>() / k;
+    let n: f64 = rows.iter().map(|f| f.2).sum();
+    let pooled = (rows.iter().map(|f| f.0 * f.0 * f.2).sum::<f64>() / n).sqrt();
+    assert!((num(&r, "mean_frame_rmse_mm") - mean).abs() < 1e-9);
+    assert!((num(&r, "mean_frame_rmse_raw_mm") - mean_raw).abs() < 1e-9);
+    assert!((num(&r, "rmse_mm") - pooled).abs() < 1e-9);
+    for key in ["mean_frame_rmse_mm", "rmse_mm", "coverage", "recovered_of_truth"] {
+        assert!(
+            r["error_metric"][key].is_string(),
+            "error_metric.{key}: {}",
+            r["error_metric"]
+        );
+    }
+    assert!(r["error_metric"]["mean_frame_rmse_mm"]
+        .as_str()
+        .unwrap()
+        .starts_with("mean over frames"));
+    let line = format!(
+        "error against ground truth (mean over 8 frame(s) of the per-frame RMS z error over the pixels in the mask with truth and a recovered depth): raw {mean_raw:.1} mm -> recovered {mean:.1} mm"
+    );
+    assert!(stdout_of(&out).contains(&line), "{line}\n{}", describe(&out));
+}
