@@ -1836,3 +1836,61 @@ fn replay_names_its_error_metric() {
     );
     assert!(stdout_of(&out).contains(&line), "{line}\n{}", describe(&out));
 }
+
+/// The audit does not write a physics file that recovers the recording worse
+/// than its baseline: a loud warning on the terminal, the report says so; a
+/// step without parameters prints none (no empty parentheses).
+#[test]
+fn audit_refuses_a_physics_file_that_recovers_worse() {
+    let dir = temp();
+    let out = run(
+        dir.path(),
+        &[
+            "audit",
+            bundled("audit_a.mcap").to_str().unwrap(),
+            "--physics",
+            "paper",
+            "--physics-out",
+            "p.toml",
+            "--json",
+            "a.json",
+        ],
+    );
+    assert_ok(&out);
+    assert!(
+        !dir.path().join("p.toml").exists(),
+        "p.toml written: {}",
+        describe(&out)
+    );
+    let err = text(&out.stderr);
+    assert!(
+        err.contains("WARNING: --physics-out p.toml NOT WRITTEN"),
+        "{}",
+        describe(&out)
+    );
+    let r = read_json(&dir.path().join("a.json"));
+    assert_eq!(r["physics_out"]["written"], false, "{}", r["physics_out"]);
+    assert!(r["physics_out"]["refused"].as_str().unwrap_or("").contains("worse"));
+    let rec = &r["recovery_rmse_mm"];
+    assert!(num(rec, "after") > num(rec, "before"), "{rec}");
+
+    // A model that recovers no worse is written; its one step has no parameters.
+    let out = run(
+        dir.path(),
+        &[
+            "audit",
+            bundled("audit_d.mcap").to_str().unwrap(),
+            "--physics",
+            "paper",
+            "--physics-out",
+            "d.toml",
+            "--json",
+            "d.json",
+        ],
+    );
+    assert_ok(&out);
+    assert!(dir.path().join("d.toml").exists(), "{}", describe(&out));
+    assert_eq!(read_json(&dir.path().join("d.json"))["physics_out"]["written"], true);
+    let s = stdout_of(&out);
+    assert!(s.contains("+ ir_amplitude") && !s.contains("()"), "{s}");
+}
