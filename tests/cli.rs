@@ -1894,3 +1894,30 @@ fn audit_refuses_a_physics_file_that_recovers_worse() {
     let s = stdout_of(&out);
     assert!(s.contains("+ ir_amplitude") && !s.contains("()"), "{s}");
 }
+
+/// The README says where the binary is, how to install it, and what each
+/// `--xi-mode` that `replay -h` offers does.
+#[test]
+fn readme_says_where_the_binary_is_and_what_xi_mode_does() {
+    let readme = std::fs::read_to_string(repo().join("README.md")).expect("README.md");
+    for needle in ["target/release/translucent_tof", "cargo install --path ."] {
+        assert!(readme.contains(needle), "README.md does not say {needle:?}");
+    }
+    let dir = temp();
+    let out = run(dir.path(), &["replay", "-h"]);
+    assert_ok(&out);
+    let help = stdout_of(&out);
+    let modes = help
+        .split_once("--xi-mode")
+        .and_then(|(_, after)| after.split_once("[possible values: "))
+        .and_then(|(_, values)| values.split_once(']'))
+        .map(|(v, _)| v.split(", ").map(str::to_string).collect::<Vec<_>>())
+        .unwrap_or_else(|| panic!("no --xi-mode values in replay -h:\n{help}"));
+    assert!(modes.len() >= 2, "{modes:?}");
+    for m in modes {
+        assert!(
+            readme.contains(&format!("--xi-mode {m}")),
+            "README.md does not explain --xi-mode {m}"
+        );
+    }
+}
