@@ -1577,3 +1577,345 @@ fn audit_rerun_writes_a_recording_or_is_refused() {
         assert_clean_failure(&out, &["rerun"], dir.path(), &[]);
     }
 }
+
+// ------------------------------------------------- the first hour (issue 34)
+
+fn stdout_of(out: &Output) -> String {
+    text(&out.stdout)
+}
+
+/// A recording says the physics it was made with: `simulate` records it in
+/// the bag, and replay and calibrate-xi use it when no `--physics` is given,
+/// say so, and warn when a given one differs.
+#[test]
+fn bags_say_their_physics_and_the_tools_use_it() {
+    let dir = temp();
+    let scene = repo().join("bags/model_validation_xi072.toml");
+    let out = run(dir.path(), &["simulate", scene.to_str().unwrap(), "-o", "mv.mcap"]);
+    assert_ok(&out);
+    assert!(
+        stdout_of(&out).contains("physics: paper (recorded in the bag"),
+        "{}",
+        describe(&out)
+    );
+    let r = BagReader::open(&dir.path().join("mv.mcap")).expect("the simulated bag");
+    let record = r
+        .metadata()
+        .iter()
+        .find(|m| m.name == translucent_tof::bag::PHYSICS_RECORD)
+        .expect("simulate records the physics");
+    assert!(
+        record.entries[translucent_tof::bag::PHYSICS_RECORD_KEY].contains("preset = \"paper\""),
+        "{record:?}"
+    );
+
+    // calibrate-xi on the bundled bag, as the issue ran it: the 0.72 material, not 0.565.
+    let bag = bundled("model_validation_xi072.mcap");
+    let out = run(
+        dir.path(),
+        &["calibrate-xi", bag.to_str().unwrap(), "--json", "xi.json"],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("xi.json"));
+    assert_in_interval(&r, 0.72);
+    assert_eq!(r["physics"]["source"], "recording", "{}", r["physics"]);
+    let s = stdout_of(&out);
+    assert!(
+        s.contains("physics: paper, the recording's own, named by its metadata record")
+            && s.contains("--physics paper")
+            && !s.contains("WARNING"),
+        "{s}"
+    );
+    // A --physics that is not the recording's: used, with a warning.
+    let out = run(
+        dir.path(),
+        &[
+            "calibrate-xi",
+            bag.to_str().unwrap(),
+            "--physics",
+            "physical",
+            "--json",
+            "xi.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("xi.json"));
+    assert_eq!(r["physics"]["source"], "option");
+    assert!(
+        stdout_of(&out).contains("WARNING: --physics physical differs from the physics the recording was made with"),
+        "{}",
+        describe(&out)
+    );
+    // The shipped double-pass file is the physics model_validation_xi091 was made with.
+    let out = run(
+        dir.path(),
+        &[
+            "calibrate-xi",
+            bundled("model_validation_xi091.mcap").to_str().unwrap(),
+            "--physics",
+            repo().join("bags/physics/double_pass.toml").to_str().unwrap(),
+            "--json",
+            "xi.json",
+        ],
+    );
+    assert_ok(&out);
+    assert_in_interval(&read_json(&dir.path().join("xi.json")), 0.91);
+    assert!(!stdout_of(&out).contains("WARNING"), "{}", describe(&out));
+
+    // replay as the issue ran it: the 0.65 document holder, not 0.370.
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            bundled("document_holder.mcap").to_str().unwrap(),
+            "--out",
+            "out.mcap",
+            "--json",
+            "report.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("report.json"));
+    assert_in_interval(&r, 0.65);
+    assert_eq!(r["physics"]["source"], "recording");
+    assert!(
+        stdout_of(&out).contains("physics: paper, the recording's own"),
+        "{}",
+        describe(&out)
+    );
+}
+
+/// A bag with no physics record takes it from its sidecar `BAG.toml`
+/// (`physics = "PRESET"`), says so, and refuses a sidecar naming no preset;
+/// with neither, the default, said to be one.
+#[test]
+fn a_sidecar_names_the_physics_of_a_bag_without_a_record() {
+    let dir = temp();
+    let spec = BagSpec {
+        truth: true,
+        ..BagSpec::default()
+    };
+    write_bag(&dir.path().join("scene.mcap"), &small_scene(3, true), &spec);
+    let replay = |dir: &Path| run(dir, &["replay", "scene.mcap", "--out", "out.mcap", "--json", "r.json"]);
+    let out = replay(dir.path());
+    assert_ok(&out);
+    assert!(
+        stdout_of(&out).contains("physics: physical, the default (the recording does not say"),
+        "{}",
+        describe(&out)
+    );
+    assert_eq!(read_json(&dir.path().join("r.json"))["physics"]["source"], "default");
+
+    std::fs::write(dir.path().join("scene.toml"), "name = \"x\"\nphysics = \"paper\"\n").unwrap();
+    let out = replay(dir.path());
+    assert_ok(&out);
+    assert!(
+        stdout_of(&out).contains("physics: paper, the recording's own, named by the sidecar scene.toml"),
+        "{}",
+        describe(&out)
+    );
+    let r = read_json(&dir.path().join("r.json"));
+    assert_eq!(r["physics"]["source"], "recording");
+    assert_eq!(r["physics"]["model_options"]["ir_mode"], "sum", "{}", r["physics"]);
+
+    let bad = temp();
+    write_bag(&bad.path().join("scene.mcap"), &small_scene(3, true), &spec);
+    std::fs::write(bad.path().join("scene.toml"), "physics = \"phyiscal\"\n").unwrap();
+    let out = replay(bad.path());
+    assert_clean_failure(
+        &out,
+        &["scene.toml", "phyiscal", "not a preset", "--physics"],
+        bad.path(),
+        &["scene.mcap", "scene.toml"],
+    );
+}
+
+/// A bag cut short says where, and what was read, before any scene analysis,
+/// even when too little is left for a background; it is not sent the wrong way.
+#[test]
+fn a_bag_cut_short_says_so_before_the_scene_analysis() {
+    let dir = temp();
+    let bytes = std::fs::read(bundled("document_holder.mcap")).unwrap();
+    std::fs::write(dir.path().join("half.mcap"), &bytes[..bytes.len() / 2]).unwrap();
+    let out = run(
+        dir.path(),
+        &["replay", "half.mcap", "--out", "out.mcap", "--json", "r.json"],
+    );
+    assert_clean_failure(
+        &out,
+        &[
+            "half.mcap is cut short",
+            &format!("the file ends at byte {}", bytes.len() / 2),
+            "read before the cut:",
+            "paired depth + IR frame(s)",
+            "a whole recording is needed",
+        ],
+        dir.path(),
+        &["half.mcap"],
+    );
+    let err = text(&out.stderr);
+    assert!(!err.contains("pass --background-frames"), "{err}");
+    assert!(err.starts_with("WARNING: bag half.mcap is cut short"), "{err}");
+
+    // At three quarters it replays, the cut said first, then in the summary and the report.
+    std::fs::write(dir.path().join("q3.mcap"), &bytes[..bytes.len() * 3 / 4]).unwrap();
+    let out = run(
+        dir.path(),
+        &["replay", "q3.mcap", "--out", "out.mcap", "--json", "r.json"],
+    );
+    assert_ok(&out);
+    assert!(
+        text(&out.stderr).starts_with("WARNING: bag q3.mcap is cut short"),
+        "{}",
+        describe(&out)
+    );
+    assert!(
+        stdout_of(&out).contains("WARNING: bag q3.mcap is cut short"),
+        "{}",
+        describe(&out)
+    );
+    let r = read_json(&dir.path().join("r.json"));
+    assert!(r["warnings"].to_string().contains("cut short"), "{}", r["warnings"]);
+}
+
+/// One error metric, named: replay's summary prints the mean of per-frame RMS
+/// its report names (`error_metric`), and the report's pooled `rmse_mm` is
+/// what its name says.
+#[test]
+fn replay_names_its_error_metric() {
+    let dir = temp();
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            bundled("document_holder.mcap").to_str().unwrap(),
+            "--out",
+            "out.mcap",
+            "--json",
+            "r.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("r.json"));
+    let rows: Vec<(f64, f64, f64)> = r["per_frame"]
+        .as_array()
+        .expect("per_frame")
+        .iter()
+        .filter_map(|f| {
+            Some((
+                f["rmse_mm"].as_f64()?,
+                f["rmse_raw_mm"].as_f64()?,
+                f["truth_pixels"].as_f64()?,
+            ))
+        })
+        .collect();
+    assert_eq!(rows.len(), 8);
+    let k = rows.len() as f64;
+    let mean = rows.iter().map(|f| f.0).sum::<f64>() / k;
+    let mean_raw = rows.iter().map(|f| f.1).sum::<f64>() / k;
+    let n: f64 = rows.iter().map(|f| f.2).sum();
+    let pooled = (rows.iter().map(|f| f.0 * f.0 * f.2).sum::<f64>() / n).sqrt();
+    assert!((num(&r, "mean_frame_rmse_mm") - mean).abs() < 1e-9);
+    assert!((num(&r, "mean_frame_rmse_raw_mm") - mean_raw).abs() < 1e-9);
+    assert!((num(&r, "rmse_mm") - pooled).abs() < 1e-9);
+    for key in ["mean_frame_rmse_mm", "rmse_mm", "coverage", "recovered_of_truth"] {
+        assert!(
+            r["error_metric"][key].is_string(),
+            "error_metric.{key}: {}",
+            r["error_metric"]
+        );
+    }
+    assert!(r["error_metric"]["mean_frame_rmse_mm"]
+        .as_str()
+        .unwrap()
+        .starts_with("mean over frames"));
+    let line = format!(
+        "error against ground truth (mean over 8 frame(s) of the per-frame RMS z error over the pixels in the mask with truth and a recovered depth): raw {mean_raw:.1} mm -> recovered {mean:.1} mm"
+    );
+    assert!(stdout_of(&out).contains(&line), "{line}\n{}", describe(&out));
+}
+
+/// The audit does not write a physics file that recovers the recording worse
+/// than its baseline: a loud warning on the terminal, the report says so; a
+/// step without parameters prints none (no empty parentheses).
+#[test]
+fn audit_refuses_a_physics_file_that_recovers_worse() {
+    let dir = temp();
+    let out = run(
+        dir.path(),
+        &[
+            "audit",
+            bundled("audit_a.mcap").to_str().unwrap(),
+            "--physics",
+            "paper",
+            "--physics-out",
+            "p.toml",
+            "--json",
+            "a.json",
+        ],
+    );
+    assert_ok(&out);
+    assert!(
+        !dir.path().join("p.toml").exists(),
+        "p.toml written: {}",
+        describe(&out)
+    );
+    let err = text(&out.stderr);
+    assert!(
+        err.contains("WARNING: --physics-out p.toml NOT WRITTEN"),
+        "{}",
+        describe(&out)
+    );
+    let r = read_json(&dir.path().join("a.json"));
+    assert_eq!(r["physics_out"]["written"], false, "{}", r["physics_out"]);
+    assert!(r["physics_out"]["refused"].as_str().unwrap_or("").contains("worse"));
+    let rec = &r["recovery_rmse_mm"];
+    assert!(num(rec, "after") > num(rec, "before"), "{rec}");
+
+    // A model that recovers no worse is written; its one step has no parameters.
+    let out = run(
+        dir.path(),
+        &[
+            "audit",
+            bundled("audit_d.mcap").to_str().unwrap(),
+            "--physics",
+            "paper",
+            "--physics-out",
+            "d.toml",
+            "--json",
+            "d.json",
+        ],
+    );
+    assert_ok(&out);
+    assert!(dir.path().join("d.toml").exists(), "{}", describe(&out));
+    assert_eq!(read_json(&dir.path().join("d.json"))["physics_out"]["written"], true);
+    let s = stdout_of(&out);
+    assert!(s.contains("+ ir_amplitude") && !s.contains("()"), "{s}");
+}
+
+/// The README says where the binary is, how to install it, and what each
+/// `--xi-mode` that `replay -h` offers does.
+#[test]
+fn readme_says_where_the_binary_is_and_what_xi_mode_does() {
+    let readme = std::fs::read_to_string(repo().join("README.md")).expect("README.md");
+    for needle in ["target/release/translucent_tof", "cargo install --path ."] {
+        assert!(readme.contains(needle), "README.md does not say {needle:?}");
+    }
+    let dir = temp();
+    let out = run(dir.path(), &["replay", "-h"]);
+    assert_ok(&out);
+    let help = stdout_of(&out);
+    let modes = help
+        .split_once("--xi-mode")
+        .and_then(|(_, after)| after.split_once("[possible values: "))
+        .and_then(|(_, values)| values.split_once(']'))
+        .map(|(v, _)| v.split(", ").map(str::to_string).collect::<Vec<_>>())
+        .unwrap_or_else(|| panic!("no --xi-mode values in replay -h:\n{help}"));
+    assert!(modes.len() >= 2, "{modes:?}");
+    for m in modes {
+        assert!(
+            readme.contains(&format!("--xi-mode {m}")),
+            "README.md does not explain --xi-mode {m}"
+        );
+    }
+}

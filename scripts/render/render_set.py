@@ -43,6 +43,21 @@ CAMERA_INFO = (
 )
 FRAME_ID = "tof_optical_frame"
 BACKGROUND_FRAMES = 10
+# The model physics these renders match, named in every bag (an MCAP metadata record, read by
+# replay, calibrate-xi and audit) and in its sidecar: IR the demodulated amplitude, light
+# through a layer both ways (L2 = Ib xi^2), every option written out.
+PHYSICS_RECORD = "translucent_tof.physics"
+PHYSICS_PRESET = "physical"
+PHYSICS_TOML = (
+    "# The model physics this render matches (scripts/render/render_set.py).\n"
+    f'preset = "{PHYSICS_PRESET}"\n'
+    "bounces = 2\n"
+    'ir_mode = "amplitude"\n'
+    "transmission_albedo_power = 0.0\n"
+    "ambient_offset = 0.0\n"
+    "subsurface_delay_mm = 0.0\n"
+    "refraction_shift_px = [0.0, 0.0]\n"
+)
 
 
 def geometry_key(objects, materials, spp):
@@ -131,6 +146,7 @@ def write_bag(spec, out_dir, cache):
     tmp = os.path.join(cache, name + ".mcap.tmp")  # moved into out_dir when complete
     with open(tmp, "wb") as out:
         w = Writer(out, compression=CompressionType.ZSTD)
+        w.add_metadata(PHYSICS_RECORD, {"physics_toml": PHYSICS_TOML})  # first: a bag cut short keeps it
         img_s = w.register_msgdef("sensor_msgs/msg/Image", IMAGE)
         info_s = w.register_msgdef("sensor_msgs/msg/CameraInfo", CAMERA_INFO)
         for gi, (objects, fg, nframes) in enumerate(geoms):
@@ -168,6 +184,8 @@ def write_bag(spec, out_dir, cache):
              f"render_seconds = {round(total_secs, 1)}",
              f"background_frames = {BACKGROUND_FRAMES}", f"frames = {frame}",
              'frame_period_s = 0.1', 'first_stamp_s = 1.0',
+             "# the model physics this render matches (also the bag's translucent_tof.physics record)",
+             f"physics = {toml_value(PHYSICS_PRESET)}",
              "", "[sensor]", f"width = {tc.W}", f"height = {tc.H}", f"hfov_deg = {tc.HFOV_DEG}",
              f"vfov_deg = {tc.VFOV_DEG}", f"fx = {tc.FX!r}", f"fy = {tc.FY!r}", f"cx = {tc.CX!r}", f"cy = {tc.CY!r}",
              'pixel_centre = "pixel (u, v) centre ray ((u - cx)/fx, (v - cy)/fy, 1); cx = (W-1)/2, cy = (H-1)/2"',

@@ -16,10 +16,18 @@ mod writer;
 use std::path::PathBuf;
 
 pub use discover::{select_topics, SelectedTopics, TopicOverrides};
-pub use reader::{record_length_limit, BagReader, McapProblem, RawMessage, ReadStop, TopicInfo};
+pub use reader::{record_length_limit, BagMetadata, BagReader, McapProblem, RawMessage, ReadStop, TopicInfo};
 pub use writer::{BagWriter, DEFAULT_QOS_PROFILES};
 
 use crate::msgs::MsgError;
+
+/// Name of the MCAP metadata record that holds the physics a recording was
+/// made with (`simulate` and `scripts/render/render_set.py` write it).
+pub const PHYSICS_RECORD: &str = "translucent_tof.physics";
+
+/// The key of [`PHYSICS_RECORD`] whose value is the physics file (TOML, as
+/// `--physics FILE` reads it, its preset named).
+pub const PHYSICS_RECORD_KEY: &str = "physics_toml";
 
 /// Why a bag could not be written, read or understood.
 #[derive(Debug, thiserror::Error)]

@@ -1,6 +1,6 @@
 //! [`BagReader`]: a ROS 2 MCAP bag in memory, messages in log-time order.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
@@ -16,6 +16,16 @@ pub struct TopicInfo {
     pub type_name: String,
     /// Messages on it.
     pub message_count: u64,
+}
+
+/// An MCAP metadata record: a name and key-value strings (e.g. the physics a
+/// recording was made with, [`super::PHYSICS_RECORD`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BagMetadata {
+    /// The record's name.
+    pub name: String,
+    /// Its key-value pairs.
+    pub entries: BTreeMap<String, String>,
 }
 
 /// One undecoded message, borrowed from its [`BagReader`].
@@ -53,6 +63,7 @@ pub struct BagReader {
     entries: Vec<Entry>,
     arena: Vec<u8>,
     stops: Vec<ReadStop>,
+    metadata: Vec<BagMetadata>,
 }
 
 /// The longest record (or chunk, compressed or not) a file of `file_len`
@@ -133,15 +144,36 @@ impl<'a> Fields<'a> {
 }
 
 /// Takes what the reader needs from one record: schemas' type names and
-/// channels into the maps, a message out; other records are skipped.
+/// channels into the maps, metadata records onto their list, a message out;
+/// other records are skipped.
 fn parse_record<'a>(
     opcode: u8,
     data: &'a [u8],
     schemas: &mut HashMap<u16, String>,
     channels: &mut HashMap<u16, (String, String, String)>,
+    metadata: &mut Vec<BagMetadata>,
 ) -> Result<Option<MessageRecord<'a>>, McapProblem> {
     use mcap::records::op;
     match opcode {
+        op::METADATA => {
+            let mut f = Fields {
+                what: "metadata",
+                rest: data,
+            };
+            let name = f.string("name")?;
+            let mut map = Fields {
+                what: "metadata",
+                rest: f.prefixed("map")?,
+            };
+            let mut entries = BTreeMap::new();
+            while !map.rest.is_empty() {
+                let key = map.string("key")?;
+                let value = map.string("value")?;
+                entries.insert(key, value);
+            }
+            metadata.push(BagMetadata { name, entries });
+            Ok(None)
+        }
         op::SCHEMA => {
             let mut f = Fields {
                 what: "schema",
@@ -335,6 +367,7 @@ impl BagReader {
             entries: Vec::new(),
             arena: Vec::new(),
             stops: Vec::new(),
+            metadata: Vec::new(),
         };
         for file in &files {
             reader.load(file)?;
@@ -380,7 +413,7 @@ impl BagReader {
                     continue;
                 }
                 Ok(mcap::sans_io::LinearReadEvent::Record { opcode, data }) => {
-                    parse_record(opcode, data, &mut schemas, &mut channels)
+                    parse_record(opcode, data, &mut schemas, &mut channels, &mut self.metadata)
                 }
                 Err(e) => Err(McapProblem::Mcap(e)),
             };
@@ -453,6 +486,12 @@ impl BagReader {
     /// Empty when every file was read to its end magic.
     pub fn stops(&self) -> &[ReadStop] {
         &self.stops
+    }
+
+    /// The metadata records, in file order (a rosbag2 directory: every file's).
+    /// A bag cut short has those before the cut.
+    pub fn metadata(&self) -> &[BagMetadata] {
+        &self.metadata
     }
 
     /// The path opened.
@@ -559,6 +598,44 @@ mod tests {
         assert_eq!(first, image(10, 1));
         let err = BagReader::decode::<Image>(&msgs[1]).unwrap_err();
         assert!(matches!(err, BagError::TypeMismatch { .. }), "{err}");
+    }
+
+    #[test]
+    fn metadata_records_are_read_even_from_a_bag_cut_short() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.mcap");
+        let mut w = BagWriter::create(&path).unwrap();
+        let entries = BTreeMap::from([
+            ("k".to_string(), "v = 1\n".to_string()),
+            ("e".to_string(), String::new()),
+        ]);
+        w.write_metadata("translucent_tof.test", entries.clone()).unwrap();
+        for s in 1..=3 {
+            w.write("/a", s, &image(s, 1)).unwrap();
+        }
+        w.finish().unwrap();
+        let r = BagReader::open(&path).unwrap();
+        assert_eq!(
+            r.metadata(),
+            [BagMetadata {
+                name: "translucent_tof.test".into(),
+                entries: entries.clone()
+            }]
+        );
+        // Cut anywhere past its first message: the record is still there.
+        let bytes = std::fs::read(&path).unwrap();
+        let cut = dir.path().join("cut.mcap");
+        let mut partial = 0;
+        for eighth in 1..8 {
+            std::fs::write(&cut, &bytes[..bytes.len() * eighth / 8]).unwrap();
+            if let Ok(r) = BagReader::open(&cut) {
+                assert_eq!(r.stops().len(), 1);
+                assert_eq!(r.metadata().len(), 1);
+                assert_eq!(r.metadata()[0].entries, entries);
+                partial += 1;
+            }
+        }
+        assert!(partial > 0, "no cut was read");
     }
 
     #[test]

@@ -12,7 +12,7 @@ use crate::physics::audit::{run_audit_with_progress, where_it_helped, AuditResul
 use crate::physics::{IrMode, Waveform};
 use crate::pipeline::{PipelineConfig, XiChoice};
 
-use super::common::{write_atomic, OutputArgs, PhysicsFile, PipelineArgs};
+use super::common::{describe_model, write_atomic, OutputArgs, PhysicsFile, PipelineArgs};
 use super::recording::load;
 
 /// Pixels the fits use at most (spread over the frames).
@@ -48,8 +48,10 @@ pub fn run(a: AuditArgs) -> Result<()> {
             );
         }
     }
-    let config = a.pipeline.config()?;
+    let mut config = a.pipeline.config()?;
     let rec = load(&a.bag, &a.pipeline.topics)?;
+    let physics_choice = rec.physics_choice(&a.pipeline.model)?;
+    config.model = physics_choice.model.clone();
     if rec.topics.ground_truth.is_none() || rec.truth.is_empty() {
         bail!(
             "bag {}: the audit compares the model with known foreground distances, and the bag has no ground_truth/depth images (sensor_msgs/Image, 32FC1 z in metres, NaN where no foreground): record a calibration sequence with ground truth (paper Sec. V-A)",
@@ -137,7 +139,35 @@ pub fn run(a: AuditArgs) -> Result<()> {
         crate::viz::write_curves(&target, "translucent_tof_audit", &curves).map_err(|e| anyhow::anyhow!(e))?;
         plots.push(r.display().to_string());
     }
-    if let Some(out) = &a.physics_out {
+    // A model that recovers this recording worse than its baseline is not written.
+    let worse = match (before, after) {
+        (Some(b), Some(f)) => f.0 > b.0 * (1.0 + WORSE_BY),
+        _ => false,
+    };
+    let recovery_text = match (before, after) {
+        (Some(b), Some(f)) => format!(
+            "recovery on this recording at the fitted xi (RMS z error over every translucent pixel with truth, pooled over frames): {:.1} mm with the baseline -> {:.1} mm with the chosen model",
+            b.0, f.0
+        ),
+        _ => String::new(),
+    };
+    let refusal = match &a.physics_out {
+        Some(out) if worse => Some(format!(
+            "--physics-out {} NOT WRITTEN: the chosen model ({}) recovers this recording worse than its baseline ({:.1} -> {:.1} mm RMS), though it fits the readings better: the inversion fails under it here (README, Limits: several roots). The baseline recovers it better: replay {}{} --xi {:.3}",
+            out.display(),
+            fin.effects.iter().map(|e| e.name()).collect::<Vec<_>>().join(", "),
+            before.map_or(f64::NAN, |b| b.0),
+            after.map_or(f64::NAN, |f| f.0),
+            a.bag.display(),
+            match &a.pipeline.model.physics {
+                Some(p) => format!(" --physics {}", p.display()),
+                None => String::new(),
+            },
+            result.baseline.xi
+        )),
+        _ => None,
+    };
+    if let (Some(out), None) = (&a.physics_out, &refusal) {
         let text = format!(
             "# Written by translucent_tof audit: the baseline's physics and the effects the recording supports past it.\n# Fitted with xi = {:.4}: replay --physics {} --xi {:.3}\n{}",
             fin.xi,
@@ -147,16 +177,21 @@ pub fn run(a: AuditArgs) -> Result<()> {
         );
         write_atomic(out, text.as_bytes())?;
     }
-    let report = report(&a, &result, &physics, before, after, &plots, &bg.how, &stats);
-    let mut summary = format!(
-        "baseline ({} physics): xi {:.3}, depth RMSE {:.1} mm, held-out {:.1} mm ({} pixels, {} frames)\n",
-        if base.options == crate::physics::ModelOptions::paper() {
-            "the paper's"
-        } else if base.options == crate::physics::ModelOptions::physical() {
-            "the default"
-        } else {
-            "the given"
-        },
+    let mut report = report(&a, &result, &physics, before, after, &plots, &bg.how, &stats);
+    report["physics_used"] = physics_choice.json();
+    report["warnings"] = json!(rec.cut.iter().chain(&physics_choice.warning).collect::<Vec<_>>());
+    report["physics_out"] = json!({
+        "path": a.physics_out.as_ref().map(|p| p.display().to_string()),
+        "written": a.physics_out.is_some() && refusal.is_none(),
+        "refused": refusal,
+    });
+    let mut summary = format!("physics: {}\n", physics_choice.text);
+    for w in rec.cut.iter().chain(&physics_choice.warning) {
+        summary += &format!("WARNING: {w}\n");
+    }
+    summary += &format!(
+        "baseline ({}): xi {:.3}, depth RMSE {:.1} mm, held-out {:.1} mm ({} pixels, {} frames)\n",
+        describe_model(base),
         result.baseline.xi,
         result.baseline.rmse_mm,
         result.baseline.heldout_rmse_mm,
@@ -167,23 +202,39 @@ pub fn run(a: AuditArgs) -> Result<()> {
         summary += "no effect left out: no candidate improves the held-out error beyond the noise\n";
     }
     for s in &result.steps {
+        let params = params_text(&s.params);
         summary += &format!(
-            "+ {}: xi {:.3}, held-out {:.1} mm ({})\n",
+            "+ {}: xi {:.3}, held-out {:.1} mm{}\n",
             s.effects.last().map(|e| e.name()).unwrap_or(""),
             s.xi,
             s.heldout_rmse_mm,
-            params_text(&s.params)
+            if params.is_empty() {
+                String::new()
+            } else {
+                format!(" ({params})")
+            }
         );
     }
-    if let (Some(b), Some(f)) = (before, after) {
-        summary += &format!("recovery on this recording: {:.1} -> {:.1} mm RMS\n", b.0, f.0);
+    if !recovery_text.is_empty() {
+        summary += &recovery_text;
+        summary += "\n";
     }
-    if let Some(out) = &a.physics_out {
-        summary += &format!("wrote {}", out.display());
+    match (&a.physics_out, &refusal) {
+        (Some(_), Some(why)) => {
+            // Loud, on the terminal whatever happens to the summary.
+            eprintln!("\n{}\nWARNING: {why}\n{}\n", "!".repeat(72), "!".repeat(72));
+            summary += &format!("WARNING: {why}");
+        }
+        (Some(out), None) => summary += &format!("wrote {}", out.display()),
+        _ => {}
     }
     a.output.summary(summary.trim_end());
     a.output.write_json(&report)
 }
+
+/// How much worse (relative) recovery with the chosen model may be than with the
+/// baseline before `--physics-out` is refused.
+const WORSE_BY: f64 = 0.01;
 
 fn params_text(p: &[(String, f64)]) -> String {
     p.iter()
@@ -356,8 +407,9 @@ fn report(
             "before": before.map(|b| b.0),
             "after": after.map(|b| b.0),
             "pixels": before.map(|b| b.1),
+            "metric": "RMS z error over every translucent pixel with ground truth, pooled over the object frames, at the fitted xi",
             "note": match (before, after) {
-                (Some(b), Some(f)) if f.0 > b.0 => "recovery with the chosen model is worse than with the paper's, though the model fits the readings better: the inversion's choice among several roots (README, Limits) fails on this recording under the chosen physics",
+                (Some(b), Some(f)) if f.0 > b.0 => "recovery with the chosen model is worse than with the baseline's, though the model fits the readings better: the inversion's choice among several roots (README, Limits) fails on this recording under the chosen physics",
                 _ => "",
             },
         },

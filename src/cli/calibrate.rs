@@ -10,8 +10,11 @@ use crate::physics::emitted_light::emitted_light_from_plane;
 use crate::physics::translucency;
 use crate::pipeline::{BackgroundLatch, PipelineConfig};
 
-use super::common::{write_atomic, LinFile, ModelArgs, OutputArgs, PipelineArgs, TopicArgs, LIN_FORMAT};
+use super::common::{
+    describe_model, write_atomic, LinFile, ModelArgs, OutputArgs, PhysicsFile, PipelineArgs, TopicArgs, LIN_FORMAT,
+};
 use super::recording::load;
+use crate::physics::Preset;
 
 /// Arguments of `calibrate-xi`.
 #[derive(Debug, Args)]
@@ -26,8 +29,10 @@ pub struct CalibrateXiArgs {
 
 /// Runs `calibrate-xi`.
 pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
-    let config = a.pipeline.config()?;
+    let mut config = a.pipeline.config()?;
     let rec = load(&a.bag, &a.pipeline.topics)?;
+    let physics = rec.physics_choice(&a.pipeline.model)?;
+    config.model = physics.model.clone();
     if rec.topics.ground_truth.is_none() || rec.truth.is_empty() {
         bail!(
             "bag {}: calibrate-xi needs known foreground distances, and the bag has no ground_truth/depth images (sensor_msgs/Image, 32FC1 z in metres)",
@@ -71,11 +76,36 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
         "pixels": est.pixels,
         "profile": est.profile,
         "note": est.note,
+        "physics": physics.json(),
+        "warnings": rec.cut.iter().chain(&physics.warning).collect::<Vec<_>>(),
     });
-    a.output.summary(&format!(
-        "xi = {:.3} [{:.3}, {:.3}] fitted to {} frame(s) with known distances ({} pixels)\nuse it with: replay --xi {:.3}   (node: -p xi:={:.3})",
+    // ξ is that of a model: say which, and how to give the same one elsewhere.
+    let (replay_physics, node_physics) = match physics.option.as_deref() {
+        Some(name) if name == Preset::Physical.name() => (String::new(), String::new()),
+        Some(name) => (format!(" --physics {name}"), format!(" -p physics:={name}")),
+        None => (" --physics FILE".to_string(), " -p physics:=FILE".to_string()),
+    };
+    let mut summary = format!("physics: {}\n", physics.text);
+    for w in rec.cut.iter().chain(&physics.warning) {
+        summary += &format!("WARNING: {w}\n");
+    }
+    summary += &format!(
+        "xi = {:.3} [{:.3}, {:.3}] fitted to {} frame(s) with known distances ({} pixels)\nuse it with: replay --xi {:.3}{replay_physics}   (node: -p xi:={:.3}{node_physics})",
         est.xi, est.interval[0], est.interval[1], used.len(), est.pixels, est.xi, est.xi
-    ));
+    );
+    if physics.option.is_none() {
+        summary += &format!(
+            "\n  FILE: a physics file holding {}, e.g.\n{}",
+            describe_model(&physics.model),
+            PhysicsFile::complete(&physics.model.options, &physics.model.sensor.waveform)
+                .to_toml()?
+                .lines()
+                .map(|l| format!("    {l}"))
+                .collect::<Vec<_>>()
+                .join("\n")
+        );
+    }
+    a.output.summary(&summary);
     a.output.write_json(&report)
 }
 

@@ -211,17 +211,167 @@ impl PhysicsFile {
     /// Reads and checks a physics file.
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).with_context(|| format!("reading physics file {}", path.display()))?;
-        let f: PhysicsFile = toml::from_str(&text).with_context(|| format!("physics file {}", path.display()))?;
+        Self::parse(&text, &format!("physics file {}", path.display()))
+    }
+
+    /// Parses and checks a physics file's text; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<Self> {
+        let f: PhysicsFile = toml::from_str(text).with_context(|| origin.to_string())?;
         if let Some(b) = f.bounces {
             if !(2..=crate::physics::model::MAX_BOUNCES).contains(&b) {
                 bail!(
-                    "physics file {}: bounces = {b} is not in 2..={}",
-                    path.display(),
+                    "{origin}: bounces = {b} is not in 2..={}",
                     crate::physics::model::MAX_BOUNCES
                 );
             }
         }
         Ok(f)
+    }
+
+    /// The complete file of a model: its preset named (`physical` when the
+    /// options are that preset's, else `paper`, the base scene files are
+    /// written against) and every option written out, so that it reads the
+    /// same whatever a preset's defaults become. The waveform is written when
+    /// it is not a sinusoid.
+    pub fn complete(options: &ModelOptions, waveform: &Waveform) -> Self {
+        let preset = if *options == Preset::Physical.options() {
+            Preset::Physical
+        } else {
+            Preset::Paper
+        };
+        let (waveform, harmonics) = match waveform {
+            Waveform::Sinusoid => (None, None),
+            Waveform::Triangle => (Some("triangle".to_string()), None),
+            Waveform::Harmonics { third, fifth } => (Some("harmonics".to_string()), Some([*third, *fifth])),
+        };
+        PhysicsFile {
+            preset: Some(preset),
+            bounces: Some(options.bounces),
+            ir_mode: Some(options.ir_mode),
+            transmission_albedo_power: Some(options.transmission_albedo_power),
+            ambient_offset: Some(options.ambient_offset),
+            subsurface_delay_mm: Some(options.subsurface_delay_mm),
+            waveform,
+            harmonics,
+            refraction_shift_px: Some(options.refraction_shift_px),
+        }
+    }
+
+    /// The file as TOML (absent keys left out).
+    pub fn to_toml(&self) -> Result<String> {
+        toml::to_string(self).context("writing a physics file as TOML")
+    }
+
+    /// The model options the file gives (absent keys: its preset's).
+    pub fn options(&self) -> ModelOptions {
+        let d = self.preset.unwrap_or_default().options();
+        ModelOptions {
+            bounces: self.bounces.unwrap_or(d.bounces),
+            ir_mode: self.ir_mode.unwrap_or(d.ir_mode),
+            transmission_albedo_power: self.transmission_albedo_power.unwrap_or(d.transmission_albedo_power),
+            ambient_offset: self.ambient_offset.unwrap_or(d.ambient_offset),
+            subsurface_delay_mm: self.subsurface_delay_mm.unwrap_or(d.subsurface_delay_mm),
+            refraction_shift_px: self.refraction_shift_px.unwrap_or(d.refraction_shift_px),
+        }
+    }
+}
+
+/// The `--physics` value that gives `model` (a preset's name), if one does.
+pub fn physics_option(model: &ForwardModel) -> Option<&'static str> {
+    let sinusoid = model.sensor.waveform == Waveform::Sinusoid;
+    Preset::ALL
+        .iter()
+        .find(|p| sinusoid && p.options() == model.options)
+        .map(|p| p.name())
+}
+
+/// A model in words: the preset it is, or the nearer preset and the options
+/// that depart from it (`paper` with `transmission_albedo_power = 0`).
+pub fn describe_model(model: &ForwardModel) -> String {
+    let o = &model.options;
+    let wave = match model.sensor.waveform {
+        Waveform::Sinusoid => String::new(),
+        Waveform::Triangle => ", triangle waveform".to_string(),
+        Waveform::Harmonics { third, fifth } => format!(", harmonics {third:.3} {fifth:.3}"),
+    };
+    let departures = |p: &ModelOptions| {
+        let mut d = vec![];
+        if o.bounces != p.bounces {
+            d.push(format!("bounces = {}", o.bounces));
+        }
+        if o.ir_mode != p.ir_mode {
+            d.push(format!("ir_mode = {:?}", o.ir_mode).to_lowercase());
+        }
+        if o.transmission_albedo_power != p.transmission_albedo_power {
+            d.push(format!("transmission_albedo_power = {}", o.transmission_albedo_power));
+        }
+        if o.ambient_offset != p.ambient_offset {
+            d.push(format!("ambient_offset = {}", o.ambient_offset));
+        }
+        if o.subsurface_delay_mm != p.subsurface_delay_mm {
+            d.push(format!("subsurface_delay_mm = {}", o.subsurface_delay_mm));
+        }
+        if o.refraction_shift_px != p.refraction_shift_px {
+            d.push(format!(
+                "refraction_shift_px = [{}, {}]",
+                o.refraction_shift_px[0], o.refraction_shift_px[1]
+            ));
+        }
+        d
+    };
+    // Ties go to the paper's model, the one scene files are written against.
+    let (preset, d) = Preset::ALL
+        .iter()
+        .rev()
+        .map(|p| (p.name(), departures(&p.options())))
+        .min_by_key(|(_, d)| d.len())
+        .unwrap_or(("physical", vec![]));
+    if d.is_empty() {
+        format!("{preset}{wave}")
+    } else {
+        format!("{preset} with {}{wave}", d.join(", "))
+    }
+}
+
+/// The physics a recording says it was made with.
+#[derive(Debug, Clone)]
+pub struct RecordedPhysics {
+    /// The physics file it holds.
+    pub file: PhysicsFile,
+    /// That file's text.
+    pub text: String,
+    /// Where it was found, in words ("named by its metadata record ...").
+    pub from: String,
+}
+
+/// What the physics of a run is, and where it came from.
+#[derive(Debug, Clone)]
+pub struct PhysicsChoice {
+    /// The model.
+    pub model: ForwardModel,
+    /// `option`, `recording` or `default`.
+    pub source: &'static str,
+    /// What was used and why, in words.
+    pub text: String,
+    /// A given `--physics` that is not what the recording was made with (or a
+    /// recorded physics that could not be read).
+    pub warning: Option<String>,
+    /// What `--physics` gives this model elsewhere: a preset's name, or the file
+    /// given; `None` for recorded physics that is no preset.
+    pub option: Option<String>,
+}
+
+impl PhysicsChoice {
+    /// For a JSON report.
+    pub fn json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "source": self.source,
+            "model": describe_model(&self.model),
+            "text": self.text,
+            "model_options": self.model.options,
+            "warning": self.warning,
+            "option": self.option,
+        })
     }
 }
 
@@ -238,41 +388,46 @@ fn waveform(name: &str, harmonics: Option<[f64; 2]>) -> Result<Waveform> {
 }
 
 impl ModelArgs {
-    /// The forward model these options describe.
+    /// The forward model these options describe (the default physics when
+    /// `--physics` is not given; [`ModelArgs::choose`] for a recording).
     pub fn model(&self) -> Result<ForwardModel> {
+        self.check_frequency()?;
+        let file = self.given_file()?.unwrap_or_default();
+        self.build(&file)
+    }
+
+    fn check_frequency(&self) -> Result<()> {
         if !(self.modulation_frequency_hz.is_finite() && self.modulation_frequency_hz > 0.0) {
             bail!(
                 "--modulation-frequency-hz must be positive, got {}",
                 self.modulation_frequency_hz
             );
         }
-        let file = match &self.physics {
-            Some(p) => match p.to_str().and_then(Preset::from_name) {
-                Some(preset) => PhysicsFile {
-                    preset: Some(preset),
-                    ..PhysicsFile::default()
-                },
-                None if !p.exists() => {
-                    let names: Vec<&str> = Preset::ALL.iter().map(|p| p.name()).collect();
-                    bail!(
-                        "physics {:?}: neither a preset ({}) nor an existing physics file",
-                        p.display().to_string(),
-                        names.join(", ")
-                    )
-                }
-                None => PhysicsFile::load(p)?,
+        Ok(())
+    }
+
+    /// The physics file `--physics` names, if given.
+    fn given_file(&self) -> Result<Option<PhysicsFile>> {
+        let Some(p) = &self.physics else { return Ok(None) };
+        Ok(Some(match p.to_str().and_then(Preset::from_name) {
+            Some(preset) => PhysicsFile {
+                preset: Some(preset),
+                ..PhysicsFile::default()
             },
-            None => PhysicsFile::default(),
-        };
-        let d = file.preset.unwrap_or_default().options();
-        let mut options = ModelOptions {
-            bounces: file.bounces.unwrap_or(d.bounces),
-            ir_mode: file.ir_mode.unwrap_or(d.ir_mode),
-            transmission_albedo_power: file.transmission_albedo_power.unwrap_or(d.transmission_albedo_power),
-            ambient_offset: file.ambient_offset.unwrap_or(d.ambient_offset),
-            subsurface_delay_mm: file.subsurface_delay_mm.unwrap_or(d.subsurface_delay_mm),
-            refraction_shift_px: file.refraction_shift_px.unwrap_or(d.refraction_shift_px),
-        };
+            None if !p.exists() => {
+                let names: Vec<&str> = Preset::ALL.iter().map(|p| p.name()).collect();
+                bail!(
+                    "physics {:?}: neither a preset ({}) nor an existing physics file",
+                    p.display().to_string(),
+                    names.join(", ")
+                )
+            }
+            None => PhysicsFile::load(p)?,
+        }))
+    }
+
+    fn build(&self, file: &PhysicsFile) -> Result<ForwardModel> {
+        let mut options = file.options();
         if let Some(m) = self.ir_mode {
             options.ir_mode = m.into();
         }
@@ -281,6 +436,97 @@ impl ModelArgs {
             sensor: Sensor::new(self.modulation_frequency_hz, wf),
             options,
         })
+    }
+
+    /// The model for a recording: `--physics` when given (with a warning when
+    /// the recording says it was made with other physics), else the physics
+    /// the recording names, else the default.
+    pub fn choose(&self, recorded: Result<Option<&RecordedPhysics>, &str>) -> Result<PhysicsChoice> {
+        self.check_frequency()?;
+        let given = self.given_file()?;
+        let given_name = self
+            .physics
+            .as_ref()
+            .map(|p| p.display().to_string())
+            .unwrap_or_default();
+        match (given, recorded) {
+            (Some(g), Ok(Some(r))) => {
+                let model = self.build(&g)?;
+                let theirs = self.build(&r.file)?;
+                let same = model.options == theirs.options && model.sensor.waveform == theirs.sensor.waveform;
+                let (text, warning) = if same {
+                    (
+                        format!(
+                            "{} (--physics {given_name}; the recording was made with the same, {})",
+                            describe_model(&model),
+                            r.from
+                        ),
+                        None,
+                    )
+                } else {
+                    (
+                        format!("{} (--physics {given_name})", describe_model(&model)),
+                        Some(format!(
+                            "--physics {given_name}{} differs from the physics the recording was made with ({}, {}): xi and the recovered depth are those of another model; leave --physics out to use the recording's",
+                            if describe_model(&model) == given_name {
+                                String::new()
+                            } else {
+                                format!(" ({})", describe_model(&model))
+                            },
+                            describe_model(&theirs),
+                            r.from
+                        )),
+                    )
+                };
+                Ok(PhysicsChoice {
+                    option: physics_option(&model).map(str::to_string).or(Some(given_name)),
+                    model,
+                    source: "option",
+                    text,
+                    warning,
+                })
+            }
+            (Some(g), recorded) => {
+                let model = self.build(&g)?;
+                Ok(PhysicsChoice {
+                    text: format!("{} (--physics {given_name})", describe_model(&model)),
+                    option: physics_option(&model).map(str::to_string).or(Some(given_name.clone())),
+                    model,
+                    source: "option",
+                    warning: recorded
+                        .err()
+                        .map(|e| format!("{e}; the recording's physics is unknown, --physics {given_name} is used")),
+                })
+            }
+            (None, Ok(Some(r))) => {
+                let model = self.build(&r.file)?;
+                Ok(PhysicsChoice {
+                    text: format!(
+                        "{}, the recording's own, {}; --physics overrides",
+                        describe_model(&model),
+                        r.from
+                    ),
+                    option: physics_option(&model).map(str::to_string),
+                    model,
+                    source: "recording",
+                    warning: None,
+                })
+            }
+            (None, Ok(None)) => {
+                let model = self.build(&PhysicsFile::default())?;
+                Ok(PhysicsChoice {
+                    text: format!(
+                        "{}, the default (the recording does not say which physics it was made with; --physics paper for the paper's model)",
+                        describe_model(&model)
+                    ),
+                    option: physics_option(&model).map(str::to_string),
+                    model,
+                    source: "default",
+                    warning: None,
+                })
+            }
+            (None, Err(e)) => bail!("{e}; pass --physics physical, paper or a physics file"),
+        }
     }
 }
 

@@ -17,7 +17,7 @@ use crate::bag::BagWriter;
 use crate::image::depth_mm;
 use crate::msgs::Header;
 use crate::node::peer::{bag_frames, restamp, Peer};
-use crate::pipeline::{rmse_against_truth, PipelineConfig};
+use crate::pipeline::{PipelineConfig, TruthError};
 
 use super::common::{OutputArgs, TopicArgs};
 use super::recording::load;
@@ -270,7 +270,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         .unwrap_or(serde_json::Value::Null);
 
     // Outputs against the bag's ground truth.
-    let (mut e2, mut raw2, mut n) = (0.0, 0.0, 0usize);
+    let mut errors = TruthError::default();
     let out_bag = a.out_dir.join("demo.mcap");
     let mut w = BagWriter::create(&out_bag).with_context(|| format!("creating {}", out_bag.display()))?;
     let mut translucent = 0usize;
@@ -293,17 +293,12 @@ pub fn run(a: DemoArgs) -> Result<()> {
         let corrected = depth_mm(img)?;
         let mut mask = crate::physics::ImageBuf::filled(corrected.width, corrected.height, false);
         for (k, v) in mask_img.data.iter().enumerate().take(mask.len()) {
-            mask.data[k] = *v == 255 && corrected.data[k].is_finite();
+            mask.data[k] = *v == 255;
         }
-        translucent += mask.data.iter().filter(|m| **m).count();
-        if let (Some((e, k)), Some((r, _))) = (
-            rmse_against_truth(&corrected, truth, &mask),
-            rmse_against_truth(&frame.z_mm, truth, &mask),
-        ) {
-            e2 += e * e * k as f64;
-            raw2 += r * r * k as f64;
-            n += k;
-        }
+        translucent += (0..mask.len())
+            .filter(|&k| mask.data[k] && corrected.data[k].is_finite())
+            .count();
+        errors.add(&corrected, &frame.z_mm, truth, &mask);
     }
     for est in &peer_received.estimates {
         w.write(
@@ -325,7 +320,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         .keys()
         .filter(|s| stamps.contains_key(s))
         .count();
-    let report = json!({
+    let mut report = json!({
         "bag": bag.display().to_string(),
         "latch": latch_reply.message,
         "object_frames_played": object_frames,
@@ -333,30 +328,39 @@ pub fn run(a: DemoArgs) -> Result<()> {
         "xi": last.map(|e| e.xi),
         "xi_interval": last.map(|e| [e.xi_lower, e.xi_upper]),
         "xi_method": last.map(|e| e.method.clone()),
+        "xi_mode": "online",
         "translucent_pixels": translucent,
-        "rmse_raw_mm": (n > 0).then(|| (raw2 / n as f64).sqrt()),
-        "rmse_mm": (n > 0).then(|| (e2 / n as f64).sqrt()),
-        "truth_pixels": n,
         "out_bag": out_bag.display().to_string(),
         "rerun": rerun,
         "node": node_stats,
     });
+    if let serde_json::Value::Object(m) = errors.json() {
+        for (k, v) in m {
+            report[k] = v;
+        }
+    }
     let mut s = format!(
         "demo over DDS on loopback: {} of {} object frames came back from the node\n",
         object_frames_back, object_frames
     );
     if let Some(e) = last {
         s.push_str(&format!(
-            "xi = {:.3} [{:.3}, {:.3}] by {} over {} frames\n",
-            e.xi, e.xi_lower, e.xi_upper, e.method, e.frames_pooled
+            "xi = {:.3} [{:.3}, {:.3}] by {} over {} frames{}\n",
+            e.xi,
+            e.xi_lower,
+            e.xi_upper,
+            e.method,
+            e.frames_pooled,
+            if a.xi.is_some() {
+                " (given)"
+            } else {
+                " (online, as the node estimates it: each frame with the evidence up to it; replay --xi-mode online does the same offline)"
+            }
         ));
     }
-    if n > 0 {
-        s.push_str(&format!(
-            "error against ground truth over {n} translucent pixels: raw {:.1} mm -> recovered {:.1} mm\n",
-            (raw2 / n as f64).sqrt(),
-            (e2 / n as f64).sqrt()
-        ));
+    if let Some(line) = errors.summary_line() {
+        s.push_str(&line);
+        s.push('\n');
     }
     s.push_str(&format!("wrote {} and {}", out_bag.display(), rerun));
     a.output.summary(&s);

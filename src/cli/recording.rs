@@ -12,7 +12,7 @@ use crate::msgs::{CameraInfo, Header, Image};
 use crate::physics::{ImageBuf, Intrinsics};
 use crate::pipeline::{detect_scene_change, DepthFrame, Pipeline, PipelineConfig};
 
-use super::common::TopicArgs;
+use super::common::{ModelArgs, PhysicsChoice, PhysicsFile, RecordedPhysics, TopicArgs};
 
 /// Everything the pipeline needs from a bag.
 pub struct Recording {
@@ -33,12 +33,125 @@ pub struct Recording {
     /// Where reading stopped short of a file's end (a recording cut short or
     /// damaged), in words; the frames before it are read. Empty for a whole bag.
     pub read_stops: Vec<String>,
+    /// For a recording cut short: where, and what was read before the cut.
+    pub cut: Option<String>,
+    /// The physics the recording says it was made with (its
+    /// [`PHYSICS_RECORD`](crate::bag::PHYSICS_RECORD), else a sidecar `BAG.toml`'s
+    /// `physics = "PRESET"`); `Err` when what it says cannot be read.
+    pub physics: Result<Option<RecordedPhysics>, String>,
+}
+
+/// The physics a bag names: its metadata record, else (a bag file) the
+/// `physics = "PRESET"` of the sidecar `BAG.toml` beside it. A sidecar
+/// without a `physics` string (a scene file's `[physics]` table, say) names none.
+fn recorded_physics(path: &Path, reader: &BagReader) -> Result<Option<RecordedPhysics>, String> {
+    use crate::bag::{PHYSICS_RECORD, PHYSICS_RECORD_KEY};
+    if let Some(m) = reader.metadata().iter().rev().find(|m| m.name == PHYSICS_RECORD) {
+        let from = format!("named by its metadata record {PHYSICS_RECORD}");
+        let text = m.entries.get(PHYSICS_RECORD_KEY).ok_or_else(|| {
+            format!(
+                "bag {}: its {PHYSICS_RECORD} record has no {PHYSICS_RECORD_KEY:?} entry",
+                path.display()
+            )
+        })?;
+        let file = PhysicsFile::parse(text, &format!("bag {}: its {PHYSICS_RECORD} record", path.display()))
+            .map_err(|e| format!("{e:#}"))?;
+        return Ok(Some(RecordedPhysics {
+            file,
+            text: text.clone(),
+            from,
+        }));
+    }
+    if path.is_dir() {
+        return Ok(None);
+    }
+    let sidecar = path.with_extension("toml");
+    let Ok(text) = std::fs::read_to_string(&sidecar) else {
+        return Ok(None);
+    };
+    let Ok(table) = text.parse::<toml::Table>() else {
+        return Ok(None);
+    };
+    let Some(toml::Value::String(name)) = table.get("physics") else {
+        return Ok(None);
+    };
+    let from = format!(
+        "named by the sidecar {} (physics = {name:?}), the bag itself having no {PHYSICS_RECORD} record",
+        sidecar.display()
+    );
+    let Some(preset) = crate::physics::Preset::from_name(name) else {
+        let names: Vec<&str> = crate::physics::Preset::ALL.iter().map(|p| p.name()).collect();
+        return Err(format!(
+            "{}: physics = {name:?} is not a preset ({})",
+            sidecar.display(),
+            names.join(", ")
+        ));
+    };
+    Ok(Some(RecordedPhysics {
+        file: PhysicsFile {
+            preset: Some(preset),
+            ..PhysicsFile::default()
+        },
+        text: format!("preset = {name:?}\n"),
+        from,
+    }))
+}
+
+/// A bag cut short in words: where each file's reading stopped and what was
+/// read before; `None` for a whole bag.
+fn cut_text(
+    path: &Path,
+    stops: &[crate::bag::ReadStop],
+    depth: &BTreeMap<u64, Image>,
+    ir: &BTreeMap<u64, Image>,
+    truth: usize,
+    info: bool,
+) -> Option<String> {
+    if stops.is_empty() {
+        return None;
+    }
+    let whys: Vec<String> = stops
+        .iter()
+        .map(|s| {
+            let file = if s.file == path {
+                String::new()
+            } else {
+                format!("{}: ", s.file.display())
+            };
+            match &s.source {
+                crate::bag::McapProblem::Mcap(mcap::McapError::UnexpectedEof) => format!(
+                    "{file}the file ends at byte {} in the middle of a record, after {} message(s)",
+                    s.len, s.messages_kept
+                ),
+                e => format!(
+                    "{file}reading stopped at byte {} of {} ({e}) after {} message(s)",
+                    s.offset, s.len, s.messages_kept
+                ),
+            }
+        })
+        .collect();
+    let paired: Vec<u64> = depth.keys().filter(|k| ir.contains_key(k)).copied().collect();
+    let secs = |ns: u64| format!("{:.3}", ns as f64 * 1e-9);
+    let span = match (paired.first(), paired.last()) {
+        (Some(a), Some(b)) => format!(", stamps {} .. {} s", secs(*a), secs(*b)),
+        _ => String::new(),
+    };
+    Some(format!(
+        "bag {} is cut short: {}. Read before the cut: {} paired depth + IR frame(s){span} ({} depth, {} IR image(s)), {truth} ground-truth image(s), {}",
+        path.display(),
+        whys.join("; "),
+        paired.len(),
+        depth.len(),
+        ir.len(),
+        if info { "camera_info" } else { "no camera_info" }
+    ))
 }
 
 /// Reads a bag: picks topics, pairs depth and IR by exact stamp, decodes.
 pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
     let reader = BagReader::open(path).with_context(|| format!("opening bag {}", path.display()))?;
     let read_stops: Vec<String> = reader.stops().iter().map(|s| s.to_string()).collect();
+    let physics = recorded_physics(path, &reader);
     let infos = reader.topics();
     let sel = select_topics(&infos, &topics.overrides()).with_context(|| format!("bag {}", path.display()))?;
     let mut depth: BTreeMap<u64, Image> = BTreeMap::new();
@@ -62,9 +175,20 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
             truth.insert(stamp, depth_mm(&img).with_context(|| at("ground truth"))?);
         }
     }
+    // A recording cut short: where, and what was read before the cut, said now, before any
+    // scene analysis; every error that may follow from it points back to it.
+    let cut = cut_text(path, reader.stops(), &depth, &ir, truth.len(), info.is_some());
+    if let Some(c) = &cut {
+        eprintln!("WARNING: {c}");
+    }
+    let cut_suffix = if cut.is_some() {
+        "; the bag is cut short (the warning above says where)"
+    } else {
+        ""
+    };
     let info = info.ok_or_else(|| {
         anyhow!(
-            "bag {}: no sensor_msgs/msg/CameraInfo message{}: the pipeline needs the intrinsics to turn z-depth into distance along each ray (pass --info-topic)",
+            "bag {}: no sensor_msgs/msg/CameraInfo message{}: the pipeline needs the intrinsics to turn z-depth into distance along each ray (pass --info-topic){cut_suffix}",
             path.display(),
             sel.info.as_deref().map(|t| format!(" on {t}")).unwrap_or_default()
         )
@@ -76,7 +200,7 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
     if paired.is_empty() {
         let first = |m: &BTreeMap<u64, Image>| m.keys().next().map(|s| s.to_string()).unwrap_or_else(|| "none".into());
         bail!(
-            "bag {}: no depth message on {} shares its header stamp with an IR message on {} ({} depth, {} IR; first stamps {} and {} ns): depth and IR must be paired by exact stamp",
+            "bag {}: no depth message on {} shares its header stamp with an IR message on {} ({} depth, {} IR; first stamps {} and {} ns): depth and IR must be paired by exact stamp{cut_suffix}",
             path.display(),
             sel.depth,
             sel.ir,
@@ -122,6 +246,7 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
         });
     }
     Ok(Recording {
+        cut,
         topics: sel,
         intrinsics,
         frames,
@@ -130,6 +255,7 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
         truth,
         unpaired,
         read_stops,
+        physics,
     })
 }
 
@@ -142,6 +268,20 @@ pub struct BackgroundChoice {
 }
 
 impl Recording {
+    /// The physics for this recording: `--physics`, else the recording's own, else the default.
+    pub fn physics_choice(&self, args: &ModelArgs) -> Result<PhysicsChoice> {
+        args.choose(self.physics.as_ref().map(Option::as_ref).map_err(String::as_str))
+    }
+
+    /// `; ` and the cut, for errors that may follow from a recording cut short.
+    fn cut_suffix(&self) -> &'static str {
+        if self.cut.is_some() {
+            "; the bag is cut short (the warning above says where)"
+        } else {
+            ""
+        }
+    }
+
     /// A pipeline with the first `background` frames latched as the background.
     pub fn latched_pipeline(&self, config: PipelineConfig, background: usize) -> Result<Pipeline> {
         Pipeline::latched(config, self.intrinsics, &self.frames[..background]).context("latching the background")
@@ -155,7 +295,10 @@ impl Recording {
         match given {
             Some(0) => bail!("--background-frames must be at least 1"),
             Some(k) if k >= n => {
-                bail!("--background-frames {k}: the recording has {n} paired frames, leaving none with the object")
+                bail!(
+                    "--background-frames {k}: the recording has {n} paired frames, leaving none with the object{}",
+                    self.cut_suffix()
+                )
             }
             Some(k) => Ok(BackgroundChoice {
                 count: k,
@@ -167,8 +310,9 @@ impl Recording {
                 let valid = first.data.iter().filter(|z| z.is_finite() && **z > 0.0).count();
                 if valid < (first.len() / 20).max(10) {
                     bail!(
-                        "no background: the first frame has {valid} valid depth pixels of {} (NaN/0 depth everywhere?)",
-                        first.len()
+                        "no background: the first frame has {valid} valid depth pixels of {} (NaN/0 depth everywhere?){}",
+                        first.len(),
+                        self.cut_suffix()
                     );
                 }
                 let scale = self.intrinsics.ray_scale_map();
@@ -177,8 +321,11 @@ impl Recording {
                     .iter()
                     .map(|f| crate::physics::camera::z_to_ray_distance(&f.z_mm, &scale))
                     .collect();
-                let change = detect_scene_change(&distances, threshold_mm, min_region, range_mm).ok_or_else(|| {
-                    anyhow!("no background: the scene never changes over {n} frames (no object appears in front of the first frame's background); pass --background-frames N if the object is there from the start")
+                let change = detect_scene_change(&distances, threshold_mm, min_region, range_mm).ok_or_else(|| match &self.cut {
+                    Some(_) => anyhow!(
+                        "no scene change: the bag is cut short (the warning above says where), and the {n} frame(s) read before the cut show one unchanging scene; the frames with the object were probably past the cut: a whole recording is needed"
+                    ),
+                    None => anyhow!("no background: the scene never changes over {n} frames (no object appears in front of the first frame's background); pass --background-frames N if the object is there from the start"),
                 })?;
                 Ok(BackgroundChoice {
                     count: change.frame,

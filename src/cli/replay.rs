@@ -11,7 +11,7 @@ use crate::bag::BagWriter;
 use crate::msgs::Header;
 use crate::outputs::output_messages;
 use crate::physics::{ImageBuf, XiEstimate, XiMethod};
-use crate::pipeline::{rmse_against_truth, FrameOutput, XiChoice};
+use crate::pipeline::{FrameOutput, TruthError, XiChoice};
 
 use super::common::{OutputArgs, PipelineArgs};
 use super::recording::{load, Recording};
@@ -134,6 +134,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         None => XiChoice::Estimate(method),
     };
     let rec = load(&a.bag, &a.pipeline.topics)?;
+    let physics = rec.physics_choice(&a.pipeline.model)?;
+    config.model = physics.model.clone();
     let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
     let mut pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];
@@ -168,8 +170,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let pb = a.output.progress(objects.len() as u64, "recovering");
     let mut per_frame = vec![];
     let mut last: Option<XiEstimate> = None;
-    let (mut sum_e2, mut sum_raw2, mut n_err) = (0.0, 0.0, 0usize);
-    let mut seg_truth = 0usize;
+    let mut errors = TruthError::default();
     let mut total_px = 0usize;
     for (j, (f, obs)) in objects.iter().zip(&mut observed).enumerate() {
         if online {
@@ -215,25 +216,13 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         });
         if let Some(truth) = rec.truth.get(&f.stamp_ns) {
             // Raw and recovered over the same pixels: segmented, with truth, recovered.
-            let segmented_with_truth = (0..out.mask.len())
-                .filter(|&i| out.mask.data[i] && truth.data[i].is_finite())
-                .count();
-            let mut mask = out.mask.clone();
-            for i in 0..mask.len() {
-                mask.data[i] &= out.corrected_z_mm.data[i].is_finite();
-            }
-            row["segmented_truth_pixels"] = json!(segmented_with_truth);
-            seg_truth += segmented_with_truth;
-            if let (Some((e, n)), Some((raw, _))) = (
-                rmse_against_truth(&out.corrected_z_mm, truth, &mask),
-                rmse_against_truth(&f.z_mm, truth, &mask),
-            ) {
+            let segmented_before = errors.segmented_with_truth;
+            let got = errors.add(&out.corrected_z_mm, &f.z_mm, truth, &out.mask);
+            row["segmented_truth_pixels"] = json!(errors.segmented_with_truth - segmented_before);
+            if let Some((e, raw, n)) = got {
                 row["rmse_mm"] = json!(e);
                 row["rmse_raw_mm"] = json!(raw);
                 row["truth_pixels"] = json!(n);
-                sum_e2 += e * e * n as f64;
-                sum_raw2 += raw * raw * n as f64;
-                n_err += n;
             }
         }
         per_frame.push(row);
@@ -260,8 +249,9 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "background_choice": bg.how,
         "background_noise_mm": bgd.median_noise_mm,
         "lin_source": bgd.lin_source,
-        "warnings": rec.read_stops.iter().chain(&bgd.warnings).collect::<Vec<_>>(),
+        "warnings": rec.cut.iter().chain(&physics.warning).chain(&bgd.warnings).collect::<Vec<_>>(),
         "read_stops": rec.read_stops,
+        "physics": physics.json(),
         "sensor": {
             "modulation_frequency_hz": pipe.config.model.sensor.modulation_frequency_hz,
             "unambiguous_range_mm": pipe.config.model.sensor.unambiguous_range_mm(),
@@ -321,23 +311,14 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         });
         report["eq12_profile"] = json!(profile);
     }
-    let frame_rmse: Vec<(f64, f64)> = report["per_frame"]
-        .as_array()
-        .map(|v| {
-            v.iter()
-                .filter_map(|r| Some((r["rmse_mm"].as_f64()?, r["rmse_raw_mm"].as_f64()?)))
-                .collect()
-        })
-        .unwrap_or_default();
-    if n_err > 0 {
-        report["rmse_mm"] = json!((sum_e2 / n_err as f64).sqrt());
-        report["rmse_raw_mm"] = json!((sum_raw2 / n_err as f64).sqrt());
-        // Share of the segmented pixels with truth that got a recovered depth (the errors cover only those).
-        report["coverage"] = json!(n_err as f64 / seg_truth.max(1) as f64);
-        let k = frame_rmse.len() as f64;
-        report["mean_frame_rmse_mm"] = json!(frame_rmse.iter().map(|r| r.0).sum::<f64>() / k);
-        report["mean_frame_rmse_raw_mm"] = json!(frame_rmse.iter().map(|r| r.1).sum::<f64>() / k);
+    if errors.pixels() > 0 {
+        if let serde_json::Value::Object(m) = errors.json() {
+            for (k, v) in m {
+                report[k] = v;
+            }
+        }
     }
+    report["error_summary"] = json!(errors.summary_line());
     a.output.summary(&summary(&report, &rec));
     a.output.write_json(&report)
 }
@@ -399,16 +380,22 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         sensor["modulation_frequency_hz"].as_f64().unwrap_or(f64::NAN) / 1e6,
         sensor["waveform"].as_str().unwrap_or("?").to_lowercase()
     ));
+    s.push_str(&format!("physics: {}\n", r["physics"]["text"].as_str().unwrap_or("")));
     for w in r["warnings"].as_array().into_iter().flatten() {
         s.push_str(&format!("WARNING: {}\n", w.as_str().unwrap_or("")));
     }
     if let (Some(x), Some(iv)) = (r["xi"].as_f64(), r["xi_interval"].as_array()) {
         s.push_str(&format!(
-            "xi = {x:.3} [{:.3}, {:.3}] by {} over {} frame(s)\n",
+            "xi = {x:.3} [{:.3}, {:.3}] by {} over {} frame(s) ({})\n",
             iv[0].as_f64().unwrap_or(f64::NAN),
             iv[1].as_f64().unwrap_or(f64::NAN),
             r["xi_method"].as_str().unwrap_or("?"),
-            r["xi_frames_pooled"]
+            r["xi_frames_pooled"],
+            match (r["xi_method"].as_str(), r["xi_mode"].as_str()) {
+                (Some("fixed"), _) => "given",
+                (_, Some("online")) => "--xi-mode online: each frame with the evidence up to it, as the node",
+                _ => "--xi-mode pooled: every frame with the evidence of all; the node estimates online",
+            }
         ));
     } else {
         s.push_str("xi: not determined (no translucent pixels)\n");
@@ -451,11 +438,9 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         r["per_frame"].as_array().map(|v| v.len()).unwrap_or(0),
         r["translucent_pixels"]
     ));
-    if let (Some(e), Some(raw)) = (r["mean_frame_rmse_mm"].as_f64(), r["mean_frame_rmse_raw_mm"].as_f64()) {
-        s.push_str(&format!(
-            "error against ground truth (mean of per-frame RMS): raw {raw:.1} mm -> recovered {e:.1} mm, over {:.1} % of the segmented object pixels (the rest have no recovered depth)\n",
-            100.0 * r["coverage"].as_f64().unwrap_or(f64::NAN)
-        ));
+    if let Some(line) = r["error_summary"].as_str() {
+        s.push_str(line);
+        s.push('\n');
     }
     s.push_str(&format!("wrote {}", r["out"].as_str().unwrap_or("")));
     if let Some(rrd) = r["rerun"].as_str() {

@@ -10,10 +10,10 @@ use crate::bag::BagWriter;
 use crate::image::{camera_info, depth_image, ir_image};
 use crate::msgs::Header;
 use crate::physics::ImageBuf;
-use crate::sim::render::{render, scene_intrinsics};
+use crate::sim::render::{render, scene_intrinsics, scene_sensor};
 use crate::sim::Scene;
 
-use super::common::OutputArgs;
+use super::common::{describe_model, OutputArgs, PhysicsFile};
 
 /// Arguments of `simulate`.
 #[derive(Debug, Args)]
@@ -41,6 +41,28 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     let ns = c.namespace.trim_end_matches('/').to_string();
     let topic = |t: &str| format!("{ns}/{t}");
     let mut writer = BagWriter::create(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    // The physics the frames are made with, first in the bag: replay, calibrate-xi and audit
+    // take it from there (a bag cut short keeps it).
+    let sensor = scene_sensor(&scene);
+    let physics = PhysicsFile::complete(&scene.physics, &sensor.waveform);
+    let physics_toml = format!(
+        "# The physics translucent_tof simulate rendered this bag with, from the scene {}.\n{}",
+        a.scene
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+        physics.to_toml()?
+    );
+    let model = crate::physics::ForwardModel {
+        sensor,
+        options: scene.physics.clone(),
+    };
+    writer
+        .write_metadata(
+            crate::bag::PHYSICS_RECORD,
+            std::collections::BTreeMap::from([(crate::bag::PHYSICS_RECORD_KEY.to_string(), physics_toml.clone())]),
+        )
+        .with_context(|| format!("writing {}", a.out.display()))?;
     let pb = a.output.progress(scene.frame_count() as u64, "rendering");
     let mut background = 0;
     render(&scene, |_, f| {
@@ -89,15 +111,19 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         "width": k.width,
         "height": k.height,
         "seed": scene.seed,
+        "physics": describe_model(&model),
+        "physics_toml": physics_toml,
         "topics": [topic("depth/image_raw"), topic("ir/image_raw"), topic("depth/camera_info"), topic("ground_truth/depth")],
     });
     a.output.summary(&format!(
-        "rendered {} frames ({} background) at {}x{} into {}",
+        "rendered {} frames ({} background) at {}x{} into {}\nphysics: {} (recorded in the bag as its {} metadata record; replay, calibrate-xi and audit use it)",
         scene.frame_count(),
         background,
         k.width,
         k.height,
-        a.out.display()
+        a.out.display(),
+        describe_model(&model),
+        crate::bag::PHYSICS_RECORD
     ));
     a.output.write_json(&report)
 }
