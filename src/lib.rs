@@ -25,6 +25,7 @@ pub mod audit;
 pub mod bag;
 pub mod bench;
 pub mod cli;
+pub mod files;
 pub mod image;
 pub mod msgs;
 pub mod node;

@@ -51,16 +51,10 @@ pub struct BagWriter {
     channels: HashMap<String, Channel>,
 }
 
-fn partial_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
-    name.push(".partial");
-    path.with_file_name(name)
-}
-
 impl BagWriter {
     /// Starts a bag at `path` (written to `path` + `.partial` until finished).
     pub fn create(path: &Path) -> Result<Self, BagError> {
-        let partial = partial_path(path);
+        let partial = crate::files::partial_path(path);
         let file = File::create(&partial).map_err(|source| BagError::Io {
             path: partial.clone(),
             what: "creating bag",

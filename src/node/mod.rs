@@ -824,7 +824,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     info!("{}", summary(&stats));
     if let Some(p) = &s.stats_json {
         let text = serde_json::to_string_pretty(&stats)?;
-        crate::cli::write_atomic(p, text.as_bytes())?;
+        crate::files::write_atomic(p, text.as_bytes())?;
     }
     Ok(stats)
 }
