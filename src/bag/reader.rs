@@ -1,6 +1,6 @@
 //! [`BagReader`]: a ROS 2 MCAP bag in memory, messages in log-time order.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
@@ -53,6 +53,7 @@ pub struct BagReader {
     entries: Vec<Entry>,
     arena: Vec<u8>,
     stops: Vec<ReadStop>,
+    metadata: Vec<MetadataRecord>,
 }
 
 /// The longest record (or chunk, compressed or not) a file of `file_len`
@@ -132,16 +133,54 @@ impl<'a> Fields<'a> {
     }
 }
 
-/// Takes what the reader needs from one record: schemas' type names and
-/// channels into the maps, a message out; other records are skipped.
+/// An MCAP metadata record: its name and key-value pairs.
+pub type MetadataRecord = (String, BTreeMap<String, String>);
+
+/// A metadata record's name and its map (`u32` byte length, then key and value strings).
+fn parse_metadata(data: &[u8]) -> Result<MetadataRecord, McapProblem> {
+    let mut f = Fields {
+        what: "metadata",
+        rest: data,
+    };
+    let name = f.string("name")?;
+    let mut map = Fields {
+        what: "metadata",
+        rest: f.prefixed("map")?,
+    };
+    let mut pairs = BTreeMap::new();
+    while !map.rest.is_empty() {
+        let key = map.string("key")?;
+        pairs.insert(key, map.string("value")?);
+    }
+    Ok((name, pairs))
+}
+
+/// The maps a file's records fill as they are read.
+#[derive(Default)]
+struct Definitions {
+    schemas: HashMap<u16, String>,
+    channels: HashMap<u16, (String, String, String)>,
+    metadata: Vec<MetadataRecord>,
+}
+
+/// Takes what the reader needs from one record: schemas' type names,
+/// channels and metadata into `defs`, a message out; other records are skipped.
 fn parse_record<'a>(
     opcode: u8,
     data: &'a [u8],
-    schemas: &mut HashMap<u16, String>,
-    channels: &mut HashMap<u16, (String, String, String)>,
+    defs: &mut Definitions,
 ) -> Result<Option<MessageRecord<'a>>, McapProblem> {
     use mcap::records::op;
+    let Definitions {
+        schemas,
+        channels,
+        metadata,
+    } = defs;
     match opcode {
+        op::METADATA => {
+            metadata.push(parse_metadata(data)?);
+            Ok(None)
+        }
         op::SCHEMA => {
             let mut f = Fields {
                 what: "schema",
@@ -335,6 +374,7 @@ impl BagReader {
             entries: Vec::new(),
             arena: Vec::new(),
             stops: Vec::new(),
+            metadata: Vec::new(),
         };
         for file in &files {
             reader.load(file)?;
@@ -364,8 +404,7 @@ impl BagReader {
         let first_entry = self.entries.len();
         // The records this reader needs are parsed here, every length checked against the
         // record's own (mcap 0.26's parser reserves a string's declared length first).
-        let mut schemas: HashMap<u16, String> = HashMap::new();
-        let mut channels: HashMap<u16, (String, String, String)> = HashMap::new();
+        let mut defs = Definitions::default();
         // (channel id) -> topic index, for this file.
         let mut by_channel: HashMap<u16, usize> = HashMap::new();
         while let Some(event) = stream.next_event() {
@@ -379,9 +418,7 @@ impl BagReader {
                     rest = tail;
                     continue;
                 }
-                Ok(mcap::sans_io::LinearReadEvent::Record { opcode, data }) => {
-                    parse_record(opcode, data, &mut schemas, &mut channels)
-                }
+                Ok(mcap::sans_io::LinearReadEvent::Record { opcode, data }) => parse_record(opcode, data, &mut defs),
                 Err(e) => Err(McapProblem::Mcap(e)),
             };
             let message = match record {
@@ -402,10 +439,11 @@ impl BagReader {
                         return Err(stop.into_error());
                     }
                     self.stops.push(stop);
+                    self.metadata.append(&mut defs.metadata);
                     return Ok(());
                 }
             };
-            let Some((topic_name, encoding, schema_name)) = channels.get(&message.channel_id) else {
+            let Some((topic_name, encoding, schema_name)) = defs.channels.get(&message.channel_id) else {
                 continue;
             };
             let topic = match by_channel.get(&message.channel_id) {
@@ -445,6 +483,7 @@ impl BagReader {
                 data: start..self.arena.len(),
             });
         }
+        self.metadata.append(&mut defs.metadata);
         Ok(())
     }
 
@@ -453,6 +492,11 @@ impl BagReader {
     /// Empty when every file was read to its end magic.
     pub fn stops(&self) -> &[ReadStop] {
         &self.stops
+    }
+
+    /// The metadata records of the bag's files, in the order read.
+    pub fn metadata(&self) -> &[MetadataRecord] {
+        &self.metadata
     }
 
     /// The path opened.
@@ -559,6 +603,23 @@ mod tests {
         assert_eq!(first, image(10, 1));
         let err = BagReader::decode::<Image>(&msgs[1]).unwrap_err();
         assert!(matches!(err, BagError::TypeMismatch { .. }), "{err}");
+    }
+
+    #[test]
+    fn metadata_records_are_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.mcap");
+        let mut w = BagWriter::create(&path).unwrap();
+        let pairs = BTreeMap::from([("k".to_string(), "v".to_string()), ("a".to_string(), String::new())]);
+        w.write_metadata("rec", pairs.clone()).unwrap();
+        w.write("/a", 1, &image(1, 1)).unwrap();
+        w.finish().unwrap();
+        let r = BagReader::open(&path).unwrap();
+        assert_eq!(r.metadata(), [("rec".to_string(), pairs)]);
+        assert_eq!(r.messages().count(), 1);
+        // A map whose length runs past the record is a record error, not a panic.
+        assert!(parse_metadata(&[1, 0, 0, 0, b'x', 200, 0, 0, 0]).is_err());
+        assert!(parse_metadata(&[1, 0, 0, 0, b'x', 4, 0, 0, 0, 9, 0, 0, 0]).is_err());
     }
 
     #[test]

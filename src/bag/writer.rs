@@ -181,6 +181,20 @@ impl BagWriter {
         result.map_err(|source| self.write_error(source))
     }
 
+    /// Writes an MCAP metadata record: `name` and its key-value pairs (e.g.
+    /// [`super::METADATA_NAME`]'s modulation frequencies).
+    pub fn write_metadata(&mut self, name: &str, pairs: BTreeMap<String, String>) -> Result<(), BagError> {
+        let record = mcap::records::Metadata {
+            name: name.to_string(),
+            metadata: pairs,
+        };
+        let result = match self.mcap.as_mut() {
+            Some(mcap) => mcap.write_metadata(&record),
+            None => return Err(self.finished_error()),
+        };
+        result.map_err(|source| self.write_error(source))
+    }
+
     /// Writes the summary and footer, syncs, and renames `PATH.partial` to `PATH`.
     pub fn finish(mut self) -> Result<(), BagError> {
         // On error, drop removes the partial file.
