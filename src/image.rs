@@ -421,6 +421,21 @@ pub fn sigma_image(header: &Header, sigma_mm: &ImageBuf<f32>) -> Result<Image, I
     )
 }
 
+/// A per-pixel translucency ξ as a `32FC1` image, NaN where there is none
+/// (`~/translucency_image`).
+pub fn translucency_image(header: &Header, xi: &ImageBuf<f32>) -> Result<Image, ImageError> {
+    let data = f32_bytes(&xi.data, |v| if v.is_finite() { v } else { f32::NAN });
+    image_msg(
+        header,
+        xi.width,
+        xi.height,
+        "32FC1",
+        Sample::F32,
+        data,
+        "translucency image",
+    )
+}
+
 /// An organized `PointCloud2` (height x width of `xyz_m`): float32 `x y z`
 /// in metres in the optical frame, float32 `intensity`, uint8 `translucent`
 /// (1 or 0), float32 `sigma` (the depth's standard deviation, metres, NaN where
