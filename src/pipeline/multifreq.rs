@@ -337,12 +337,7 @@ impl PhasorLatch {
     }
 
     /// One pixel's `(B_k, sigma_k, db)`, or `None` if it has too few frames or no light.
-    fn pixel_background(
-        &self,
-        i: usize,
-        need: u32,
-        inversion: &MultiFrequencyInversion,
-    ) -> Option<LatchedPixel> {
+    fn pixel_background(&self, i: usize, need: u32, inversion: &MultiFrequencyInversion) -> Option<LatchedPixel> {
         let n = self.n[i];
         if n < need {
             return None;
