@@ -406,6 +406,35 @@ fn check_frame(
     Ok(())
 }
 
+/// One pixel's inputs to the inversion: its phasors, its noise and the background's.
+#[derive(Debug, Clone, Copy)]
+pub struct PixelInputs<'a> {
+    /// `M_k` (the first `frequencies`).
+    pub measured: [Phasor; MAX_FREQUENCIES],
+    /// `sigma_k` of each component of `M_k` (the first `frequencies`).
+    pub noise_sigma: [f64; MAX_FREQUENCIES],
+    /// `K`.
+    pub frequencies: usize,
+    /// `B_k`.
+    pub background: &'a [Phasor],
+    /// `db`, mm.
+    pub background_distance_mm: f64,
+    /// `sum_k |M_k - B_k|^2 / sigma_k^2`.
+    pub change_chi_square: f64,
+}
+
+impl PixelInputs<'_> {
+    /// As the inversion takes them.
+    pub fn phasors(&self) -> PixelPhasors<'_> {
+        PixelPhasors {
+            measured: &self.measured[..self.frequencies],
+            background: self.background,
+            background_distance_mm: self.background_distance_mm,
+            noise_sigma: &self.noise_sigma[..self.frequencies],
+        }
+    }
+}
+
 /// What one pixel is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PixelClass {
@@ -553,54 +582,75 @@ impl MultiFrequencyStage {
         let (w, h) = (self.intrinsics.width, self.intrinsics.height);
         check_frame(frame, self.config.frequencies_hz.len(), w, h)?;
         check_size("depth image", depth.z_mm.width, depth.z_mm.height, w, h)?;
-        let bg = self.background.as_ref().ok_or(MultiFrequencyStageError::NoBackground)?;
+        if self.background.is_none() {
+            return Err(MultiFrequencyStageError::NoBackground);
+        }
         let results: Vec<PixelResult> = (0..w * h)
             .into_par_iter()
             .with_min_len(MIN_TASK_PIXELS)
-            .map(|i| self.pixel(bg, frame, i))
+            .map(|i| self.pixel(frame, i))
             .collect();
         Ok(self.assemble(depth, frame.stamp_ns, &results))
     }
 
-    /// Tests and, where changed, inverts pixel `i`.
-    fn pixel(&self, bg: &PhasorBackground, frame: &PhasorFrame, i: usize) -> PixelResult {
+    /// The inversion this path runs per pixel.
+    pub fn inversion(&self) -> &MultiFrequencyInversion {
+        &self.inversion
+    }
+
+    /// Pixel `i`'s inputs as [`Self::process`] forms them (`None` where it has no
+    /// usable background or phasors, or no background is latched).
+    pub fn pixel_inputs(&self, frame: &PhasorFrame, i: usize) -> Option<PixelInputs<'_>> {
+        let bg = self.background.as_ref()?;
         let k = self.config.frequencies_hz.len();
         let db = bg.distance_mm.data[i];
         let mut measured = [Phasor::default(); MAX_FREQUENCIES];
         for (m, p) in measured.iter_mut().zip(&frame.phasors) {
-            let [a, b] = p.data[i].map(f64::from);
+            let [a, b] = p.data.get(i)?.map(f64::from);
             *m = Phasor { a, b };
         }
-        let measured = &measured[..k];
-        let finite = measured.iter().all(|m| m.a.is_finite() && m.b.is_finite());
+        let finite = measured[..k].iter().all(|m| m.a.is_finite() && m.b.is_finite());
         if !(db.is_finite() && finite) {
-            return PixelResult::only(PixelClass::Unusable);
+            return None;
         }
         let background = &bg.phasors[i * k..(i + 1) * k];
         let amplitude = |p: &[Phasor]| p.iter().map(|q| q.a.hypot(q.b)).fold(0.0, f64::max);
-        let light = (amplitude(measured) / amplitude(background)).max(1.0);
+        let light = (amplitude(&measured[..k]) / amplitude(background)).max(1.0);
         let grow = (light * (1.0 + 1.0 / bg.frames as f64)).sqrt();
-        let mut sigma = [0.0; MAX_FREQUENCIES];
-        for (s, s0) in sigma.iter_mut().zip(&bg.noise_sigma[i * k..(i + 1) * k]) {
+        let mut noise_sigma = [0.0; MAX_FREQUENCIES];
+        for (s, s0) in noise_sigma.iter_mut().zip(&bg.noise_sigma[i * k..(i + 1) * k]) {
             *s = s0 * grow;
         }
-        let sigma = &sigma[..k];
-        let change: f64 = measured
+        let change_chi_square = measured[..k]
             .iter()
             .zip(background)
-            .zip(sigma)
+            .zip(&noise_sigma[..k])
             .map(|((m, b), s)| ((m.a - b.a).powi(2) + (m.b - b.b).powi(2)) / (s * s))
             .sum();
-        if change <= self.change_chi_square {
-            return PixelResult::only(PixelClass::Background);
-        }
-        let px = PixelPhasors {
+        Some(PixelInputs {
             measured,
+            noise_sigma,
+            frequencies: k,
             background,
             background_distance_mm: db,
-            noise_sigma: sigma,
+            change_chi_square,
+        })
+    }
+
+    /// The pixel's phasors depart from the background's beyond the change level.
+    pub fn changed(&self, inputs: &PixelInputs) -> bool {
+        inputs.change_chi_square > self.change_chi_square
+    }
+
+    /// Tests and, where changed, inverts pixel `i`.
+    fn pixel(&self, frame: &PhasorFrame, i: usize) -> PixelResult {
+        let Some(inputs) = self.pixel_inputs(frame, i) else {
+            return PixelResult::only(PixelClass::Unusable);
         };
-        match self.inversion.invert(&px) {
+        if !self.changed(&inputs) {
+            return PixelResult::only(PixelClass::Background);
+        }
+        match self.inversion.invert(&inputs.phasors()) {
             Ok(est) => self.classify(&est),
             Err(_) => PixelResult::only(PixelClass::Failed),
         }
