@@ -80,6 +80,8 @@ enum Sample {
     U8,
     U16,
     F32,
+    /// Two `f32` per pixel (`32FC2`).
+    F32x2,
 }
 
 impl Sample {
@@ -88,17 +90,18 @@ impl Sample {
             Sample::U8 => 1,
             Sample::U16 => 2,
             Sample::F32 => 4,
+            Sample::F32x2 => 8,
         }
     }
 }
 
 /// Checks the layout and decodes each pixel's bytes with `decode`, row-major.
-fn samples(
+fn samples<T>(
     img: &Image,
     sample: Sample,
     role: &'static str,
-    decode: impl Fn(&[u8]) -> f32,
-) -> Result<Vec<f32>, ImageError> {
+    decode: impl Fn(&[u8]) -> T,
+) -> Result<Vec<T>, ImageError> {
     let size = sample.size();
     let width = img.width as usize;
     let height = img.height as usize;
@@ -148,7 +151,7 @@ fn read_f32(b: &[u8], big: bool) -> f32 {
     }
 }
 
-fn to_buf(img: &Image, data: Vec<f32>, role: &'static str) -> Result<ImageBuf<f32>, ImageError> {
+fn to_buf<T>(img: &Image, data: Vec<T>, role: &'static str) -> Result<ImageBuf<T>, ImageError> {
     let (w, h) = (img.width as usize, img.height as usize);
     let found = data.len();
     ImageBuf::from_vec(w, h, data).ok_or(ImageError::DataLength {
@@ -213,6 +216,47 @@ pub fn ir_counts(img: &Image) -> Result<ImageBuf<f32>, ImageError> {
         }
     };
     to_buf(img, data, ROLE)
+}
+
+/// The encoding of a phasor image: in-phase and quadrature, `f32` each.
+pub const PHASOR_ENCODING: &str = "32FC2";
+
+/// A multi-frequency camera's phasor image (`32FC2`: in-phase `Q1 - Q2` and
+/// quadrature `Q3 - Q4` per pixel, the bucket differences of Eq. 5, in
+/// counts) as `[a, b]` pairs. Honours `step` and `is_bigendian`; non-finite
+/// samples are kept (the pixel has no measurement).
+pub fn phasor_samples(img: &Image) -> Result<ImageBuf<[f32; 2]>, ImageError> {
+    const ROLE: &str = "phasor";
+    if img.encoding != PHASOR_ENCODING {
+        return Err(ImageError::UnsupportedEncoding {
+            encoding: img.encoding.clone(),
+            role: ROLE,
+            supported: PHASOR_ENCODING,
+        });
+    }
+    let big = img.is_bigendian != 0;
+    let data = samples(img, Sample::F32x2, ROLE, |b| {
+        [read_f32(&b[..4], big), read_f32(&b[4..], big)]
+    })?;
+    to_buf(img, data, ROLE)
+}
+
+/// Encodes `[a, b]` phasors as a packed little-endian `32FC2` image.
+pub fn phasor_image(header: &Header, phasors: &ImageBuf<[f32; 2]>) -> Result<Image, ImageError> {
+    let mut data = Vec::with_capacity(8 * phasors.len());
+    for p in &phasors.data {
+        data.extend_from_slice(&p[0].to_le_bytes());
+        data.extend_from_slice(&p[1].to_le_bytes());
+    }
+    image_msg(
+        header,
+        phasors.width,
+        phasors.height,
+        PHASOR_ENCODING,
+        Sample::F32x2,
+        data,
+        "phasor image",
+    )
 }
 
 /// A packed little-endian image message.
@@ -374,6 +418,21 @@ pub fn sigma_image(header: &Header, sigma_mm: &ImageBuf<f32>) -> Result<Image, I
         Sample::F32,
         data,
         "sigma image",
+    )
+}
+
+/// A per-pixel translucency ξ as a `32FC1` image, NaN where there is none
+/// (`~/translucency_image`).
+pub fn translucency_image(header: &Header, xi: &ImageBuf<f32>) -> Result<Image, ImageError> {
+    let data = f32_bytes(&xi.data, |v| if v.is_finite() { v } else { f32::NAN });
+    image_msg(
+        header,
+        xi.width,
+        xi.height,
+        "32FC1",
+        Sample::F32,
+        data,
+        "translucency image",
     )
 }
 
@@ -599,6 +658,33 @@ mod tests {
 
         let err = depth_image(&h, &z, "mono8").unwrap_err();
         assert!(matches!(err, ImageError::UnsupportedEncoding { .. }));
+    }
+
+    #[test]
+    fn phasors_round_trip_and_bad_ones_are_errors() {
+        let p = ImageBuf::from_vec(2, 1, vec![[1.5, -2.25], [f32::NAN, 3.0e4]]).unwrap();
+        let h = Header::new(9, "cam");
+        let img = phasor_image(&h, &p).unwrap();
+        assert_eq!((img.encoding.as_str(), img.step, img.data.len()), ("32FC2", 16, 16));
+        let back = phasor_samples(&img).unwrap();
+        assert_eq!(back.data[0], [1.5, -2.25]);
+        assert!(back.data[1][0].is_nan() && back.data[1][1] == 3.0e4);
+        // Big-endian with row padding.
+        let mut data: Vec<u8> = [1.0f32, 2.0].iter().flat_map(|v| v.to_be_bytes()).collect();
+        data.extend([0, 0]);
+        assert_eq!(
+            phasor_samples(&msg(1, 1, "32FC2", 10, true, data)).unwrap().data,
+            [[1.0, 2.0]]
+        );
+        let err = phasor_samples(&msg(1, 1, "32FC1", 4, false, vec![0; 4])).unwrap_err();
+        assert!(
+            matches!(err, ImageError::UnsupportedEncoding { role: "phasor", .. }),
+            "{err}"
+        );
+        let err = phasor_samples(&msg(2, 1, "32FC2", 8, false, vec![0; 16])).unwrap_err();
+        assert!(matches!(err, ImageError::BadStep { min: 16, .. }), "{err}");
+        let err = phasor_samples(&msg(2, 2, "32FC2", 16, false, vec![0; 20])).unwrap_err();
+        assert!(matches!(err, ImageError::DataLength { expected: 32, .. }), "{err}");
     }
 
     #[test]

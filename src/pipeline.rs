@@ -4,6 +4,8 @@
 //!
 //! Buffers in, buffers out: no ROS, no files.
 
+pub mod multifreq;
+
 use std::sync::Arc;
 
 use nalgebra::Vector3;

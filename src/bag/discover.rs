@@ -50,7 +50,7 @@ fn segments(topic: &str) -> impl Iterator<Item = &str> {
 /// The camera namespace of a topic: trailing stream and image segments
 /// removed. `/tof/depth/image_raw`, `/tof/depth/camera_info`,
 /// `/tof/camera_info` and `/tof/ground_truth/depth` → `/tof`.
-fn camera_namespace(topic: &str) -> String {
+pub(super) fn camera_namespace(topic: &str) -> String {
     let mut segs: Vec<&str> = segments(topic).collect();
     let is_leaf = |s: &str| {
         s.starts_with("image")

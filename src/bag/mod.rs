@@ -6,16 +6,22 @@
 //! - [`BagReader`]: a whole `.mcap` (or a rosbag2 directory) in memory,
 //!   messages in log-time order, decoding checked against the type name.
 //! - [`select_topics`]: which topics of a bag are depth, IR, camera info
-//!   and ground truth.
+//!   and ground truth; [`phasor_topics`] and [`recorded_frequencies`]: a
+//!   multi-frequency camera's phasor images and their frequencies.
 #![deny(missing_docs)]
 
 mod discover;
+mod phasors;
 mod reader;
 mod writer;
 
 use std::path::PathBuf;
 
 pub use discover::{select_topics, SelectedTopics, TopicOverrides};
+pub use phasors::{
+    frequencies_metadata, parse_frequencies, phasor_topic, phasor_topics, recorded_frequencies, FREQUENCIES_KEY,
+    METADATA_NAME,
+};
 pub use reader::{record_length_limit, BagMetadata, BagReader, McapProblem, RawMessage, ReadStop, TopicInfo};
 pub use writer::{BagWriter, DEFAULT_QOS_PROFILES};
 
@@ -133,6 +139,9 @@ pub enum BagError {
         /// What the MCAP writer said.
         source: mcap::McapError,
     },
+    /// Multi-frequency input that cannot be used (phasor topics, frequencies).
+    #[error("multi-frequency input: {0}")]
+    MultiFrequency(String),
     /// No topic fits a role (depth, IR).
     #[error(
         "no {role} topic found (looked for {looked_for}); the bag has: {available}. Pass {flag} TOPIC to choose one"

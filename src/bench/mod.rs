@@ -11,8 +11,9 @@ use serde::Serialize;
 
 use crate::physics::translucency::{self, FrameSample, ProfileUse};
 use crate::physics::{ImageBuf, XiEstimate, XiMethod};
+use crate::pipeline::multifreq::{MultiFrequencyConfig, MultiFrequencyStage, PhasorFrame};
 use crate::pipeline::{DepthFrame, Observed, Pipeline, PipelineConfig, XiChoice};
-use crate::sim::render::{render_all, scene_intrinsics};
+use crate::sim::render::{render_all, scene_intrinsics, scene_sensor};
 use crate::sim::scene::{BackgroundSpec, CameraSpec, ObjectSpec, Scene, StageSpec};
 
 /// The ξ of the benchmark's layer (the paper's document holder).
@@ -151,6 +152,111 @@ impl BenchScene {
     }
 }
 
+/// The modulation frequencies of the multi-frequency case, Hz.
+pub const BENCH_FREQUENCIES_HZ: [f64; 3] = [20e6, 50e6, 100e6];
+
+/// The document holder of [`document_holder_scene`] seen at
+/// [`BENCH_FREQUENCIES_HZ`], latched on the multi-frequency path.
+pub struct MultiFrequencyBench {
+    /// Columns.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// The path, background latched, default settings.
+    pub stage: MultiFrequencyStage,
+    /// One frame per stage of [`STAGES_MM`]: phasors and depth.
+    pub frames: Vec<(PhasorFrame, DepthFrame)>,
+}
+
+impl MultiFrequencyBench {
+    /// Renders and latches the scene (several seconds at 640 x 480).
+    pub fn new(width: usize, height: usize) -> Self {
+        let mut scene = document_holder_scene(width, height, 5, 11);
+        scene.camera.modulation_frequencies_hz = BENCH_FREQUENCIES_HZ.to_vec();
+        let model = crate::physics::ForwardModel::physical(scene_sensor(&scene));
+        let config = MultiFrequencyConfig::new(BENCH_FREQUENCIES_HZ.to_vec(), model);
+        let mut stage =
+            MultiFrequencyStage::new(config, scene_intrinsics(&scene)).expect("the bench frequencies are valid");
+        let (background, objects): (Vec<_>, Vec<_>) = render_all(&scene)
+            .into_iter()
+            .map(|f| {
+                let depth = DepthFrame {
+                    stamp_ns: f.stamp_ns,
+                    z_mm: f.depth_z_mm,
+                    ir: f.ir,
+                };
+                let phasors = PhasorFrame {
+                    stamp_ns: f.stamp_ns,
+                    phasors: f.phasors,
+                };
+                (f.background_only, (phasors, depth))
+            })
+            .partition(|(bg, _)| *bg);
+        let latch: Vec<_> = background.iter().map(|(_, (p, d))| (p, d)).collect();
+        let range = scene_sensor(&scene).unambiguous_range_mm();
+        stage.latch(&latch, range).expect("the bench wall latches");
+        Self {
+            width,
+            height,
+            stage,
+            frames: objects.into_iter().map(|(_, f)| f).collect(),
+        }
+    }
+}
+
+/// The multi-frequency path on the frame of `settings.stage`: every pixel
+/// tested against the background and the changed ones inverted, in a pool of
+/// `settings.threads` threads; with `settings.reference`, the plain grid fit
+/// of two returns ([`reference::multi_frequency_grid`]) on one thread.
+pub fn run_multi_frequency(mf: &MultiFrequencyBench, settings: &RunSettings) -> Row {
+    let pool = crate::affinity::thread_pool(settings.threads.max(1), settings.pin).expect("a thread pool");
+    let stage = settings.stage.min(mf.frames.len() - 1);
+    let (phasors, depth) = &mf.frames[stage];
+    let process = || mf.stage.process(phasors, depth).expect("bench frames match the camera");
+    let (median_ms, p95_ms, samples) = pool.install(|| {
+        time_ms(settings.samples, settings.budget_s, settings.pause, || {
+            std::hint::black_box(process());
+        })
+    });
+    let out = process();
+    let (mut reference_ms, mut agreement) = (None, None);
+    if settings.reference {
+        let start = Instant::now();
+        let grid = reference::multi_frequency_grid(&mf.stage, phasors);
+        reference_ms = Some(start.elapsed().as_secs_f64() * 1e3);
+        let scale = mf.stage.intrinsics.ray_scale_map();
+        let fast = ImageBuf {
+            width: mf.width,
+            height: mf.height,
+            data: (0..scale.len())
+                .map(|i| match out.frame.mask.data[i] {
+                    true => f64::from(out.frame.corrected_z_mm.data[i]) * scale.data[i],
+                    false => f64::NAN,
+                })
+                .collect(),
+        };
+        agreement = Some(reference::multi_frequency_agreement(&fast, &grid));
+    }
+    let case = Case::MultiFrequency;
+    Row {
+        name: case.name(),
+        size: format!("{}x{}", mf.width, mf.height),
+        threads: settings.threads.max(1),
+        samples,
+        pause_ms: settings.pause.as_secs_f64() * 1e3,
+        pinned: settings.pin,
+        stage_mm: STAGES_MM[stage],
+        median_ms,
+        p95_ms,
+        reference_ms,
+        speedup: reference_ms.map(|r| r / median_ms),
+        target_ms: target_ms(case, mf.width, mf.height, settings.threads.max(1)),
+        translucent_pixels: out.frame.translucent_pixels,
+        translucent_fraction: out.frame.translucent_pixels as f64 / (mf.width * mf.height) as f64,
+        agreement,
+    }
+}
+
 /// What one benchmark case measures.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
@@ -171,6 +277,9 @@ pub enum Case {
     XiEstimate,
     /// `Pipeline::process` over the four object frames, ξ estimated online; per frame.
     Replay,
+    /// The multi-frequency path ([`MultiFrequencyStage::process`]) on one frame at
+    /// [`BENCH_FREQUENCIES_HZ`]: every pixel tested, the changed ones inverted.
+    MultiFrequency,
     // A `NodeLatency` case (the node's added latency over DDS on loopback) goes here.
 }
 
@@ -184,6 +293,7 @@ impl Case {
             Case::Observe => "observe",
             Case::XiEstimate => "xi_estimate",
             Case::Replay => "replay",
+            Case::MultiFrequency => "multi_frequency",
         }
     }
 }
@@ -369,13 +479,19 @@ pub fn target_ms(case: Case, width: usize, height: usize, threads: usize) -> Opt
         (Case::Recover, 25_344, 1) => Some(1.0),
         (Case::Recover, 307_200, 1) => Some(10.0),
         (Case::XiEstimate, 25_344, _) => Some(1000.0 / 30.0),
+        (Case::MultiFrequency, 307_200, 2) => Some(1000.0 / 30.0),
         _ => None,
     }
 }
 
 /// Runs one case on the frame of `settings.stage` (all frames for `replay`)
 /// in a pool of `settings.threads` threads.
+/// [`Case::MultiFrequency`] renders its own scene at this size ([`MultiFrequencyBench`];
+/// [`run_multi_frequency`] runs one already made).
 pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
+    if case == Case::MultiFrequency {
+        return run_multi_frequency(&MultiFrequencyBench::new(scene.width, scene.height), settings);
+    }
     let pool = crate::affinity::thread_pool(settings.threads.max(1), settings.pin).expect("a thread pool");
     let stage = settings.stage.min(scene.frames.len() - 1);
     let frame = &scene.frames[stage];
@@ -413,6 +529,8 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
             let n = scene.frames.len() as f64;
             (m / n, p / n, k)
         }
+        // Run above, on its own scene.
+        Case::MultiFrequency => (f64::NAN, f64::NAN, 0),
     });
     let (mut reference_ms, mut agreement) = (None, None);
     if settings.reference {

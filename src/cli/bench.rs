@@ -5,7 +5,10 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
 
-use crate::bench::{run_case, BenchScene, Case, RunSettings, BENCH_XI, STAGES_MM};
+use crate::bench::{
+    run_case, run_multi_frequency, BenchScene, Case, MultiFrequencyBench, RunSettings, BENCH_FREQUENCIES_HZ, BENCH_XI,
+    STAGES_MM,
+};
 
 use super::common::OutputArgs;
 
@@ -92,6 +95,10 @@ pub enum CaseArg {
     XiEstimate,
     /// The pipeline over the object frames, ξ estimated online; per frame.
     Replay,
+    /// The multi-frequency path (20, 50 and 100 MHz) on one frame, against a plain
+    /// per-pixel grid fit of two returns (not in the default list: its reference takes
+    /// seconds).
+    MultiFrequency,
     /// The node over DDS on loopback against a bare publish/subscribe of the same messages.
     NodeLatency,
 }
@@ -106,6 +113,7 @@ impl CaseArg {
             CaseArg::Observe => Some(Case::Observe),
             CaseArg::XiEstimate => Some(Case::XiEstimate),
             CaseArg::Replay => Some(Case::Replay),
+            CaseArg::MultiFrequency => Some(Case::MultiFrequency),
             CaseArg::NodeLatency => None,
         }
     }
@@ -153,6 +161,9 @@ pub fn run(a: BenchArgs) -> Result<()> {
     for &(w, h) in &sizes {
         pb.set_message(format!("rendering {w}x{h}"));
         let scene = BenchScene::new(w, h);
+        let multi = cases
+            .contains(&Case::MultiFrequency)
+            .then(|| MultiFrequencyBench::new(w, h));
         for &(case, stage) in &runs {
             for (k, &threads) in a.threads.iter().enumerate() {
                 pb.set_message(format!(
@@ -170,7 +181,10 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     stage,
                     pin: a.pin_threads,
                 };
-                rows.push(run_case(&scene, case, &settings));
+                rows.push(match (&multi, case) {
+                    (Some(m), Case::MultiFrequency) => run_multi_frequency(m, &settings),
+                    _ => run_case(&scene, case, &settings),
+                });
                 pb.inc(1);
             }
         }
@@ -232,6 +246,12 @@ pub fn run(a: BenchArgs) -> Result<()> {
             r.speedup.map_or_else(|| "-".into(), |s| format!("{s:.0}x")),
             100.0 * r.translucent_fraction,
             agree
+        ));
+    }
+    if cases.contains(&Case::MultiFrequency) {
+        text.push_str(&format!(
+            "multi_frequency: the same frames with phasors at {:?} MHz: every pixel tested against the latched background, the changed ones inverted (layer or opaque); reference: the plain fit of two returns on a 1 mm grid per changed pixel, one thread; agreement over the mask's layer distances\n",
+            BENCH_FREQUENCIES_HZ.map(|f| f / 1e6)
         ));
     }
     if let Some(n) = &node {

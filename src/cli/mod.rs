@@ -8,6 +8,7 @@ mod demo;
 mod node;
 mod recording;
 mod replay;
+mod replay_multifreq;
 mod simulate;
 
 use clap::{Parser, Subcommand};

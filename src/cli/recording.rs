@@ -6,10 +6,11 @@ use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
 
-use crate::bag::{select_topics, BagReader, SelectedTopics};
-use crate::image::{depth_mm, ir_counts};
+use crate::bag::{phasor_topics, recorded_frequencies, select_topics, BagReader, SelectedTopics};
+use crate::image::{depth_mm, ir_counts, phasor_samples};
 use crate::msgs::{CameraInfo, Header, Image};
 use crate::physics::{ImageBuf, Intrinsics};
+use crate::pipeline::multifreq::PhasorFrame;
 use crate::pipeline::{detect_scene_change, DepthFrame, Pipeline, PipelineConfig};
 
 use super::common::{ModelArgs, PhysicsChoice, PhysicsFile, RecordedPhysics, TopicArgs};
@@ -39,6 +40,8 @@ pub struct Recording {
     /// [`PHYSICS_RECORD`](crate::bag::PHYSICS_RECORD), else a sidecar `BAG.toml`'s
     /// `physics = "PRESET"`); `Err` when what it says cannot be read.
     pub physics: Result<Option<RecordedPhysics>, String>,
+    /// A multi-frequency camera's phasors, when asked for and the bag has them.
+    pub multi_frequency: Option<PhasorRecording>,
 }
 
 /// The physics a bag names: its metadata record, else (a bag file) the
@@ -147,13 +150,42 @@ fn cut_text(
     ))
 }
 
+/// The phasor images of a multi-frequency recording (docs/interfaces.md,
+/// "Multi-frequency input").
+pub struct PhasorRecording {
+    /// `phasor_<k>/image_raw`, in the order of `k`.
+    pub topics: Vec<String>,
+    /// The frequencies the bag records (metadata `translucent_tof.modulation_frequencies_hz`), if any.
+    pub recorded_frequencies_hz: Option<Vec<f64>>,
+    /// One per frame of [`Recording::frames`], at the same stamp.
+    pub frames: Vec<PhasorFrame>,
+    /// Depth + IR pairs left out for want of a phasor image at their stamp.
+    pub unpaired: usize,
+}
+
+/// Phasor images by topic index and stamp, as read.
+type PhasorMessages = Vec<BTreeMap<u64, Image>>;
+
 /// Reads a bag: picks topics, pairs depth and IR by exact stamp, decodes.
 pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
+    load_with_phasors(path, topics, false)
+}
+
+/// [`load`], and with `phasors` a multi-frequency camera's phasor images
+/// when the bag has them: the frames are then those with depth, IR and
+/// every phasor image at one stamp.
+pub fn load_with_phasors(path: &Path, topics: &TopicArgs, phasors: bool) -> Result<Recording> {
     let reader = BagReader::open(path).with_context(|| format!("opening bag {}", path.display()))?;
     let read_stops: Vec<String> = reader.stops().iter().map(|s| s.to_string()).collect();
     let physics = recorded_physics(path, &reader);
     let infos = reader.topics();
     let sel = select_topics(&infos, &topics.overrides()).with_context(|| format!("bag {}", path.display()))?;
+    let phasor_names = if phasors {
+        phasor_topics(&infos, &sel.depth).with_context(|| format!("bag {}", path.display()))?
+    } else {
+        vec![]
+    };
+    let mut phasor_msgs: PhasorMessages = vec![BTreeMap::new(); phasor_names.len()];
     let mut depth: BTreeMap<u64, Image> = BTreeMap::new();
     let mut ir: BTreeMap<u64, Image> = BTreeMap::new();
     let mut truth = BTreeMap::new();
@@ -169,6 +201,9 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
             ir.insert(img.header.stamp.as_log_time_ns(), img);
         } else if Some(raw.topic) == sel.info.as_deref() && info.is_none() {
             info = Some(BagReader::decode(&raw).with_context(|| at("camera_info"))?);
+        } else if let Some(k) = phasor_names.iter().position(|t| t == raw.topic) {
+            let img: Image = BagReader::decode(&raw).with_context(|| at("phasor"))?;
+            phasor_msgs[k].insert(img.header.stamp.as_log_time_ns(), img);
         } else if Some(raw.topic) == sel.ground_truth.as_deref() {
             let img: Image = BagReader::decode(&raw).with_context(|| at("ground truth"))?;
             let stamp = img.header.stamp.as_log_time_ns();
@@ -195,8 +230,19 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
     })?;
     let intrinsics = Intrinsics::from_camera_info(&info)
         .with_context(|| format!("bag {}: camera_info not usable", path.display()))?;
-    let paired: Vec<u64> = depth.keys().filter(|s| ir.contains_key(s)).copied().collect();
+    let mut paired: Vec<u64> = depth.keys().filter(|s| ir.contains_key(s)).copied().collect();
     let unpaired = (depth.len() - paired.len(), ir.len() - paired.len());
+    let depth_ir_pairs = paired.len();
+    if !phasor_names.is_empty() {
+        paired.retain(|s| phasor_msgs.iter().all(|m| m.contains_key(s)));
+        if paired.is_empty() && depth_ir_pairs > 0 {
+            bail!(
+                "bag {}: no depth + IR pair shares its stamp with an image on every phasor topic ({}): phasors must be paired by exact stamp with the depth",
+                path.display(),
+                phasor_names.join(", ")
+            );
+        }
+    }
     if paired.is_empty() {
         let first = |m: &BTreeMap<u64, Image>| m.keys().next().map(|s| s.to_string()).unwrap_or_else(|| "none".into());
         bail!(
@@ -245,6 +291,17 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
             ir: v,
         });
     }
+    let multi_frequency = if phasor_names.is_empty() {
+        None
+    } else {
+        Some(PhasorRecording {
+            frames: decode_phasors(path, &phasor_names, &phasor_msgs, &frames, &intrinsics)?,
+            recorded_frequencies_hz: recorded_frequencies(reader.metadata())
+                .with_context(|| format!("bag {}", path.display()))?,
+            topics: phasor_names,
+            unpaired: depth_ir_pairs - frames.len(),
+        })
+    };
     Ok(Recording {
         cut,
         topics: sel,
@@ -256,7 +313,53 @@ pub fn load(path: &Path, topics: &TopicArgs) -> Result<Recording> {
         unpaired,
         read_stops,
         physics,
+        multi_frequency,
     })
+}
+
+/// The phasor images at each frame's stamp, decoded and checked against the camera's size.
+fn decode_phasors(
+    path: &Path,
+    topics: &[String],
+    msgs: &PhasorMessages,
+    frames: &[DepthFrame],
+    k: &Intrinsics,
+) -> Result<Vec<PhasorFrame>> {
+    frames
+        .iter()
+        .map(|f| {
+            let phasors = topics
+                .iter()
+                .zip(msgs)
+                .map(|(topic, by_stamp)| {
+                    let at = || {
+                        format!(
+                            "bag {}: phasor image at stamp {} ns on {topic}",
+                            path.display(),
+                            f.stamp_ns
+                        )
+                    };
+                    let img = by_stamp.get(&f.stamp_ns).ok_or_else(|| anyhow!("{}: missing", at()))?;
+                    let p = phasor_samples(img).with_context(at)?;
+                    if (p.width, p.height) != (k.width, k.height) {
+                        bail!(
+                            "{}: {}x{}, but camera_info (with its ROI and binning) gives {}x{}",
+                            at(),
+                            p.width,
+                            p.height,
+                            k.width,
+                            k.height
+                        );
+                    }
+                    Ok(p)
+                })
+                .collect::<Result<Vec<_>>>()?;
+            Ok(PhasorFrame {
+                stamp_ns: f.stamp_ns,
+                phasors,
+            })
+        })
+        .collect()
 }
 
 /// How the background frames were chosen.

@@ -14,7 +14,7 @@ use crate::physics::{ImageBuf, XiEstimate, XiMethod};
 use crate::pipeline::{FrameOutput, TruthError, XiChoice};
 
 use super::common::{OutputArgs, PipelineArgs};
-use super::recording::{load, Recording};
+use super::recording::{load_with_phasors, Recording};
 
 /// Arguments of `replay`.
 #[derive(Debug, Args)]
@@ -45,6 +45,13 @@ pub struct ReplayArgs {
     /// the fitted surface's tangent at its own ray (1: a window for every pixel; slower).
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u64).range(1..=16))]
     pub prior_stride_px: u64,
+    /// A multi-frequency camera's modulation frequencies, Hz, comma-separated, one per
+    /// `phasor_<k>/image_raw` topic (default: the bag's record of them).
+    #[arg(long, value_delimiter = ',', value_name = "F0,F1,...")]
+    pub modulation_frequencies_hz: Vec<f64>,
+    /// Ignore phasor topics: recover from the depth and IR alone, as for a single-frequency camera.
+    #[arg(long)]
+    pub single_frequency: bool,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
     #[command(flatten)]
@@ -93,7 +100,7 @@ impl XiMode {
 
 /// Where replay writes its bag: `--out` if it names a file, `STEM.recovered.mcap` in
 /// `--out` if that is a folder, else in `out/`.
-fn out_path(bag: &Path, out: Option<&Path>) -> PathBuf {
+pub(super) fn out_path(bag: &Path, out: Option<&Path>) -> PathBuf {
     let stem = bag
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
@@ -133,9 +140,22 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         Some(x) => XiChoice::Fixed(x),
         None => XiChoice::Estimate(method),
     };
-    let rec = load(&a.bag, &a.pipeline.topics)?;
+    let rec = load_with_phasors(&a.bag, &a.pipeline.topics, !a.single_frequency)?;
     let physics = rec.physics_choice(&a.pipeline.model)?;
     config.model = physics.model.clone();
+    if rec.multi_frequency.is_some() {
+        return super::replay_multifreq::run(&a, config, rec);
+    }
+    if !a.modulation_frequencies_hz.is_empty() {
+        bail!(
+            "--modulation-frequencies-hz: {}",
+            if a.single_frequency {
+                "not with --single-frequency".to_string()
+            } else {
+                format!("the bag {} has no phasor_<k>/image_raw topics", a.bag.display())
+            }
+        );
+    }
     let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
     let mut pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];

@@ -6,8 +6,8 @@ use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use serde_json::json;
 
-use crate::bag::BagWriter;
-use crate::image::{camera_info, depth_image, ir_image};
+use crate::bag::{frequencies_metadata, phasor_topic, BagWriter, METADATA_NAME};
+use crate::image::{camera_info, depth_image, ir_image, phasor_image};
 use crate::msgs::Header;
 use crate::physics::ImageBuf;
 use crate::sim::render::{render, scene_intrinsics, scene_sensor};
@@ -63,6 +63,13 @@ pub fn run(a: SimulateArgs) -> Result<()> {
             std::collections::BTreeMap::from([(crate::bag::PHYSICS_RECORD_KEY.to_string(), physics_toml.clone())]),
         )
         .with_context(|| format!("writing {}", a.out.display()))?;
+    let frequencies = &c.modulation_frequencies_hz;
+    if !frequencies.is_empty() {
+        writer
+            .write_metadata(METADATA_NAME, frequencies_metadata(frequencies))
+            .with_context(|| format!("writing the modulation frequencies into {}", a.out.display()))?;
+    }
+    let phasor_topics: Vec<String> = (0..frequencies.len()).map(|k| phasor_topic(&ns, k)).collect();
     let pb = a.output.progress(scene.frame_count() as u64, "rendering");
     let mut background = 0;
     render(&scene, |_, f| {
@@ -79,6 +86,9 @@ pub fn run(a: SimulateArgs) -> Result<()> {
                 &ir_image(&h, &f.ir, &c.ir_encoding)?,
             )?;
             writer.write(&topic("depth/camera_info"), f.stamp_ns, &camera_info(&h, &k))?;
+            for (t, p) in phasor_topics.iter().zip(&f.phasors) {
+                writer.write(t, f.stamp_ns, &phasor_image(&h, p)?)?;
+            }
             let truth_m = ImageBuf {
                 width: f.truth_z_mm.width,
                 height: f.truth_z_mm.height,
@@ -103,7 +113,14 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     writer
         .finish()
         .with_context(|| format!("finishing {}", a.out.display()))?;
-    let report = json!({
+    let mut topics = vec![
+        topic("depth/image_raw"),
+        topic("ir/image_raw"),
+        topic("depth/camera_info"),
+        topic("ground_truth/depth"),
+    ];
+    topics.extend(phasor_topics.iter().cloned());
+    let mut report = json!({
         "scene": a.scene.display().to_string(),
         "out": a.out.display().to_string(),
         "frames": scene.frame_count(),
@@ -113,8 +130,11 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         "seed": scene.seed,
         "physics": describe_model(&model),
         "physics_toml": physics_toml,
-        "topics": [topic("depth/image_raw"), topic("ir/image_raw"), topic("depth/camera_info"), topic("ground_truth/depth")],
+        "topics": topics,
     });
+    if !frequencies.is_empty() {
+        report["modulation_frequencies_hz"] = json!(frequencies);
+    }
     a.output.summary(&format!(
         "rendered {} frames ({} background) at {}x{} into {}\nphysics: {} (recorded in the bag as its {} metadata record; replay, calibrate-xi and audit use it)",
         scene.frame_count(),

@@ -263,6 +263,17 @@ pub struct MultiFrequencyEstimate {
     pub translucency_sigma: f64,
 }
 
+/// One opaque return fitted to a pixel's phasors ([`MultiFrequencyInversion::single_return`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SingleReturn {
+    /// Its distance, mm, in `[d_min, d_min + common range)`.
+    pub distance_mm: f64,
+    /// Its strength `L`, >= 0, counts.
+    pub strength: f64,
+    /// `chi^2 = sum_k |M_k - L u_k(d)|^2 / sigma_k^2`.
+    pub chi_square: f64,
+}
+
 /// The best layer at one fixed ξ: a point of the profile over ξ.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TranslucencyFit {
@@ -472,6 +483,53 @@ impl MultiFrequencyInversion {
     /// The frequencies' common unambiguous range, mm.
     pub fn common_unambiguous_range_mm(&self) -> f64 {
         self.common_range_mm
+    }
+
+    /// The one opaque return that best explains `measured` (a latched
+    /// background's phasors, say): its distance over `[d_min, d_min + R)`
+    /// with `R` the common unambiguous range (a surface farther than that
+    /// aliases into it), its strength in closed form at each distance.
+    pub fn single_return(&self, measured: &[Phasor], noise_sigma: &[f64]) -> Result<SingleReturn, MultiFrequencyError> {
+        let k = self.sensors.len();
+        for (what, got) in [
+            ("measured phasors", measured.len()),
+            ("noise sigmas", noise_sigma.len()),
+        ] {
+            if got != k {
+                return Err(MultiFrequencyError::MismatchedLengths { what, expected: k, got });
+            }
+        }
+        if !measured.iter().all(|p| p.a.is_finite() && p.b.is_finite()) {
+            return Err(MultiFrequencyError::NotFinite("a measured phasor"));
+        }
+        if let Some(&s) = noise_sigma.iter().find(|s| !(s.is_finite() && **s > 0.0)) {
+            return Err(MultiFrequencyError::NonPositiveNoise(s));
+        }
+        let weights = || noise_sigma.iter().map(|s| 1.0 / (s * s));
+        let mm: f64 = measured.iter().zip(weights()).map(|(m, w)| w * dot(*m, *m)).sum();
+        // (<u, M>, <u, u>) at d, weighted.
+        let products = |d: f64| {
+            let (mut um, mut uu) = (0.0, 0.0);
+            for ((s, m), w) in self.sensors.iter().zip(measured).zip(weights()) {
+                let u = self.unit_return(s, d);
+                um += w * dot(u, *m);
+                uu += w * dot(u, u);
+            }
+            (um, uu)
+        };
+        let strength = |(um, uu): (f64, f64)| if uu > 0.0 { (um / uu).max(0.0) } else { 0.0 };
+        let chi_square = |d: f64| {
+            let (um, uu) = products(d);
+            let l = strength((um, uu));
+            (mm - 2.0 * l * um + l * l * uu).max(0.0)
+        };
+        let lo = self.settings.min_distance_mm;
+        let (d, chi) = self.minimise(lo, lo + self.common_range_mm, chi_square);
+        Ok(SingleReturn {
+            distance_mm: d,
+            strength: strength(products(d)),
+            chi_square: chi,
+        })
     }
 
     /// The estimate of a pixel that one return explains.
@@ -839,6 +897,31 @@ mod tests {
         let o = Observed::new(&mf3, &scene(1000.0, 4000.0, 0.5), NOISE_FREE);
         let est = inv3.invert(&o.phasors()).expect("three frequencies reach 4 m");
         assert!((est.foreground_distance_mm - 1000.0).abs() < 0.5, "{est:?}");
+    }
+
+    #[test]
+    fn a_single_return_is_found_over_the_common_range() {
+        let (mf, inv) = model(Waveform::Sinusoid, &THREE);
+        for d in [150.0, 2000.0, 3300.0, 9000.0, 14_000.0] {
+            let wall = [ForwardModel::opaque_return(d, X_BACKGROUND, LIN)];
+            let m: Vec<Phasor> = mf.measure(&wall).map(|m| m.buckets).collect();
+            let fit = inv.single_return(&m, &[1e-4 * wall[0].strength; 3]).expect("fit");
+            assert!((fit.distance_mm - d).abs() < 0.01, "{d}: {fit:?}");
+            assert!((fit.strength / wall[0].strength - 1.0).abs() < 1e-6, "{d}: {fit:?}");
+        }
+        // 50 and 100 MHz: 3300 mm aliases to 3300 - 2998 mm.
+        let (mf2, inv2) = model(Waveform::Sinusoid, &[50.0 * MHZ, 100.0 * MHZ]);
+        let wall = [ForwardModel::opaque_return(3300.0, X_BACKGROUND, LIN)];
+        let m: Vec<Phasor> = mf2.measure(&wall).map(|m| m.buckets).collect();
+        let fit = inv2.single_return(&m, &[1.0; 2]).expect("fit");
+        assert!(
+            (fit.distance_mm - (3300.0 - mf2.common_unambiguous_range_mm())).abs() < 0.01,
+            "{fit:?}"
+        );
+        assert!(matches!(
+            inv.single_return(&m, &[1.0; 2]),
+            Err(MultiFrequencyError::MismatchedLengths { .. })
+        ));
     }
 
     #[test]

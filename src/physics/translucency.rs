@@ -35,6 +35,9 @@ pub enum XiMethod {
     OneMaterial,
     /// The paper's Eq. 12 residual sum (degenerate: for comparison only).
     Eq12Residual,
+    /// Per pixel from several modulation frequencies' phasors (issue 35), a
+    /// region's the median of its pixels'.
+    MultiFrequency,
 }
 
 impl XiMethod {
@@ -45,6 +48,7 @@ impl XiMethod {
             XiMethod::Calibrated => "calibrated",
             XiMethod::OneMaterial => "one_material",
             XiMethod::Eq12Residual => "eq12_residual",
+            XiMethod::MultiFrequency => "multi_frequency",
         }
     }
 }

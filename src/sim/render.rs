@@ -8,6 +8,7 @@ use rand_distr::StandardNormal;
 
 use super::scene::{ObjectSpec, Scene};
 use crate::physics::model::MAX_BOUNCES;
+use crate::physics::multifreq::MultiFrequencyModel;
 use crate::physics::noise::ShotNoise;
 use crate::physics::{ForwardModel, ImageBuf, Intrinsics, LayerScene, Return, Sensor, Waveform};
 
@@ -24,6 +25,9 @@ pub struct SimFrame {
     pub truth_z_mm: ImageBuf<f32>,
     /// Whether this frame shows the background alone.
     pub background_only: bool,
+    /// One phasor image per `camera.modulation_frequencies_hz` (empty when
+    /// none): in-phase and quadrature bucket differences, counts, noisy.
+    pub phasors: Vec<ImageBuf<[f32; 2]>>,
 }
 
 /// The camera and physics a scene implies.
@@ -184,6 +188,35 @@ fn ray_returns(
     }
 }
 
+/// The scene's forward model at each of `camera.modulation_frequencies_hz`
+/// (`None` when it lists none): the same physics and waveform.
+pub fn scene_frequencies(scene: &Scene, model: &ForwardModel) -> Result<Option<MultiFrequencyModel>, String> {
+    let f = &scene.camera.modulation_frequencies_hz;
+    if f.is_empty() {
+        return Ok(None);
+    }
+    MultiFrequencyModel::new(model, f)
+        .map(Some)
+        .map_err(|e| format!("camera.modulation_frequencies_hz: {e}"))
+}
+
+/// The noisy phasor of `returns` at each frequency (Eq. 5 at `f_k`), with the
+/// same shot noise as the depth image: the bucket noise follows the light
+/// received, which is the same at every frequency. Pushes one per frequency.
+fn push_phasors(
+    mf: &MultiFrequencyModel,
+    returns: &[Return],
+    noise: &ShotNoise,
+    rng: &mut ChaCha8Rng,
+    out: &mut [Vec<[f32; 2]>],
+) {
+    for (m, image) in mf.measure(returns).zip(out.iter_mut()) {
+        let s = noise.bucket_sigma(m.total_light);
+        let (za, zb): (f64, f64) = (rng.sample(StandardNormal), rng.sample(StandardNormal));
+        image.push([(m.buckets.a + s * za) as f32, (m.buckets.b + s * zb) as f32]);
+    }
+}
+
 /// Renders every frame of the scene: background frames, then each stage's.
 /// `on_frame` receives each frame as it is made (for progress and writing).
 pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result<(), String>) -> Result<(), String> {
@@ -199,6 +232,11 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
     let ref_strength = n.reference_albedo * scene.emitter.peak_emitted_light / n.reference_distance_mm.powi(2);
     let noise = ShotNoise::calibrated(&sensor, ref_strength, n.depth_noise_mm, n.read_noise);
     let mut rng = ChaCha8Rng::seed_from_u64(scene.seed);
+    let multi = scene_frequencies(scene, &model)?;
+    // The phasors' noise from a stream of its own: depth and IR are those of the same
+    // scene without the extra frequencies.
+    let mut phasor_rng = ChaCha8Rng::seed_from_u64(scene.seed);
+    phasor_rng.set_stream(1);
     let rays = k.unit_ray_map();
     let scale = k.ray_scale_map();
     let b = &scene.background;
@@ -217,6 +255,7 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
         let mut depth = Vec::with_capacity(npx);
         let mut ir = Vec::with_capacity(npx);
         let mut truth = Vec::with_capacity(npx);
+        let mut phasors: Vec<Vec<[f32; 2]>> = vec![Vec::with_capacity(npx); multi.as_ref().map_or(0, |m| m.len())];
         for i in 0..npx {
             let (col, row) = ((i % k.width) as f64, (i / k.width) as f64);
             // Sub-rays on a regular grid within the pixel, each with its share of the light:
@@ -245,6 +284,9 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
                         &mut returns,
                     );
                 }
+            }
+            if let Some(mf) = &multi {
+                push_phasors(mf, &returns, &noise, &mut phasor_rng, &mut phasors);
             }
             let meas = (!returns.is_empty()).then(|| model.measure(&returns));
             let fg = foreground_hit(
@@ -280,6 +322,14 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
                 data: truth,
             },
             background_only,
+            phasors: phasors
+                .into_iter()
+                .map(|data| ImageBuf {
+                    width: k.width,
+                    height: k.height,
+                    data,
+                })
+                .collect(),
         };
         on_frame(index, frame)?;
     }
@@ -324,6 +374,45 @@ mod tests {
         let n_truth = f.truth_z_mm.data.iter().filter(|t| t.is_finite()).count();
         assert!(n_truth > 2000, "{n_truth}");
         assert!(frames[2].stamp_ns > frames[1].stamp_ns);
+    }
+
+    #[test]
+    fn phasors_come_from_the_one_model_and_leave_depth_and_ir_alone() {
+        let single = render_all(&scene(10.0));
+        let mut s = scene(10.0);
+        s.camera.modulation_frequencies_hz = vec![20e6, 50e6, 100e6];
+        let multi = render_all(&s);
+        for (a, b) in single.iter().zip(&multi) {
+            assert!(a.phasors.is_empty() && b.phasors.len() == 3);
+            assert_eq!(
+                a.depth_z_mm.data.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                b.depth_z_mm.data.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+            assert_eq!(a.ir.data, b.ir.data);
+        }
+        // Noise-free: the wall's phasor at each frequency is the forward model's.
+        let mut quiet = s.clone();
+        quiet.noise.depth_noise_mm = 0.0;
+        let f = &render_all(&quiet)[0];
+        let k = Intrinsics::sr4000();
+        let c = k.width / 2 + (k.height / 2) * k.width;
+        let lin = emitted_light_map(&quiet).data[c];
+        let wall = [ForwardModel::opaque_return(
+            2000.0 * k.ray_scale(k.width / 2, k.height / 2),
+            1.0,
+            lin,
+        )];
+        let model = ForwardModel {
+            sensor: scene_sensor(&quiet),
+            options: quiet.physics.clone(),
+        };
+        let mf = scene_frequencies(&quiet, &model).unwrap().unwrap();
+        for (m, image) in mf.measure(&wall).zip(&f.phasors) {
+            let [a, b] = image.data[c];
+            let scale = m.buckets.a.hypot(m.buckets.b);
+            assert!((f64::from(a) - m.buckets.a).abs() < 1e-5 * scale, "{a} {:?}", m.buckets);
+            assert!((f64::from(b) - m.buckets.b).abs() < 1e-5 * scale, "{b} {:?}", m.buckets);
+        }
     }
 
     #[test]

@@ -79,6 +79,10 @@ pub struct CameraSpec {
     pub vfov_deg: f64,
     /// Modulation frequency, Hz.
     pub modulation_frequency_hz: f64,
+    /// A multi-frequency camera's modulation frequencies, Hz (empty: none).
+    /// Each gets a `32FC2` phasor image `phasor_<k>/image_raw` beside the
+    /// depth and IR (which stay at `modulation_frequency_hz`).
+    pub modulation_frequencies_hz: Vec<f64>,
     /// `sinusoid`, `triangle` or `harmonics`.
     pub waveform: String,
     /// Relative 3rd and 5th harmonic amplitudes when `waveform = "harmonics"`.
@@ -121,6 +125,7 @@ impl Default for CameraSpec {
             hfov_deg: 44.0,
             vfov_deg: 35.0,
             modulation_frequency_hz: 30.0e6,
+            modulation_frequencies_hz: vec![],
             waveform: "sinusoid".into(),
             harmonics: [0.0, 0.0],
             frame_rate_hz: 10.0,
@@ -298,6 +303,7 @@ impl Scene {
         if !pos(c.modulation_frequency_hz) || !pos(c.frame_rate_hz) {
             return Err("camera modulation_frequency_hz and frame_rate_hz must be positive".into());
         }
+        check_frequencies(&c.modulation_frequencies_hz)?;
         if !["sinusoid", "triangle", "harmonics"].contains(&c.waveform.as_str()) {
             return Err(format!(
                 "camera.waveform {:?}: expected sinusoid, triangle or harmonics",
@@ -353,6 +359,31 @@ impl Scene {
     pub fn frame_count(&self) -> usize {
         self.background.frames + self.stages.iter().map(|s| s.frames).sum::<usize>()
     }
+}
+
+/// Most modulation frequencies a scene's camera may have.
+pub const MAX_FREQUENCIES: usize = 8;
+
+/// `camera.modulation_frequencies_hz`: up to [`MAX_FREQUENCIES`] distinct,
+/// positive, finite frequencies.
+fn check_frequencies(f: &[f64]) -> Result<(), String> {
+    if f.len() > MAX_FREQUENCIES {
+        return Err(format!(
+            "camera.modulation_frequencies_hz has {} frequencies; at most {MAX_FREQUENCIES}",
+            f.len()
+        ));
+    }
+    for (k, &v) in f.iter().enumerate() {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(format!(
+                "camera.modulation_frequencies_hz[{k}] = {v}: frequencies must be positive, in Hz"
+            ));
+        }
+        if f[..k].contains(&v) {
+            return Err(format!("camera.modulation_frequencies_hz lists {v} Hz twice"));
+        }
+    }
+    Ok(())
 }
 
 /// A pixel on the image's border whose ray the lens model cannot give
@@ -411,6 +442,22 @@ mod tests {
             cur = c.source();
         }
         s
+    }
+
+    #[test]
+    fn modulation_frequencies_are_optional_and_checked() {
+        let with = |f: &str| Scene::from_toml(&format!("[camera]\n{f}\n[background]\ndistance_mm = 2000\n"), "f.toml");
+        assert!(with("").unwrap().camera.modulation_frequencies_hz.is_empty());
+        let s = with("modulation_frequencies_hz = [20e6, 50e6, 100e6]").unwrap();
+        assert_eq!(s.camera.modulation_frequencies_hz, [20e6, 50e6, 100e6]);
+        for (bad, says) in [
+            ("[20e6, -5]", "must be positive"),
+            ("[20e6, 20e6]", "twice"),
+            ("[1, 2, 3, 4, 5, 6, 7, 8, 9]", "at most 8"),
+        ] {
+            let e = chain(&with(&format!("modulation_frequencies_hz = {bad}")).unwrap_err());
+            assert!(e.contains("f.toml") && e.contains(says), "{e}");
+        }
     }
 
     #[test]

@@ -1,0 +1,1012 @@
+//! The multi-frequency path (issue 35; docs/interfaces.md, "Multi-frequency
+//! input"): a camera that gives one phasor per modulation frequency has each
+//! pixel's layer determined by the pixel alone, against a latched background
+//! ([`crate::physics::multifreq`]).
+//!
+//! Per frame, per pixel (in parallel):
+//!
+//! 1. the phasors `M_k` are compared with the latched background's `B_k`:
+//!    a pixel whose `chi^2 = sum_k |M_k - B_k|^2 / sigma_k^2` stays below the
+//!    change level is background (its reading is kept);
+//! 2. a changed pixel is inverted for two returns, a layer before the
+//!    background ([`MultiFrequencyInversion::invert`]); it is a layer when
+//!    one return does not explain its phasors (the likelihood-ratio statistic
+//!    above [`MultiFrequencyConfig::opacity_threshold`]), else opaque.
+//!
+//! Layer pixels in pieces of at least `min_region_pixels` form the mask; the
+//! corrected depth is the layer's there and the reading elsewhere. Regions
+//! (connected, without a step in depth) carry the median of their pixels' ξ
+//! with an interval from their spread and stated σ; changed opaque pieces
+//! are regions with ξ 0. Regions are per frame: no tracking between frames.
+//!
+//! The noise: each pixel's `sigma_k` (one component of `M_k`) is the spread
+//! of its background phasors over the latch, grown with the latched mean's
+//! own (`sqrt(1 + 1/n)` over `n` frames) and as shot noise with the light the
+//! frame returns where that is more than the background's (`sqrt(|M| / |B|)`,
+//! the largest amplitudes over the frequencies).
+
+use std::sync::Arc;
+
+use nalgebra::Vector3;
+use rayon::prelude::*;
+use thiserror::Error;
+
+use super::{DepthFrame, FrameOutput, RegionOutput};
+use crate::physics::multifreq::{
+    MultiFrequencyError, MultiFrequencyEstimate, MultiFrequencyInversion, MultiFrequencyModel, Phasor, PixelPhasors,
+    ScanSettings,
+};
+use crate::physics::segmentation::{label_regions, remove_small_regions, wrapped_difference};
+use crate::physics::stats::{median_select, sigma_about};
+use crate::physics::{ForwardModel, ImageBuf, Intrinsics, XiEstimate, XiMethod};
+
+/// Most modulation frequencies the path takes.
+pub const MAX_FREQUENCIES: usize = 8;
+
+/// The 99.9 % quantile of chi-square with one degree of freedom: the default
+/// level at which a changed pixel is a layer rather than an opaque surface.
+pub const CHI_SQUARE_1_999: f64 = 10.827_566_170_662_733;
+
+/// A background pixel whose phasors and depth image disagree by more than
+/// this (mm, wrapped at the depth image's range) is aliased.
+pub const ALIAS_TOLERANCE_MM: f64 = 100.0;
+
+/// Share of the background's pixels allowed to disagree so before the
+/// frequencies are refused for this scene.
+pub const ALIAS_SHARE: f64 = 0.05;
+
+/// The relative floor of a background pixel's noise: noise-free phasors
+/// (simulated) still get a positive `sigma` (f32 rounding is about 6e-8).
+const NOISE_FLOOR: f64 = 1e-6;
+
+/// Pixels a rayon task takes at least.
+const MIN_TASK_PIXELS: usize = 64;
+
+/// Why the multi-frequency path cannot latch or process.
+#[derive(Debug, Error)]
+pub enum MultiFrequencyStageError {
+    /// The frequencies or the inversion's settings.
+    #[error(transparent)]
+    Model(#[from] MultiFrequencyError),
+    /// More frequencies than [`MAX_FREQUENCIES`].
+    #[error("{0} modulation frequencies: at most {MAX_FREQUENCIES}")]
+    TooManyFrequencies(usize),
+    /// A frame with a phasor image per frequency missing or extra.
+    #[error("{got} phasor images for {expected} modulation frequencies")]
+    FrequencyCount {
+        /// Frequencies.
+        expected: usize,
+        /// Images.
+        got: usize,
+    },
+    /// An image of another size than the camera's.
+    #[error("size mismatch: {what} is {got_w}x{got_h}, expected {want_w}x{want_h}")]
+    SizeMismatch {
+        /// Which image.
+        what: String,
+        /// Its width.
+        got_w: usize,
+        /// Its height.
+        got_h: usize,
+        /// The camera's width.
+        want_w: usize,
+        /// The camera's height.
+        want_h: usize,
+    },
+    /// Nothing latched yet.
+    #[error("no phasor background latched")]
+    NoBackground,
+    /// Too few frames to measure the background's noise.
+    #[error("the phasor background needs at least 2 frames to measure its noise, got {0}")]
+    TooFewFrames(usize),
+    /// Too few pixels with usable background phasors.
+    #[error("the phasor background has {valid} usable pixels of {total}: too few (no light returned?)")]
+    BackgroundInvalid {
+        /// Usable pixels.
+        valid: usize,
+        /// All pixels.
+        total: usize,
+    },
+    /// The phasors put the background elsewhere than the depth image does:
+    /// the frequencies' common unambiguous range is shorter than the scene.
+    #[error(
+        "the phasors put the background at {phasor_mm:.0} mm (median) where the depth image reads {depth_mm:.0} mm, at {share_percent:.0} % of its pixels: the frequencies' common unambiguous range {common_range_mm:.0} mm is shorter than the scene, whose distances alias; choose frequencies whose common range c / (2 gcd) covers it (20, 50 and 100 MHz: 14990 mm)"
+    )]
+    Aliased {
+        /// The frequencies' common unambiguous range, mm.
+        common_range_mm: f64,
+        /// Median background distance the phasors give, mm, over the disagreeing pixels.
+        phasor_mm: f64,
+        /// Median the depth image gives there, mm.
+        depth_mm: f64,
+        /// Share of the compared pixels that disagree, %.
+        share_percent: f64,
+    },
+}
+
+/// One frame of a multi-frequency camera.
+#[derive(Debug, Clone)]
+pub struct PhasorFrame {
+    /// Stamp, ns.
+    pub stamp_ns: u64,
+    /// One image per frequency, in the order of the frequencies: `[a, b]`
+    /// (in-phase, quadrature) bucket differences, counts.
+    pub phasors: Vec<ImageBuf<[f32; 2]>>,
+}
+
+/// Settings of the multi-frequency path.
+#[derive(Debug, Clone)]
+pub struct MultiFrequencyConfig {
+    /// The modulation frequencies, Hz, in the order of the phasor images.
+    pub frequencies_hz: Vec<f64>,
+    /// The physics and waveform (its sensor's frequency is not used).
+    pub model: ForwardModel,
+    /// The inversion's search over the layer's distance.
+    pub scan: ScanSettings,
+    /// A pixel changed from the background when `chi^2` over its `2K` numbers
+    /// exceeds chi-square's quantile this many standard normal deviations out
+    /// (3.09: a tail of 0.001).
+    pub change_sigmas: f64,
+    /// A changed pixel is a layer when dropping the background term raises its
+    /// `chi^2` by more than this ([`CHI_SQUARE_1_999`]).
+    pub opacity_threshold: f64,
+    /// Pieces of the mask (and of the changed opaque pixels) smaller than this are dropped.
+    pub min_region_pixels: usize,
+}
+
+impl MultiFrequencyConfig {
+    /// The defaults at `frequencies_hz` with `model`'s physics and waveform.
+    pub fn new(frequencies_hz: Vec<f64>, model: ForwardModel) -> Self {
+        Self {
+            frequencies_hz,
+            model,
+            scan: ScanSettings::default(),
+            change_sigmas: 3.09,
+            opacity_threshold: CHI_SQUARE_1_999,
+            min_region_pixels: 12,
+        }
+    }
+}
+
+/// The chi-square quantile with `dof` degrees of freedom `z` standard normal
+/// deviations out (Wilson and Hilferty's cube-root approximation).
+pub fn chi_square_quantile(dof: f64, z: f64) -> f64 {
+    let a = 2.0 / (9.0 * dof);
+    dof * (1.0 - a + z * a.sqrt()).powi(3)
+}
+
+/// Averages phasor frames into a background.
+#[derive(Debug, Clone)]
+pub struct PhasorLatch {
+    width: usize,
+    height: usize,
+    frequencies: usize,
+    frames: usize,
+    /// Frames with every phasor finite, per pixel.
+    n: Vec<u32>,
+    /// `sum a`, `sum b` per pixel and frequency (pixel-major).
+    sum: Vec<[f64; 2]>,
+    /// `sum (a^2 + b^2)` per pixel and frequency.
+    sum2: Vec<f64>,
+    /// The first valid reading of the depth image, ray distance, mm.
+    depth_mm: Vec<f64>,
+}
+
+/// One pixel of a latch: `B_k`, `sigma_k` and `db`.
+type LatchedPixel = (Vec<Phasor>, Vec<f64>, f64);
+
+/// A latched multi-frequency background.
+#[derive(Debug, Clone)]
+pub struct PhasorBackground {
+    /// `B_k` per pixel, pixel-major (`[i * K + k]`).
+    pub phasors: Vec<Phasor>,
+    /// `sigma_k` of one frame's component per pixel, pixel-major.
+    pub noise_sigma: Vec<f64>,
+    /// `db` from one return fitted to `B_k`, ray distance, mm (NaN where unusable).
+    pub distance_mm: ImageBuf<f64>,
+    /// Frames averaged.
+    pub frames: usize,
+    /// Usable pixels.
+    pub valid_pixels: usize,
+    /// Pixels whose phasor distance was compared with the depth image's.
+    pub compared_pixels: usize,
+    /// Of those, how many disagree by more than [`ALIAS_TOLERANCE_MM`].
+    pub aliased_pixels: usize,
+}
+
+impl PhasorLatch {
+    /// An empty latch for `frequencies` phasor images of this size.
+    pub fn new(width: usize, height: usize, frequencies: usize) -> Self {
+        let n = width * height;
+        Self {
+            width,
+            height,
+            frequencies,
+            frames: 0,
+            n: vec![0; n],
+            sum: vec![[0.0; 2]; n * frequencies],
+            sum2: vec![0.0; n * frequencies],
+            depth_mm: vec![f64::NAN; n],
+        }
+    }
+
+    /// Frames added so far.
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// Adds a frame: its phasors, and its depth reading (`scale` turns z into ray distance).
+    pub fn push(
+        &mut self,
+        frame: &PhasorFrame,
+        depth: &DepthFrame,
+        scale: &ImageBuf<f64>,
+    ) -> Result<(), MultiFrequencyStageError> {
+        check_frame(frame, self.frequencies, self.width, self.height)?;
+        check_size(
+            "depth image",
+            depth.z_mm.width,
+            depth.z_mm.height,
+            self.width,
+            self.height,
+        )?;
+        let k = self.frequencies;
+        for i in 0..self.width * self.height {
+            let d = f64::from(depth.z_mm.data[i]) * scale.data[i];
+            if self.depth_mm[i].is_nan() && d.is_finite() && d > 0.0 {
+                self.depth_mm[i] = d;
+            }
+            let finite = frame.phasors.iter().all(|p| p.data[i].iter().all(|v| v.is_finite()));
+            if !finite {
+                continue;
+            }
+            self.n[i] += 1;
+            for (kk, p) in frame.phasors.iter().enumerate() {
+                let [a, b] = p.data[i].map(f64::from);
+                let s = &mut self.sum[i * k + kk];
+                s[0] += a;
+                s[1] += b;
+                self.sum2[i * k + kk] += a * a + b * b;
+            }
+        }
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// The averaged background: `B_k`, each pixel's noise from its spread,
+    /// and `db` fitted to `B_k`, checked against the depth image's reading
+    /// (`depth_range_mm`: its unambiguous range).
+    pub fn finish(
+        &self,
+        inversion: &MultiFrequencyInversion,
+        depth_range_mm: f64,
+    ) -> Result<PhasorBackground, MultiFrequencyStageError> {
+        if self.frames < 2 {
+            return Err(MultiFrequencyStageError::TooFewFrames(self.frames));
+        }
+        let k = self.frequencies;
+        let need = (self.frames as u32).div_ceil(2).max(2);
+        let pixels: Vec<Option<LatchedPixel>> = (0..self.width * self.height)
+            .into_par_iter()
+            .with_min_len(MIN_TASK_PIXELS)
+            .map(|i| self.pixel_background(i, need, inversion))
+            .collect();
+        let total = pixels.len();
+        let mut bg = PhasorBackground {
+            phasors: vec![Phasor::default(); total * k],
+            noise_sigma: vec![f64::NAN; total * k],
+            distance_mm: ImageBuf::filled(self.width, self.height, f64::NAN),
+            frames: self.frames,
+            valid_pixels: 0,
+            compared_pixels: 0,
+            aliased_pixels: 0,
+        };
+        let (mut phasor_aliased, mut depth_aliased) = (vec![], vec![]);
+        for (i, p) in pixels.into_iter().enumerate() {
+            let Some((b, s, db)) = p else { continue };
+            bg.phasors[i * k..(i + 1) * k].copy_from_slice(&b);
+            bg.noise_sigma[i * k..(i + 1) * k].copy_from_slice(&s);
+            bg.distance_mm.data[i] = db;
+            bg.valid_pixels += 1;
+            let dd = self.depth_mm[i];
+            if dd.is_finite() {
+                bg.compared_pixels += 1;
+                if wrapped_difference(db, dd, depth_range_mm).abs() > ALIAS_TOLERANCE_MM {
+                    bg.aliased_pixels += 1;
+                    phasor_aliased.push(db);
+                    depth_aliased.push(dd);
+                }
+            }
+        }
+        if bg.valid_pixels < (total / 20).max(10) {
+            return Err(MultiFrequencyStageError::BackgroundInvalid {
+                valid: bg.valid_pixels,
+                total,
+            });
+        }
+        let share = bg.aliased_pixels as f64 / bg.compared_pixels.max(1) as f64;
+        if share > ALIAS_SHARE {
+            return Err(MultiFrequencyStageError::Aliased {
+                common_range_mm: inversion.common_unambiguous_range_mm(),
+                phasor_mm: median_select(&mut phasor_aliased),
+                depth_mm: median_select(&mut depth_aliased),
+                share_percent: 100.0 * share,
+            });
+        }
+        Ok(bg)
+    }
+
+    /// One pixel's `(B_k, sigma_k, db)`, or `None` if it has too few frames or no light.
+    fn pixel_background(&self, i: usize, need: u32, inversion: &MultiFrequencyInversion) -> Option<LatchedPixel> {
+        let n = self.n[i];
+        if n < need {
+            return None;
+        }
+        let k = self.frequencies;
+        let nf = f64::from(n);
+        let mut b = Vec::with_capacity(k);
+        let mut sigma = Vec::with_capacity(k);
+        for kk in 0..k {
+            let [sa, sb] = self.sum[i * k + kk];
+            let mean = Phasor { a: sa / nf, b: sb / nf };
+            // Per component: half the variance of the complex value about its mean.
+            let var = (self.sum2[i * k + kk] - nf * (mean.a * mean.a + mean.b * mean.b)).max(0.0) / (2.0 * (nf - 1.0));
+            b.push(mean);
+            sigma.push(var.sqrt());
+        }
+        let peak = b.iter().map(|p| p.a.hypot(p.b)).fold(0.0, f64::max);
+        if !(peak > 0.0) {
+            return None;
+        }
+        for s in &mut sigma {
+            *s = s.max(NOISE_FLOOR * peak);
+        }
+        let fit = inversion.single_return(&b, &sigma).ok()?;
+        Some((b, sigma, fit.distance_mm))
+    }
+}
+
+fn check_size(what: &str, w: usize, h: usize, want_w: usize, want_h: usize) -> Result<(), MultiFrequencyStageError> {
+    if (w, h) != (want_w, want_h) {
+        return Err(MultiFrequencyStageError::SizeMismatch {
+            what: what.to_string(),
+            got_w: w,
+            got_h: h,
+            want_w,
+            want_h,
+        });
+    }
+    Ok(())
+}
+
+fn check_frame(
+    frame: &PhasorFrame,
+    frequencies: usize,
+    width: usize,
+    height: usize,
+) -> Result<(), MultiFrequencyStageError> {
+    if frame.phasors.len() != frequencies {
+        return Err(MultiFrequencyStageError::FrequencyCount {
+            expected: frequencies,
+            got: frame.phasors.len(),
+        });
+    }
+    for (k, p) in frame.phasors.iter().enumerate() {
+        check_size(&format!("phasor image {k}"), p.width, p.height, width, height)?;
+        if p.data.len() != width * height {
+            return Err(MultiFrequencyStageError::SizeMismatch {
+                what: format!("phasor image {k}'s data"),
+                got_w: p.data.len(),
+                got_h: 1,
+                want_w: width * height,
+                want_h: 1,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// One pixel's inputs to the inversion: its phasors, its noise and the background's.
+#[derive(Debug, Clone, Copy)]
+pub struct PixelInputs<'a> {
+    /// `M_k` (the first `frequencies`).
+    pub measured: [Phasor; MAX_FREQUENCIES],
+    /// `sigma_k` of each component of `M_k` (the first `frequencies`).
+    pub noise_sigma: [f64; MAX_FREQUENCIES],
+    /// `K`.
+    pub frequencies: usize,
+    /// `B_k`.
+    pub background: &'a [Phasor],
+    /// `db`, mm.
+    pub background_distance_mm: f64,
+    /// `sum_k |M_k - B_k|^2 / sigma_k^2`.
+    pub change_chi_square: f64,
+}
+
+impl PixelInputs<'_> {
+    /// As the inversion takes them.
+    pub fn phasors(&self) -> PixelPhasors<'_> {
+        PixelPhasors {
+            measured: &self.measured[..self.frequencies],
+            background: self.background,
+            background_distance_mm: self.background_distance_mm,
+            noise_sigma: &self.noise_sigma[..self.frequencies],
+        }
+    }
+}
+
+/// What one pixel is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PixelClass {
+    /// No usable background or phasors there: the reading is kept.
+    Unusable,
+    /// Unchanged from the background.
+    Background,
+    /// Changed, and one return explains it.
+    Opaque,
+    /// Changed: a layer before the background.
+    Layer,
+    /// Changed, but the inversion refused it: the reading is kept.
+    Failed,
+}
+
+/// One pixel's result.
+#[derive(Debug, Clone, Copy)]
+struct PixelResult {
+    class: PixelClass,
+    /// The fitted distance (the layer's, or the one return's), mm.
+    distance_mm: f64,
+    /// Its standard deviation, mm.
+    distance_sigma_mm: f64,
+    /// ξ (0 when opaque).
+    xi: f64,
+    /// The standard deviation of ξ (layers).
+    xi_sigma: f64,
+    /// The standard deviation of ξ² (what bounds an opaque region's ξ).
+    xi_squared_sigma: f64,
+}
+
+impl PixelResult {
+    fn only(class: PixelClass) -> Self {
+        Self {
+            class,
+            distance_mm: f64::NAN,
+            distance_sigma_mm: f64::NAN,
+            xi: f64::NAN,
+            xi_sigma: f64::NAN,
+            xi_squared_sigma: f64::NAN,
+        }
+    }
+}
+
+/// The outputs of one frame on the multi-frequency path.
+#[derive(Debug, Clone)]
+pub struct MultiFrequencyOutput {
+    /// What the single-frequency path publishes (corrected depth, σ, mask, regions).
+    pub frame: FrameOutput,
+    /// ξ per pixel where the mask is set, NaN elsewhere (`~/translucency_image`).
+    pub translucency: ImageBuf<f32>,
+    /// Each pixel's region (0 none, else 1 + its index in `frame.regions`).
+    pub labels: ImageBuf<u32>,
+    /// Pixels changed from the background (inverted).
+    pub changed_pixels: usize,
+    /// Changed pixels one return explains.
+    pub opaque_pixels: usize,
+    /// Changed pixels the inversion refused.
+    pub failed_pixels: usize,
+    /// Pixels without a usable background or phasors.
+    pub unusable_pixels: usize,
+    /// Median ξ over the mask (NaN when empty).
+    pub xi_pixel_median: f64,
+}
+
+/// The multi-frequency path's state: camera, inversion and background.
+#[derive(Debug, Clone)]
+pub struct MultiFrequencyStage {
+    /// Settings.
+    pub config: MultiFrequencyConfig,
+    /// Camera.
+    pub intrinsics: Intrinsics,
+    inversion: MultiFrequencyInversion,
+    rays: Arc<ImageBuf<Vector3<f64>>>,
+    scale: ImageBuf<f64>,
+    change_chi_square: f64,
+    background: Option<PhasorBackground>,
+}
+
+impl MultiFrequencyStage {
+    /// The path for a camera at `config`'s frequencies; no background yet.
+    pub fn new(config: MultiFrequencyConfig, intrinsics: Intrinsics) -> Result<Self, MultiFrequencyStageError> {
+        let k = config.frequencies_hz.len();
+        if k > MAX_FREQUENCIES {
+            return Err(MultiFrequencyStageError::TooManyFrequencies(k));
+        }
+        let model = MultiFrequencyModel::new(&config.model, &config.frequencies_hz)?;
+        let inversion = MultiFrequencyInversion::new(&model, config.scan)?;
+        let change_chi_square = chi_square_quantile(2.0 * k as f64, config.change_sigmas);
+        Ok(Self {
+            rays: Arc::new(intrinsics.unit_ray_map()),
+            scale: intrinsics.ray_scale_map(),
+            intrinsics,
+            inversion,
+            change_chi_square,
+            config,
+            background: None,
+        })
+    }
+
+    /// The frequencies' common unambiguous range, mm.
+    pub fn common_unambiguous_range_mm(&self) -> f64 {
+        self.inversion.common_unambiguous_range_mm()
+    }
+
+    /// Latches `frames` (phasors with their depth images) as the background;
+    /// `depth_range_mm` is the depth image's unambiguous range.
+    pub fn latch(
+        &mut self,
+        frames: &[(&PhasorFrame, &DepthFrame)],
+        depth_range_mm: f64,
+    ) -> Result<&PhasorBackground, MultiFrequencyStageError> {
+        let k = &self.intrinsics;
+        let mut latch = PhasorLatch::new(k.width, k.height, self.config.frequencies_hz.len());
+        for (p, d) in frames {
+            latch.push(p, d, &self.scale)?;
+        }
+        let bg = latch.finish(&self.inversion, depth_range_mm)?;
+        Ok(self.background.insert(bg))
+    }
+
+    /// The latched background.
+    pub fn background(&self) -> Option<&PhasorBackground> {
+        self.background.as_ref()
+    }
+
+    /// Unit rays of the camera's pixels.
+    pub fn rays(&self) -> &ImageBuf<Vector3<f64>> {
+        &self.rays
+    }
+
+    /// [`Self::rays`], shared.
+    pub fn shared_rays(&self) -> Arc<ImageBuf<Vector3<f64>>> {
+        Arc::clone(&self.rays)
+    }
+
+    /// One frame: every pixel tested and, where changed, inverted; the mask,
+    /// regions and outputs. `depth` is the frame's depth image (its readings
+    /// are kept where no layer is recovered).
+    pub fn process(
+        &self,
+        frame: &PhasorFrame,
+        depth: &DepthFrame,
+    ) -> Result<MultiFrequencyOutput, MultiFrequencyStageError> {
+        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+        check_frame(frame, self.config.frequencies_hz.len(), w, h)?;
+        check_size("depth image", depth.z_mm.width, depth.z_mm.height, w, h)?;
+        if self.background.is_none() {
+            return Err(MultiFrequencyStageError::NoBackground);
+        }
+        let results: Vec<PixelResult> = (0..w * h)
+            .into_par_iter()
+            .with_min_len(MIN_TASK_PIXELS)
+            .map(|i| self.pixel(frame, i))
+            .collect();
+        Ok(self.assemble(depth, frame.stamp_ns, &results))
+    }
+
+    /// The inversion this path runs per pixel.
+    pub fn inversion(&self) -> &MultiFrequencyInversion {
+        &self.inversion
+    }
+
+    /// Pixel `i`'s inputs as [`Self::process`] forms them (`None` where it has no
+    /// usable background or phasors, or no background is latched).
+    pub fn pixel_inputs(&self, frame: &PhasorFrame, i: usize) -> Option<PixelInputs<'_>> {
+        let bg = self.background.as_ref()?;
+        let k = self.config.frequencies_hz.len();
+        let db = bg.distance_mm.data[i];
+        let mut measured = [Phasor::default(); MAX_FREQUENCIES];
+        for (m, p) in measured.iter_mut().zip(&frame.phasors) {
+            let [a, b] = p.data.get(i)?.map(f64::from);
+            *m = Phasor { a, b };
+        }
+        let finite = measured[..k].iter().all(|m| m.a.is_finite() && m.b.is_finite());
+        if !(db.is_finite() && finite) {
+            return None;
+        }
+        let background = &bg.phasors[i * k..(i + 1) * k];
+        let amplitude = |p: &[Phasor]| p.iter().map(|q| q.a.hypot(q.b)).fold(0.0, f64::max);
+        let light = (amplitude(&measured[..k]) / amplitude(background)).max(1.0);
+        let grow = (light * (1.0 + 1.0 / bg.frames as f64)).sqrt();
+        let mut noise_sigma = [0.0; MAX_FREQUENCIES];
+        for (s, s0) in noise_sigma.iter_mut().zip(&bg.noise_sigma[i * k..(i + 1) * k]) {
+            *s = s0 * grow;
+        }
+        let change_chi_square = measured[..k]
+            .iter()
+            .zip(background)
+            .zip(&noise_sigma[..k])
+            .map(|((m, b), s)| ((m.a - b.a).powi(2) + (m.b - b.b).powi(2)) / (s * s))
+            .sum();
+        Some(PixelInputs {
+            measured,
+            noise_sigma,
+            frequencies: k,
+            background,
+            background_distance_mm: db,
+            change_chi_square,
+        })
+    }
+
+    /// The pixel's phasors depart from the background's beyond the change level.
+    pub fn changed(&self, inputs: &PixelInputs) -> bool {
+        inputs.change_chi_square > self.change_chi_square
+    }
+
+    /// Tests and, where changed, inverts pixel `i`.
+    fn pixel(&self, frame: &PhasorFrame, i: usize) -> PixelResult {
+        let Some(inputs) = self.pixel_inputs(frame, i) else {
+            return PixelResult::only(PixelClass::Unusable);
+        };
+        if !self.changed(&inputs) {
+            return PixelResult::only(PixelClass::Background);
+        }
+        match self.inversion.invert(&inputs.phasors()) {
+            Ok(est) => self.classify(&est),
+            Err(_) => PixelResult::only(PixelClass::Failed),
+        }
+    }
+
+    /// A layer when its opacity statistic passes the configured level, else opaque.
+    fn classify(&self, est: &MultiFrequencyEstimate) -> PixelResult {
+        let layer = !est.opaque && est.opacity_statistic > self.config.opacity_threshold;
+        // `translucency_sigma` is sigma(ξ²) / (2 ξ) for a layer, sqrt(sigma(ξ²)) when opaque.
+        let xi_squared_sigma = if est.opaque {
+            est.translucency_sigma.powi(2)
+        } else {
+            2.0 * est.translucency * est.translucency_sigma
+        };
+        PixelResult {
+            class: if layer { PixelClass::Layer } else { PixelClass::Opaque },
+            distance_mm: est.foreground_distance_mm,
+            distance_sigma_mm: est.foreground_distance_sigma_mm,
+            xi: if layer { est.translucency } else { 0.0 },
+            xi_sigma: est.translucency_sigma,
+            xi_squared_sigma,
+        }
+    }
+
+    /// The frame's mask, regions and outputs from its pixels' results.
+    fn assemble(&self, depth: &DepthFrame, stamp_ns: u64, results: &[PixelResult]) -> MultiFrequencyOutput {
+        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+        let min = self.config.min_region_pixels;
+        let count = |c: PixelClass| results.iter().filter(|r| r.class == c).count();
+        let class_mask = |keep: &dyn Fn(&PixelResult) -> bool| ImageBuf {
+            width: w,
+            height: h,
+            data: results.iter().map(keep).collect(),
+        };
+        let (mask, _) = remove_small_regions(&class_mask(&|r| r.class == PixelClass::Layer), min);
+        let changed_opaque = class_mask(&|r| matches!(r.class, PixelClass::Opaque | PixelClass::Layer));
+        let mut opaque = changed_opaque;
+        for (o, &m) in opaque.data.iter_mut().zip(&mask.data) {
+            *o &= !m;
+        }
+        let (opaque, _) = remove_small_regions(&opaque, min);
+        let distance = ImageBuf {
+            width: w,
+            height: h,
+            data: results.iter().map(|r| r.distance_mm).collect(),
+        };
+        let range = self.common_unambiguous_range_mm();
+        let noise = |i: usize| results[i].distance_sigma_mm;
+        let (layer_labels, layer_sizes) = label_regions(&mask, &distance, noise, range, min);
+        let (opaque_labels, opaque_sizes) = label_regions(&opaque, &distance, noise, range, min);
+        let layers = layer_sizes.len() as u32;
+        let labels = ImageBuf {
+            width: w,
+            height: h,
+            data: layer_labels
+                .data
+                .iter()
+                .zip(&opaque_labels.data)
+                .map(|(&l, &o)| {
+                    if l > 0 {
+                        l
+                    } else if o > 0 {
+                        o + layers
+                    } else {
+                        0
+                    }
+                })
+                .collect(),
+        };
+        let mut members: Vec<Vec<usize>> = vec![vec![]; layer_sizes.len() + opaque_sizes.len()];
+        for (i, &l) in labels.data.iter().enumerate() {
+            if l > 0 {
+                members[l as usize - 1].push(i);
+            }
+        }
+        let regions: Vec<RegionOutput> = members
+            .iter()
+            .enumerate()
+            .map(|(r, px)| {
+                let id = r as u32 + 1;
+                if id <= layers {
+                    layer_region(id, px, results)
+                } else {
+                    opaque_region(id, px, results)
+                }
+            })
+            .collect();
+        let mut corrected = depth.z_mm.clone();
+        let mut sigma = ImageBuf::filled(w, h, f32::NAN);
+        let mut translucency = ImageBuf::filled(w, h, f32::NAN);
+        let mut xis = vec![];
+        for i in mask.data.iter().enumerate().filter(|(_, &m)| m).map(|(i, _)| i) {
+            let (r, s) = (&results[i], self.scale.data[i]);
+            corrected.data[i] = (r.distance_mm / s) as f32;
+            sigma.data[i] = (r.distance_sigma_mm / s) as f32;
+            translucency.data[i] = r.xi as f32;
+            xis.push(r.xi);
+        }
+        let translucent_pixels = xis.len();
+        let xi_pixel_median = median_select(&mut xis);
+        let xi = frame_estimate(&regions, layers as usize);
+        MultiFrequencyOutput {
+            frame: FrameOutput {
+                stamp_ns,
+                mask,
+                corrected_z_mm: corrected,
+                corrected_sigma_mm: sigma,
+                xi,
+                regions,
+                translucent_pixels,
+                recovered_pixels: translucent_pixels,
+                pinned_pixels: 0,
+                unresolved_pixels: count(PixelClass::Failed),
+                fit_residual_mm: f64::NAN,
+                passthrough: None,
+            },
+            translucency,
+            labels,
+            changed_pixels: count(PixelClass::Opaque) + count(PixelClass::Layer) + count(PixelClass::Failed),
+            opaque_pixels: count(PixelClass::Opaque),
+            failed_pixels: count(PixelClass::Failed),
+            unusable_pixels: count(PixelClass::Unusable),
+            xi_pixel_median,
+        }
+    }
+}
+
+/// A region's estimate on this path.
+fn region_estimate(xi: f64, interval: [f64; 2], pixels: usize, note: String) -> XiEstimate {
+    XiEstimate {
+        xi,
+        interval,
+        method: XiMethod::MultiFrequency,
+        frames: 1,
+        pixels,
+        profile: vec![],
+        note,
+    }
+}
+
+/// A layer region: the median of its pixels' ξ, and an interval (about 95 %)
+/// of `1.96` standard errors of a median (`1.2533 s / sqrt(n)`), `s` the
+/// larger of the pixels' robust spread and their stated σ (overdispersion
+/// widens it, never narrows it).
+fn layer_region(id: u32, pixels: &[usize], results: &[PixelResult]) -> RegionOutput {
+    let mut xi: Vec<f64> = pixels.iter().map(|&i| results[i].xi).collect();
+    let mut stated: Vec<f64> = pixels.iter().map(|&i| results[i].xi_sigma).collect();
+    let median = median_select(&mut xi);
+    let spread = sigma_about(&xi, median);
+    let stated = median_select(&mut stated);
+    let s = spread.max(stated);
+    let half = 1.96 * 1.2533 * s / (pixels.len() as f64).sqrt();
+    let interval = [(median - half).max(0.0), (median + half).min(1.0)];
+    let note = format!(
+        "median of {} pixels' xi, each from its own phasors; spread {spread:.4}, stated sigma {stated:.4} per pixel",
+        pixels.len()
+    );
+    RegionOutput {
+        id,
+        xi: region_estimate(median, interval, pixels.len(), note),
+        pixels: pixels.len(),
+        opaque: false,
+    }
+}
+
+/// A changed region one return explains at every pixel: ξ 0, bounded above by
+/// the ξ whose ξ² is `1.96` standard errors (of a mean over its pixels) above 0.
+fn opaque_region(id: u32, pixels: &[usize], results: &[PixelResult]) -> RegionOutput {
+    let mut s: Vec<f64> = pixels.iter().map(|&i| results[i].xi_squared_sigma).collect();
+    let s = median_select(&mut s);
+    let upper = (1.96 * s / (pixels.len() as f64).sqrt()).sqrt().min(1.0);
+    let note = format!(
+        "one return explains each of its {} pixels: opaque, readings kept",
+        pixels.len()
+    );
+    RegionOutput {
+        id,
+        xi: region_estimate(
+            0.0,
+            [0.0, if upper.is_finite() { upper } else { 1.0 }],
+            pixels.len(),
+            note,
+        ),
+        pixels: pixels.len(),
+        opaque: true,
+    }
+}
+
+/// The frame's estimate: its largest layer region's, else its largest region's.
+fn frame_estimate(regions: &[RegionOutput], layers: usize) -> XiEstimate {
+    let largest = |r: &[RegionOutput]| r.iter().max_by_key(|r| r.pixels).map(|r| r.xi.clone());
+    largest(&regions[..layers])
+        .or_else(|| largest(regions))
+        .unwrap_or_else(|| region_estimate(f64::NAN, [0.0, 1.0], 0, "nothing changed from the background".into()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::physics::Sensor;
+    use crate::sim::render::{render_all, scene_intrinsics};
+    use crate::sim::Scene;
+
+    const SCENE: &str = r#"
+seed = 3
+[camera]
+width = 48
+height = 40
+modulation_frequencies_hz = [20e6, 50e6, 100e6]
+[physics]
+transmission_albedo_power = 0.0
+ir_mode = "amplitude"
+[background]
+distance_mm = 2000
+frames = 6
+[[stage]]
+frames = 1
+[[stage.objects]]
+shape = "plane"
+center_mm = [120, 0, 900]
+size_mm = [300, 400]
+tilt_y_deg = 25
+xi = 0.75
+albedo = 0.6
+[[stage.objects]]
+shape = "plane"
+center_mm = [-250, 0, 1300]
+size_mm = [200, 300]
+xi = 0.0
+albedo = 0.7
+"#;
+
+    fn frames(scene: &Scene) -> Vec<(PhasorFrame, DepthFrame, ImageBuf<f32>)> {
+        render_all(scene)
+            .into_iter()
+            .map(|f| {
+                let p = PhasorFrame {
+                    stamp_ns: f.stamp_ns,
+                    phasors: f.phasors,
+                };
+                let d = DepthFrame {
+                    stamp_ns: f.stamp_ns,
+                    z_mm: f.depth_z_mm,
+                    ir: f.ir,
+                };
+                (p, d, f.truth_z_mm)
+            })
+            .collect()
+    }
+
+    fn stage(scene: &Scene) -> MultiFrequencyStage {
+        let model = ForwardModel::physical(Sensor::sr4000());
+        let config = MultiFrequencyConfig::new(scene.camera.modulation_frequencies_hz.clone(), model);
+        MultiFrequencyStage::new(config, scene_intrinsics(scene)).expect("stage")
+    }
+
+    #[test]
+    fn the_change_level_is_chi_squares_quantile() {
+        // Tables: chi-square 0.999 quantiles 13.82 (2 dof), 22.46 (6), 26.12 (8).
+        for (dof, q) in [(2.0, 13.82), (6.0, 22.46), (8.0, 26.12)] {
+            let got = chi_square_quantile(dof, 3.09);
+            assert!((got - q).abs() < 0.03 * q, "{dof}: {got}");
+        }
+    }
+
+    #[test]
+    fn a_layer_is_recovered_and_an_opaque_box_kept() {
+        let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
+        let all = frames(&scene);
+        let mut s = stage(&scene);
+        let latch: Vec<_> = all[..6].iter().map(|(p, d, _)| (p, d)).collect();
+        s.latch(&latch, Sensor::sr4000().unambiguous_range_mm()).expect("latch");
+        let (p, d, truth) = &all[6];
+        let out = s.process(p, d).expect("frame");
+        let o = &out.frame;
+        // Sheet pixels (truth nearer than 1150 mm) in the mask with xi and depth; box pixels not.
+        let (mut sheet, mut in_mask, mut box_px, mut box_masked, mut err2) = (0, 0, 0, 0, 0.0);
+        for i in 0..truth.len() {
+            let t = truth.data[i];
+            if t < 1150.0 {
+                sheet += 1;
+                if o.mask.data[i] {
+                    in_mask += 1;
+                    err2 += f64::from(o.corrected_z_mm.data[i] - t).powi(2);
+                    assert!(
+                        (out.translucency.data[i] - 0.75).abs() < 0.05,
+                        "{}",
+                        out.translucency.data[i]
+                    );
+                }
+            } else if t.is_finite() {
+                box_px += 1;
+                box_masked += usize::from(o.mask.data[i]);
+                assert!(o.corrected_z_mm.data[i] == d.z_mm.data[i] || o.mask.data[i]);
+            } else {
+                assert!(!o.mask.data[i] && out.translucency.data[i].is_nan());
+            }
+        }
+        let rms = (err2 / in_mask as f64).sqrt();
+        assert!(in_mask * 100 >= sheet * 95 && rms < 15.0, "{in_mask}/{sheet}, {rms} mm");
+        assert!(box_px > 50 && box_masked * 20 <= box_px, "{box_masked}/{box_px}");
+        assert!(o.regions.iter().any(|r| r.opaque) && o.regions.iter().any(|r| !r.opaque));
+        assert_eq!(o.xi.method, XiMethod::MultiFrequency);
+    }
+
+    #[test]
+    fn bad_frames_are_errors() {
+        let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
+        let all = frames(&scene);
+        let mut s = stage(&scene);
+        let (p, d, _) = &all[0];
+        assert!(matches!(s.process(p, d), Err(MultiFrequencyStageError::NoBackground)));
+        let range = Sensor::sr4000().unambiguous_range_mm();
+        assert!(matches!(
+            s.latch(&[(p, d)], range),
+            Err(MultiFrequencyStageError::TooFewFrames(1))
+        ));
+        let two = PhasorFrame {
+            phasors: p.phasors[..2].to_vec(),
+            ..p.clone()
+        };
+        let e = s.latch(&[(&two, d), (&two, d)], range).unwrap_err();
+        assert!(
+            matches!(e, MultiFrequencyStageError::FrequencyCount { expected: 3, got: 2 }),
+            "{e}"
+        );
+        let mut small = p.clone();
+        small.phasors[1] = ImageBuf::filled(10, 10, [0.0; 2]);
+        let e = s.latch(&[(&small, d), (&small, d)], range).unwrap_err();
+        assert!(e.to_string().contains("phasor image 1 is 10x10, expected 48x40"), "{e}");
+        let dark = PhasorFrame {
+            phasors: vec![ImageBuf::filled(48, 40, [0.0; 2]); 3],
+            ..p.clone()
+        };
+        let e = s.latch(&[(&dark, d), (&dark, d)], range).unwrap_err();
+        assert!(
+            matches!(e, MultiFrequencyStageError::BackgroundInvalid { valid: 0, .. }),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn frequencies_whose_common_range_is_shorter_than_the_scene_are_refused() {
+        // 50 and 100 MHz repeat every 2998 mm; the wall is at 3300 mm.
+        let text = SCENE
+            .replace("[20e6, 50e6, 100e6]", "[50e6, 100e6]")
+            .replace("distance_mm = 2000", "distance_mm = 3300");
+        let scene = Scene::from_toml(&text, "t.toml").expect("scene");
+        let all = frames(&scene);
+        let mut s = stage(&scene);
+        let latch: Vec<_> = all[..6].iter().map(|(p, d, _)| (p, d)).collect();
+        let e = s.latch(&latch, Sensor::sr4000().unambiguous_range_mm()).unwrap_err();
+        let text = e.to_string();
+        assert!(
+            matches!(e, MultiFrequencyStageError::Aliased { .. }) && text.contains("common unambiguous range 2998 mm"),
+            "{text}"
+        );
+    }
+}
