@@ -15,7 +15,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::Value;
 use translucent_tof::audit::gather;
-use translucent_tof::physics::audit::{run_audit, AuditSettings, Effect};
+use translucent_tof::physics::audit::{run_audit, AuditResult, AuditSettings, Effect};
 use translucent_tof::physics::{ForwardModel, IrMode};
 use translucent_tof::pipeline::PipelineConfig;
 use translucent_tof::sim::render::scene_sensor;
@@ -126,7 +126,7 @@ fn bundled_audit_bags_name_their_concealed_effects() {
         let want: BTreeSet<String> = want.iter().map(|s| s.to_string()).collect();
         let (b, f) = (&v["baseline"], &v["final"]);
         println!(
-            "{name}: named {:?}; held-out {:.1} -> {:.1} mm (score {:.3} -> {:.3}); xi {:.3} -> {:.3}; recovery {:.1} -> {:.1} mm",
+            "{name}: named {:?}; held-out {:.1} -> {:.1} mm (score {:.3} -> {:.3}); xi {:.3} -> {:.3}; recovery {:.1} -> {:.1} mm; held-out recovery {:.1} -> {:.1} mm; model kept {} (recovery {:.1} mm){}",
             got,
             b["heldout_rmse_mm"].as_f64().unwrap_or(f64::NAN),
             f["heldout_rmse_mm"].as_f64().unwrap_or(f64::NAN),
@@ -136,6 +136,11 @@ fn bundled_audit_bags_name_their_concealed_effects() {
             f["params"]["xi"].as_f64().unwrap_or(f64::NAN),
             v["recovery_rmse_mm"]["before"].as_f64().unwrap_or(f64::NAN),
             v["recovery_rmse_mm"]["after"].as_f64().unwrap_or(f64::NAN),
+            b["heldout_recovery_rmse_mm"].as_f64().unwrap_or(f64::NAN),
+            f["heldout_recovery_rmse_mm"].as_f64().unwrap_or(f64::NAN),
+            v["physics_out"]["effects"],
+            v["physics_out"]["recovery_rmse_mm"].as_f64().unwrap_or(f64::NAN),
+            v["physics_out"]["note"].as_str().filter(|n| !n.is_empty()).map(|n| format!(": {n}")).unwrap_or_default(),
         );
         for key in ["rmse_mm", "heldout_rmse_mm"] {
             assert!(b[key].is_number(), "{name}: baseline.{key}");
@@ -149,7 +154,13 @@ fn bundled_audit_bags_name_their_concealed_effects() {
                 assert!(fi[key].is_string(), "{name}: findings[].{key}");
             }
             assert!(fi["heldout_rmse_mm"].is_number() && fi["params"].is_object(), "{name}");
+            assert!(fi["at_bound"].is_array(), "{name}: findings[].at_bound");
+            assert!(
+                fi["heldout_recovery_rmse_mm"].is_number(),
+                "{name}: findings[].heldout_recovery_rmse_mm"
+            );
         }
+        physics_out_recovers_no_worse(name, v);
         assert_eq!(
             v["candidates"].as_array().map(|c| c.len() >= 6),
             Some(true),
@@ -267,8 +278,13 @@ fn drawn_scene(seed: u64, effect: Option<Effect>) -> translucent_tof::sim::Scene
 
 /// Renders a drawn scene and audits it in memory; returns the effects named.
 fn audit_draw(seed: u64, effect: Option<Effect>) -> (Vec<Effect>, String) {
-    let scene = drawn_scene(seed, effect);
-    let sensor = scene_sensor(&scene);
+    let (r, text) = audit_scene(&drawn_scene(seed, effect), &format!("seed {seed} {effect:?}"));
+    (r.final_fit().effects.clone(), text)
+}
+
+/// Renders a scene and audits it in memory from the paper's model; the result and it in words.
+fn audit_scene(scene: &translucent_tof::sim::Scene, label: &str) -> (AuditResult, String) {
+    let sensor = scene_sensor(scene);
     // The audit's baseline: the device's own (sinusoidal) decoder, the paper's physics.
     let base = ForwardModel::paper(translucent_tof::physics::Sensor::new(
         sensor.modulation_frequency_hz,
@@ -278,7 +294,7 @@ fn audit_draw(seed: u64, effect: Option<Effect>) -> (Vec<Effect>, String) {
         model: base.clone(),
         ..PipelineConfig::default()
     };
-    let (pipe, frames) = common::latched(&scene, config);
+    let (pipe, frames) = common::latched(scene, config);
     let objects: Vec<_> = frames
         .iter()
         .filter(|f| !f.background_only)
@@ -289,8 +305,7 @@ fn audit_draw(seed: u64, effect: Option<Effect>) -> (Vec<Effect>, String) {
     let r = run_audit(&data, &base, &AuditSettings::default()).expect("audit");
     let fin = r.final_fit();
     let text = format!(
-        "seed {seed} {:?} (physics {:?}, camera {} {:?}): named {:?} xi {:.3} -> {:.3}, held-out {:.1} -> {:.1} mm, params {:?}",
-        effect,
+        "{label} (physics {:?}, camera {} {:?}): named {:?} xi {:.3} -> {:.3}, held-out {:.1} -> {:.1} mm, held-out recovery {:.1} -> {:.1} mm, params {:?}, at bound {:?}",
         scene.physics,
         scene.camera.waveform,
         scene.camera.harmonics,
@@ -299,27 +314,34 @@ fn audit_draw(seed: u64, effect: Option<Effect>) -> (Vec<Effect>, String) {
         fin.xi,
         r.baseline.heldout_rmse_mm,
         fin.heldout_rmse_mm,
-        fin.params
+        r.baseline.heldout_recovery_rmse_mm,
+        fin.heldout_recovery_rmse_mm,
+        fin.params,
+        fin.at_bound
     );
     let scores: Vec<String> = r
         .candidates
         .iter()
         .map(|c| {
             format!(
-                "r{} {} gain {:.0}/{:.0} z {:.1}{}",
+                "r{} {} {:?} gain {:.0}/{:.0} z {:.1}{}{}",
                 c.round,
                 c.effect.name(),
+                c.params,
                 c.gain,
                 c.threshold,
                 c.z,
-                if c.accepted { " ACCEPTED" } else { "" }
+                if c.accepted { " ACCEPTED" } else { "" },
+                if c.rejected.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({})", c.rejected)
+                }
             )
         })
         .collect();
-    (
-        fin.effects.clone(),
-        format!("{text}\n    candidates: {}", scores.join("; ")),
-    )
+    let text = format!("{text}\n    candidates: {}", scores.join("; "));
+    (r, text)
 }
 
 /// A draw: its seed and the effect it conceals.
@@ -416,4 +438,140 @@ fn seeded_draws_are_named_right() {
 #[ignore]
 fn seeded_draws_hit_rates() {
     draws(3, 4, 7000, 0.8);
+}
+
+// ------------------------------------------------------- rendered, bounded fits (issue 36)
+
+/// Issue 36, item 1: from the paper's model, the committed rendered calibration sequence
+/// (light transport rendered by Mitsuba: the plain law `L2 = Ib xi^2`, amplitude IR) names
+/// `ir_amplitude` and `transmission_law` with its power at or near 0, fitted inside its
+/// physical range and said to sit on its bound where it does. The physics file the audit
+/// writes recovers the recording no worse than the paper's model.
+#[test]
+#[ignore = "issue 36: the committed sequence (one fronto-parallel sheet, one albedo) does not identify the power: it trades with xi and the albedo; held-out loss per pixel 1.2287 at p 0 (xi 0.676), 1.2250 at p 0.96 (xi 0.766), 1.2282 at p 2 (xi 0.790); the law's gain 4 against 36 needed, 0.9 standard errors"]
+fn the_rendered_calibration_sequence_names_the_plain_law_and_the_amplitude_ir() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let physics = dir.path().join("physics.toml");
+    let v = audit(
+        &bag("rendered/calibration_sequence.mcap"),
+        dir.path(),
+        &["--physics-out", physics.to_str().expect("utf-8")],
+    );
+    let got = effects(&v);
+    let law = v["findings"]
+        .as_array()
+        .expect("findings")
+        .iter()
+        .find(|f| f["effect"] == "transmission_law");
+    let power = law.and_then(|f| f["params"]["transmission_albedo_power"].as_f64());
+    println!(
+        "rendered calibration sequence from the paper's model: named {got:?}, power {power:?}, at bound {:?}; held-out {:.1} -> {:.1} mm, recovery {:.1} -> {:.1} mm",
+        law.map(|f| f["at_bound"].clone()),
+        v["baseline"]["heldout_rmse_mm"].as_f64().unwrap_or(f64::NAN),
+        v["final"]["heldout_rmse_mm"].as_f64().unwrap_or(f64::NAN),
+        v["recovery_rmse_mm"]["before"].as_f64().unwrap_or(f64::NAN),
+        v["recovery_rmse_mm"]["after"].as_f64().unwrap_or(f64::NAN),
+    );
+    assert!(got.contains("ir_amplitude"), "{got:?}");
+    assert!(got.contains("transmission_law"), "{got:?}");
+    let power = power.expect("the law's fitted power");
+    assert!((0.0..=0.1).contains(&power), "power {power}");
+    let on_bound = law
+        .and_then(|f| f["at_bound"].as_array())
+        .is_some_and(|b| b.iter().any(|n| n == "transmission_albedo_power"));
+    assert_eq!(
+        on_bound,
+        power == 0.0,
+        "at_bound says the power sits on 0 exactly when it does"
+    );
+    physics_out_recovers_no_worse("rendered calibration_sequence", &v);
+}
+
+/// The model the audit stands by never recovers the recording worse than its baseline: where
+/// written, its recovery is no worse; where not, the report says why.
+fn physics_out_recovers_no_worse(name: &str, v: &Value) {
+    let p = &v["physics_out"];
+    let (kept, base) = (p["recovery_rmse_mm"].as_f64(), p["baseline_recovery_rmse_mm"].as_f64());
+    if p["recovers_no_worse_than_baseline"] == true {
+        let (k, b) = (kept.expect("recovery"), base.expect("baseline recovery"));
+        assert!(k <= b, "{name}: physics_out recovers {k} mm against the baseline's {b}");
+    } else {
+        assert!(p["note"].as_str().is_some_and(|n| !n.is_empty()), "{name}: {p}");
+        if !p["file"].is_null() {
+            assert_eq!(p["written"], false, "{name}: {p}");
+        }
+    }
+}
+
+/// The physics the renders show (the plain law, power 0, and the amplitude IR) concealed
+/// from the paper's model, on four seeded draws; each audited in memory.
+fn plain_law_draws() -> Vec<(AuditResult, String)> {
+    let seeds = [6100u64, 6101, 6102, 6103];
+    std::thread::scope(|s| {
+        let hs: Vec<_> = [[seeds[0], seeds[2]], [seeds[1], seeds[3]]]
+            .into_iter()
+            .map(|pair| {
+                s.spawn(move || {
+                    pair.into_iter()
+                        .map(|seed| {
+                            let mut scene = drawn_scene(seed, Some(Effect::TransmissionLaw));
+                            scene.physics.transmission_albedo_power = 0.0;
+                            scene.physics.ir_mode = IrMode::Amplitude;
+                            audit_scene(&scene, &format!("seed {seed} plain law + amplitude IR"))
+                        })
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        hs.into_iter().flat_map(|h| h.join().expect("draw thread")).collect()
+    })
+}
+
+/// The fitted power of the transmission law, where it is in the final model.
+fn law_power(r: &AuditResult) -> Option<f64> {
+    r.final_fit()
+        .params
+        .iter()
+        .find(|(n, _)| n == "transmission_albedo_power")
+        .map(|p| p.1)
+}
+
+/// Issue 36, item 1, on simulated sequences: the power's unconstrained optimum scatters
+/// about 0 with the noise, and where it fell below 0 the law was vetoed and other effects
+/// took its place (measured at 36e6e7c: seeds 6101 and 6103 named `refraction_shift`, 6103
+/// also `subsurface_delay` and not the law). Bounded, the law is scored at its bound: both
+/// effects are named and nothing else, the power inside its range, `at_bound` saying when
+/// it sits on 0.
+#[test]
+fn a_concealed_plain_law_with_amplitude_ir_is_named_from_the_papers_model() {
+    let mut failures = vec![];
+    for (r, text) in plain_law_draws() {
+        println!("  {text}");
+        let fin = r.final_fit();
+        let named: BTreeSet<Effect> = fin.effects.iter().copied().collect();
+        let want: BTreeSet<Effect> = [Effect::IrAmplitude, Effect::TransmissionLaw].into();
+        let power = law_power(&r);
+        let on_bound = fin.at_bound.iter().any(|n| n == "transmission_albedo_power");
+        if named != want || !power.is_some_and(|p| (0.0..=2.0).contains(&p) && on_bound == (p == 0.0)) {
+            failures.push(format!("named {named:?}, power {power:?}, at bound {:?}", fin.at_bound));
+        }
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+/// The same draws: the plain law's power within 0.1 of its true 0.
+#[test]
+#[ignore = "issue 36: seed 6102 fits power 0.104 (an interior optimum, 0.104 at 36e6e7c too); its held-out loss is flat over 0..0.1 (round 2 refits 0.0002 at a gain of -1 against 27 needed); the others 0.083, 0.0001, 0 (on the bound)"]
+fn a_concealed_plain_law_is_fitted_within_a_tenth_of_power_0() {
+    let powers: Vec<Option<f64>> = plain_law_draws()
+        .iter()
+        .map(|(r, text)| {
+            println!("  {text}");
+            law_power(r)
+        })
+        .collect();
+    assert!(
+        powers.iter().all(|p| p.is_some_and(|p| (0.0..=0.1).contains(&p))),
+        "{powers:?}"
+    );
 }

@@ -8,12 +8,15 @@ use clap::Args;
 use serde_json::{json, Value};
 
 use crate::audit::{gather, recovery_rmse, trend_svg};
-use crate::physics::audit::{run_audit_with_progress, where_it_helped, AuditResult, AuditSettings, Effect, Fit};
+use crate::physics::audit::{
+    run_audit_with_progress, where_it_helped, AuditResult, AuditSettings, CandidateScore, Effect, Fit, Trend,
+};
+use crate::physics::ImageBuf;
 use crate::physics::{IrMode, Waveform};
-use crate::pipeline::{PipelineConfig, XiChoice};
+use crate::pipeline::{DepthFrame, PipelineConfig, XiChoice};
 
-use super::common::{describe_model, write_atomic, OutputArgs, PhysicsFile, PipelineArgs};
-use super::recording::load;
+use super::common::{write_atomic, OutputArgs, PhysicsFile, PipelineArgs};
+use super::recording::{load, Recording};
 
 /// Pixels the fits use at most (spread over the frames).
 const MAX_PIXELS: usize = 1500;
@@ -50,6 +53,7 @@ pub fn run(a: AuditArgs) -> Result<()> {
     }
     let mut config = a.pipeline.config()?;
     let rec = load(&a.bag, &a.pipeline.topics)?;
+    // The physics the recording says it was made with, unless --physics says otherwise.
     let physics_choice = rec.physics_choice(&a.pipeline.model)?;
     config.model = physics_choice.model.clone();
     if rec.topics.ground_truth.is_none() || rec.truth.is_empty() {
@@ -74,7 +78,11 @@ pub fn run(a: AuditArgs) -> Result<()> {
             config.threshold_mm
         );
     }
-    let settings = AuditSettings::default();
+    // Held-out recovery is scored with the pipeline's inversion bounds.
+    let settings = AuditSettings {
+        inversion: config.bounds,
+        ..AuditSettings::default()
+    };
     // Baseline, then up to seven candidates per round.
     let pb = a.output.progress(1 + 7 * settings.max_effects as u64, "auditing");
     let result = run_audit_with_progress(&data, &config.model, &settings, &mut |what| {
@@ -84,24 +92,190 @@ pub fn run(a: AuditArgs) -> Result<()> {
     .map_err(|e| anyhow!("bag {}: {e}", a.bag.display()))?;
     pb.finish_and_clear();
     let base = &config.model;
-    let fin = result.final_fit();
-    // Recovery on the same recording, before and after.
-    let recover_with = |fit: &Fit| -> Result<Option<(f64, usize)>> {
+    let replayed = Replayed {
+        rec: &rec,
+        config: &config,
+        background: bg.count,
+        objects: &objects,
+    };
+    let [before, after, kept] = replayed.recoveries(&result)?;
+    let choice = ModelChoice::new(&result, base, before, kept, a.physics_out.as_deref());
+    let plots = write_plots(&a, &result)?;
+    if let (Some(out), true) = (&a.physics_out, choice.written) {
+        write_physics_file(out, &result, &choice)?;
+    }
+    let mut report = report(&a, &result, base, &choice, before, after, &plots, &bg.how, &stats);
+    report["physics_used"] = physics_choice.json();
+    report["warnings"] = json!(rec.cut.iter().chain(&physics_choice.warning).collect::<Vec<_>>());
+    let mut head = format!("physics: {}\n", physics_choice.text);
+    for w in rec.cut.iter().chain(&physics_choice.warning) {
+        head += &format!("WARNING: {w}\n");
+    }
+    let body = summary(&result, base, &choice, before, after, a.physics_out.as_deref());
+    a.output.summary(format!("{head}{body}").trim_end());
+    if !choice.written && a.physics_out.is_some() {
+        // Loud: on the terminal whatever the summary's stream, and in the JSON.
+        eprintln!("WARNING: {}", choice.note);
+    }
+    a.output.write_json(&report)
+}
+
+/// The recording replayed with a fitted model, for its recovery.
+struct Replayed<'a> {
+    rec: &'a Recording,
+    config: &'a PipelineConfig,
+    background: usize,
+    objects: &'a [(&'a DepthFrame, &'a ImageBuf<f32>)],
+}
+
+impl Replayed<'_> {
+    /// Recovery (mm RMS, pixels) at the fit's ξ with its model.
+    fn recovery(&self, fit: &Fit) -> Result<Option<(f64, usize)>> {
         let cfg = PipelineConfig {
-            model: fit.model(base),
+            model: fit.model(&self.config.model),
             xi: XiChoice::Fixed(fit.xi),
-            ..config.clone()
+            ..self.config.clone()
         };
-        let p = rec.latched_pipeline(cfg, bg.count)?;
-        Ok(recovery_rmse(&p, &objects, fit.xi))
-    };
-    let before = recover_with(&result.baseline)?;
-    let after = if result.steps.is_empty() {
-        before
+        let p = self.rec.latched_pipeline(cfg, self.background)?;
+        Ok(recovery_rmse(&p, self.objects, fit.xi))
+    }
+
+    /// Recovery with the baseline, the final (claimed) model and the model to use.
+    fn recoveries(&self, result: &AuditResult) -> Result<[Option<(f64, usize)>; 3]> {
+        let before = self.recovery(&result.baseline)?;
+        let after = if result.steps.is_empty() {
+            before
+        } else {
+            self.recovery(result.final_fit())?
+        };
+        let kept = if result.kept_steps == result.steps.len() {
+            after
+        } else if result.kept_steps == 0 {
+            before
+        } else {
+            self.recovery(result.kept_fit())?
+        };
+        Ok([before, after, kept])
+    }
+}
+
+/// Writes the model to use as a physics file, the ξ it was fitted with in its comments.
+fn write_physics_file(out: &std::path::Path, result: &AuditResult, choice: &ModelChoice) -> Result<()> {
+    let xi = result.kept_fit().xi;
+    let text = format!(
+        "# Written by translucent_tof audit: {}.\n# Fitted with xi = {xi:.4}: replay --physics {} --xi {xi:.3}\n{}",
+        file_header(result),
+        out.display(),
+        toml::to_string(&choice.physics).context("writing the physics file")?
+    );
+    Ok(write_atomic(out, text.as_bytes())?)
+}
+
+/// The model the audit stands by and writes with `--physics-out`: the claimed steps up
+/// to the last one that recovers held-out frames no worse than the one before, and
+/// written only where it recovers the recording no worse than the baseline.
+struct ModelChoice {
+    /// Its physics file.
+    physics: PhysicsFile,
+    /// The claimed effect it stops before (whose held-out recovery is worse), if any.
+    stopped_before: Option<Effect>,
+    /// Recovery of the recording with it, mm RMS and pixels.
+    recovery: Option<(f64, usize)>,
+    /// The file was written (or would be, where no `--physics-out` was given).
+    written: bool,
+    /// Why it stops where it does, or why nothing was written; empty when all is well.
+    note: String,
+}
+
+impl ModelChoice {
+    fn new(
+        result: &AuditResult,
+        base: &crate::physics::ForwardModel,
+        before: Option<(f64, usize)>,
+        recovery: Option<(f64, usize)>,
+        out: Option<&std::path::Path>,
+    ) -> Self {
+        let fit = result.kept_fit();
+        let stopped_before = result
+            .steps
+            .get(result.kept_steps)
+            .and_then(|s| s.effects.last().copied());
+        let mut note = match stopped_before {
+            Some(e) => format!(
+                "the model stops before {}: held-out recovery {:.1} mm with it against {:.1} mm without",
+                e.name(),
+                result.steps[result.kept_steps].heldout_recovery_rmse_mm,
+                fit.heldout_recovery_rmse_mm
+            ),
+            None => String::new(),
+        };
+        let refused = refusal(&effects_text(&fit.effects), before, recovery, out);
+        let written = refused.is_none();
+        if let Some(r) = refused {
+            note = if note.is_empty() { r } else { format!("{r}; {note}") };
+        }
+        Self {
+            physics: physics_file(fit, base),
+            stopped_before,
+            recovery,
+            written,
+            note,
+        }
+    }
+}
+
+/// What the physics file holds, in words (its first comment line).
+fn file_header(result: &AuditResult) -> String {
+    match (result.kept_steps, result.steps.get(result.kept_steps)) {
+        (_, None) => "the baseline's physics and the effects the recording supports past it".to_string(),
+        (0, Some(s)) => format!(
+            "the baseline's physics only: the first effect claimed ({}) recovers held-out frames worse",
+            effects_text(&s.effects)
+        ),
+        (_, Some(s)) => format!(
+            "the baseline's physics and the effects claimed up to the last that recovers no worse (not {})",
+            s.effects.last().map_or("", |e| e.name())
+        ),
+    }
+}
+
+/// Why the model to use (`model`, in words) is not written, if it is not: it must recover
+/// the recording no worse than the baseline (`before`; `kept` its own recovery), and both
+/// must be measured.
+fn refusal(
+    model: &str,
+    before: Option<(f64, usize)>,
+    kept: Option<(f64, usize)>,
+    out: Option<&std::path::Path>,
+) -> Option<String> {
+    let what = out.map_or("no physics file would be written".to_string(), |p| {
+        format!(
+            "--physics-out {} NOT WRITTEN (a file already there is from before)",
+            p.display()
+        )
+    });
+    match (before, kept) {
+        (Some(b), Some(k)) if k.0 <= b.0 => None,
+        (Some(b), Some(k)) => Some(format!(
+            "{what}: the model to use ({model}) recovers this recording worse than its baseline: {:.1} mm RMS against {:.1} mm",
+            k.0, b.0
+        )),
+        _ => Some(format!(
+            "{what}: the recovery of the model to use ({model}) or of its baseline could not be measured on this recording, so it is not shown to recover no worse"
+        )),
+    }
+}
+
+fn effects_text(effects: &[Effect]) -> String {
+    if effects.is_empty() {
+        "the baseline".to_string()
     } else {
-        recover_with(fin)?
-    };
-    let physics = physics_file(&result, base);
+        effects.iter().map(|e| e.name()).collect::<Vec<_>>().join(" + ")
+    }
+}
+
+/// Writes the residual plots (SVG) and the Rerun recording, as asked; their paths.
+fn write_plots(a: &AuditArgs, result: &AuditResult) -> Result<Vec<String>> {
     let mut plots = vec![];
     if let Some(dir) = &a.plots {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -139,62 +313,31 @@ pub fn run(a: AuditArgs) -> Result<()> {
         crate::viz::write_curves(&target, "translucent_tof_audit", &curves).map_err(|e| anyhow::anyhow!(e))?;
         plots.push(r.display().to_string());
     }
-    // A model that recovers this recording worse than its baseline is not written.
-    let worse = match (before, after) {
-        (Some(b), Some(f)) => f.0 > b.0 * (1.0 + WORSE_BY),
-        _ => false,
-    };
-    let recovery_text = match (before, after) {
-        (Some(b), Some(f)) => format!(
-            "recovery on this recording at the fitted xi (RMS z error over every translucent pixel with truth, pooled over frames): {:.1} mm with the baseline -> {:.1} mm with the chosen model",
-            b.0, f.0
-        ),
-        _ => String::new(),
-    };
-    let refusal = match &a.physics_out {
-        Some(out) if worse => Some(format!(
-            "--physics-out {} NOT WRITTEN: the chosen model ({}) recovers this recording worse than its baseline ({:.1} -> {:.1} mm RMS), though it fits the readings better: the inversion fails under it here (README, Limits: several roots). The baseline recovers it better: replay {}{} --xi {:.3}",
-            out.display(),
-            fin.effects.iter().map(|e| e.name()).collect::<Vec<_>>().join(", "),
-            before.map_or(f64::NAN, |b| b.0),
-            after.map_or(f64::NAN, |f| f.0),
-            a.bag.display(),
-            match &a.pipeline.model.physics {
-                Some(p) => format!(" --physics {}", p.display()),
-                None => String::new(),
-            },
-            result.baseline.xi
-        )),
-        _ => None,
-    };
-    if let (Some(out), None) = (&a.physics_out, &refusal) {
-        let text = format!(
-            "# Written by translucent_tof audit: the baseline's physics and the effects the recording supports past it.\n# Fitted with xi = {:.4}: replay --physics {} --xi {:.3}\n{}",
-            fin.xi,
-            out.display(),
-            fin.xi,
-            toml::to_string(&physics).context("writing the physics file")?
-        );
-        write_atomic(out, text.as_bytes())?;
-    }
-    let mut report = report(&a, &result, &physics, before, after, &plots, &bg.how, &stats);
-    report["physics_used"] = physics_choice.json();
-    report["warnings"] = json!(rec.cut.iter().chain(&physics_choice.warning).collect::<Vec<_>>());
-    report["physics_out"] = json!({
-        "path": a.physics_out.as_ref().map(|p| p.display().to_string()),
-        "written": a.physics_out.is_some() && refusal.is_none(),
-        "refused": refusal,
-    });
-    let mut summary = format!("physics: {}\n", physics_choice.text);
-    for w in rec.cut.iter().chain(&physics_choice.warning) {
-        summary += &format!("WARNING: {w}\n");
-    }
-    summary += &format!(
-        "baseline ({}): xi {:.3}, depth RMSE {:.1} mm, held-out {:.1} mm ({} pixels, {} frames)\n",
-        describe_model(base),
+    Ok(plots)
+}
+
+/// The human summary: the baseline, each effect claimed, recovery, and the model written.
+fn summary(
+    result: &AuditResult,
+    base: &crate::physics::ForwardModel,
+    choice: &ModelChoice,
+    before: Option<(f64, usize)>,
+    after: Option<(f64, usize)>,
+    out: Option<&std::path::Path>,
+) -> String {
+    let mut summary = format!(
+        "baseline ({} physics): xi {:.3}, depth RMSE {:.1} mm, held-out {:.1} mm, held-out recovery {:.1} mm ({} pixels, {} frames)\n",
+        if base.options == crate::physics::ModelOptions::paper() {
+            "the paper's"
+        } else if base.options == crate::physics::ModelOptions::physical() {
+            "the default"
+        } else {
+            "the given"
+        },
         result.baseline.xi,
         result.baseline.rmse_mm,
         result.baseline.heldout_rmse_mm,
+        result.baseline.heldout_recovery_rmse_mm,
         result.pixels,
         result.frames
     );
@@ -202,39 +345,46 @@ pub fn run(a: AuditArgs) -> Result<()> {
         summary += "no effect left out: no candidate improves the held-out error beyond the noise\n";
     }
     for s in &result.steps {
-        let params = params_text(&s.params);
         summary += &format!(
-            "+ {}: xi {:.3}, held-out {:.1} mm{}\n",
+            "+ {}: xi {:.3}, held-out {:.1} mm, held-out recovery {:.1} mm ({}){}\n",
             s.effects.last().map(|e| e.name()).unwrap_or(""),
             s.xi,
             s.heldout_rmse_mm,
-            if params.is_empty() {
-                String::new()
-            } else {
-                format!(" ({params})")
-            }
+            s.heldout_recovery_rmse_mm,
+            params_text(&s.params),
+            bound_text(&s.at_bound)
         );
     }
-    if !recovery_text.is_empty() {
-        summary += &recovery_text;
-        summary += "\n";
+    if let (Some(b), Some(f)) = (before, after) {
+        summary += &format!("recovery on this recording: {:.1} -> {:.1} mm RMS\n", b.0, f.0);
     }
-    match (&a.physics_out, &refusal) {
-        (Some(_), Some(why)) => {
-            // Loud, on the terminal whatever happens to the summary.
-            eprintln!("\n{}\nWARNING: {why}\n{}\n", "!".repeat(72), "!".repeat(72));
-            summary += &format!("WARNING: {why}");
+    if choice.stopped_before.is_some() {
+        if let Some(k) = choice.recovery {
+            summary += &format!(
+                "model kept: {}, recovery {:.1} mm RMS\n",
+                effects_text(&result.kept_fit().effects),
+                k.0
+            );
         }
-        (Some(out), None) => summary += &format!("wrote {}", out.display()),
-        _ => {}
     }
-    a.output.summary(summary.trim_end());
-    a.output.write_json(&report)
+    // Not written where asked: the warning goes to standard error, after this.
+    let warned_apart = out.is_some() && !choice.written;
+    if !choice.note.is_empty() && !warned_apart {
+        summary += &format!("{}{}\n", if choice.written { "" } else { "WARNING: " }, choice.note);
+    }
+    if let (true, Some(out)) = (choice.written, out) {
+        summary += &format!("wrote {}\n", out.display());
+    }
+    summary
 }
 
-/// How much worse (relative) recovery with the chosen model may be than with the
-/// baseline before `--physics-out` is refused.
-const WORSE_BY: f64 = 0.01;
+fn bound_text(at_bound: &[String]) -> String {
+    if at_bound.is_empty() {
+        String::new()
+    } else {
+        format!(" [at the bound of its physical range: {}]", at_bound.join(", "))
+    }
+}
 
 fn params_text(p: &[(String, f64)]) -> String {
     p.iter()
@@ -255,9 +405,8 @@ fn params_json(fit: &Fit, with_xi: bool) -> Value {
     Value::Object(m)
 }
 
-/// The physics file of the final model: only the chosen effects' keys.
-fn physics_file(result: &AuditResult, base: &crate::physics::ForwardModel) -> PhysicsFile {
-    let fin = result.final_fit();
+/// The physics file of a fitted model: the baseline's keys and the fit's effects'.
+fn physics_file(fin: &Fit, base: &crate::physics::ForwardModel) -> PhysicsFile {
     let m = fin.model(base);
     // Written against the paper's model, whatever the baseline: every key that departs from
     // it is in the file, so the file reads the same whatever the tools' default becomes.
@@ -306,7 +455,8 @@ fn physics_file(result: &AuditResult, base: &crate::physics::ForwardModel) -> Ph
 fn report(
     a: &AuditArgs,
     r: &AuditResult,
-    physics: &PhysicsFile,
+    base: &crate::physics::ForwardModel,
+    choice: &ModelChoice,
     before: Option<(f64, usize)>,
     after: Option<(f64, usize)>,
     plots: &[String],
@@ -314,57 +464,6 @@ fn report(
     stats: &crate::audit::GatherStats,
 ) -> Value {
     let fin = r.final_fit();
-    let strongest = |trends: &[crate::physics::audit::Trend]| -> Vec<Value> {
-        let mut t: Vec<_> = trends.iter().filter(|t| t.systematic_z > 5.0).collect();
-        t.sort_by(|a, b| b.systematic_z.total_cmp(&a.systematic_z));
-        t.iter()
-            .map(|t| json!({"quantity": t.quantity.name(), "z": t.systematic_z, "where": t.worst_bin()}))
-            .collect()
-    };
-    let mut prev = &r.baseline;
-    let mut prev_trends = &r.trends_before;
-    let mut findings = vec![];
-    for (s, trends) in r.steps.iter().zip(&r.step_trends) {
-        let effect = s.effects.last().map(|e| e.name()).unwrap_or("");
-        let cand = r
-            .candidates
-            .iter()
-            .find(|c| c.accepted && c.effect.name() == effect)
-            .cloned();
-        let where_ = where_it_helped(prev_trends, trends);
-        findings.push(json!({
-            "effect": effect,
-            "evidence": format!(
-                "held-out loss per pixel {:.3} -> {:.3} (gain {:.0}, {:.1} standard errors, needed {:.0}); held-out depth RMSE {:.1} -> {:.1} mm; xi refitted {:.3} -> {:.3}",
-                prev.heldout_score,
-                s.heldout_score,
-                cand.as_ref().map(|c| c.gain).unwrap_or(f64::NAN),
-                cand.as_ref().map(|c| c.z).unwrap_or(f64::NAN),
-                cand.as_ref().map(|c| c.threshold).unwrap_or(f64::NAN),
-                prev.heldout_rmse_mm,
-                s.heldout_rmse_mm,
-                prev.xi,
-                s.xi
-            ),
-            "where": if where_.is_empty() { "no single quantity carries the residual".to_string() } else { where_ },
-            "heldout_rmse_mm": s.heldout_rmse_mm,
-            "heldout_score": s.heldout_score,
-            "params": params_json(s, true),
-        }));
-        prev = s;
-        prev_trends = trends;
-    }
-    let trend_json = |t: &crate::physics::audit::Trend| {
-        json!({
-            "quantity": t.quantity.name(),
-            "bins": t.bins,
-            "counts": t.counts,
-            "mean_mm": t.mean_mm,
-            "se_mm": t.se_mm,
-            "ir_mean_pct": t.ir_mean_pct,
-            "systematic_z": t.systematic_z,
-        })
-    };
     json!({
         "bag": a.bag.display().to_string(),
         "frames": r.frames,
@@ -376,40 +475,32 @@ fn report(
             "rmse_mm": r.baseline.rmse_mm,
             "heldout_rmse_mm": r.baseline.heldout_rmse_mm,
             "heldout_score": r.baseline.heldout_score,
+            "heldout_recovery_rmse_mm": r.baseline.heldout_recovery_rmse_mm,
             "ir_rel_rmse": r.baseline.ir_rel_rmse,
             "params": params_json(&r.baseline, true),
             "systematic": strongest(&r.trends_before),
         },
-        "findings": findings,
+        "findings": findings_json(r),
         "final": {
             "effects": fin.effects.iter().map(|e| e.name()).collect::<Vec<_>>(),
             "heldout_rmse_mm": fin.heldout_rmse_mm,
             "heldout_score": fin.heldout_score,
+            "heldout_recovery_rmse_mm": fin.heldout_recovery_rmse_mm,
             "rmse_mm": fin.rmse_mm,
             "params": params_json(fin, true),
-            "physics": serde_json::to_value(physics).unwrap_or(Value::Null),
+            "at_bound": fin.at_bound,
+            "physics": serde_json::to_value(physics_file(fin, base)).unwrap_or(Value::Null),
             "noise_ratio": r.final_noise_ratio,
             "systematic": strongest(&r.trends_after),
         },
-        "candidates": r.candidates.iter().map(|c| json!({
-            "round": c.round,
-            "effect": c.effect.name(),
-            "heldout_rmse_mm": c.heldout_rmse_mm,
-            "heldout_score": c.heldout_score,
-            "gain": c.gain,
-            "threshold": c.threshold,
-            "z": c.z,
-            "xi": c.xi,
-            "params": c.params.iter().map(|(k, v)| (k.clone(), json!(v))).collect::<serde_json::Map<_, _>>(),
-            "accepted": c.accepted,
-        })).collect::<Vec<_>>(),
+        "physics_out": physics_out_json(a, r, choice, before),
+        "candidates": r.candidates.iter().map(candidate_json).collect::<Vec<_>>(),
         "recovery_rmse_mm": {
             "before": before.map(|b| b.0),
             "after": after.map(|b| b.0),
             "pixels": before.map(|b| b.1),
-            "metric": "RMS z error over every translucent pixel with ground truth, pooled over the object frames, at the fitted xi",
             "note": match (before, after) {
-                (Some(b), Some(f)) if f.0 > b.0 => "recovery with the chosen model is worse than with the baseline's, though the model fits the readings better: the inversion's choice among several roots (README, Limits) fails on this recording under the chosen physics",
+                (Some(b), Some(f)) if f.0 > b.0 => "recovery with the chosen model is worse than with the baseline, though the model fits the readings better: the inversion's choice among several roots (README, Limits) fails on this recording under the chosen physics; the physics file stops before it (physics_out)",
                 _ => "",
             },
         },
@@ -419,4 +510,129 @@ fn report(
             "after": r.trends_after.iter().map(trend_json).collect::<Vec<_>>(),
         },
     })
+}
+
+/// The strongest systematic trends (z over 5), strongest first.
+fn strongest(trends: &[Trend]) -> Vec<Value> {
+    let mut t: Vec<_> = trends.iter().filter(|t| t.systematic_z > 5.0).collect();
+    t.sort_by(|a, b| b.systematic_z.total_cmp(&a.systematic_z));
+    t.iter()
+        .map(|t| json!({"quantity": t.quantity.name(), "z": t.systematic_z, "where": t.worst_bin()}))
+        .collect()
+}
+
+fn trend_json(t: &Trend) -> Value {
+    json!({
+        "quantity": t.quantity.name(),
+        "bins": t.bins,
+        "counts": t.counts,
+        "mean_mm": t.mean_mm,
+        "se_mm": t.se_mm,
+        "ir_mean_pct": t.ir_mean_pct,
+        "systematic_z": t.systematic_z,
+    })
+}
+
+/// One finding per claimed effect, with its evidence and where it helped.
+fn findings_json(r: &AuditResult) -> Vec<Value> {
+    let mut prev = &r.baseline;
+    let mut prev_trends = &r.trends_before;
+    let mut findings = vec![];
+    for (k, (s, trends)) in r.steps.iter().zip(&r.step_trends).enumerate() {
+        let effect = s.effects.last().map(|e| e.name()).unwrap_or("");
+        let cand = r.candidates.iter().find(|c| c.accepted && c.effect.name() == effect);
+        let where_ = where_it_helped(prev_trends, trends);
+        findings.push(json!({
+            "effect": effect,
+            "evidence": format!(
+                "held-out loss per pixel {:.3} -> {:.3} (gain {:.0}, {:.1} standard errors, needed {:.0}); held-out depth RMSE {:.1} -> {:.1} mm; held-out recovery {:.1} -> {:.1} mm; xi refitted {:.3} -> {:.3}",
+                prev.heldout_score,
+                s.heldout_score,
+                cand.map(|c| c.gain).unwrap_or(f64::NAN),
+                cand.map(|c| c.z).unwrap_or(f64::NAN),
+                cand.map(|c| c.threshold).unwrap_or(f64::NAN),
+                prev.heldout_rmse_mm,
+                s.heldout_rmse_mm,
+                prev.heldout_recovery_rmse_mm,
+                s.heldout_recovery_rmse_mm,
+                prev.xi,
+                s.xi
+            ),
+            "where": if where_.is_empty() { "no single quantity carries the residual".to_string() } else { where_ },
+            "heldout_rmse_mm": s.heldout_rmse_mm,
+            "heldout_score": s.heldout_score,
+            "heldout_recovery_rmse_mm": s.heldout_recovery_rmse_mm,
+            "params": params_json(s, true),
+            "at_bound": s.at_bound,
+            "in_physics_out": k < r.kept_steps,
+        }));
+        prev = s;
+        prev_trends = trends;
+    }
+    findings
+}
+
+fn candidate_json(c: &CandidateScore) -> Value {
+    json!({
+        "round": c.round,
+        "effect": c.effect.name(),
+        "heldout_rmse_mm": c.heldout_rmse_mm,
+        "heldout_score": c.heldout_score,
+        "heldout_recovery_rmse_mm": c.heldout_recovery_rmse_mm,
+        "gain": c.gain,
+        "threshold": c.threshold,
+        "z": c.z,
+        "xi": c.xi,
+        "params": c.params.iter().map(|(k, v)| (k.clone(), json!(v))).collect::<serde_json::Map<_, _>>(),
+        "at_bound": c.at_bound,
+        "accepted": c.accepted,
+        "rejected": c.rejected,
+    })
+}
+
+/// The model the audit stands by (and writes with `--physics-out`), and whether it was written.
+fn physics_out_json(a: &AuditArgs, r: &AuditResult, choice: &ModelChoice, before: Option<(f64, usize)>) -> Value {
+    let fit = r.kept_fit();
+    json!({
+        "file": a.physics_out.as_ref().map(|p| p.display().to_string()),
+        "path": a.physics_out.as_ref().map(|p| p.display().to_string()),
+        "written": choice.written && a.physics_out.is_some(),
+        "refused": (!choice.written).then_some(&choice.note),
+        "recovers_no_worse_than_baseline": choice.written,
+        "effects": fit.effects.iter().map(|e| e.name()).collect::<Vec<_>>(),
+        "steps_kept": r.kept_steps,
+        "steps_claimed": r.steps.len(),
+        "stopped_before": choice.stopped_before.map(|e| e.name()),
+        "xi": fit.xi,
+        "heldout_recovery_rmse_mm": fit.heldout_recovery_rmse_mm,
+        "recovery_rmse_mm": choice.recovery.map(|k| k.0),
+        "baseline_recovery_rmse_mm": before.map(|b| b.0),
+        "physics": serde_json::to_value(&choice.physics).unwrap_or(Value::Null),
+        "note": choice.note,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_model_that_recovers_worse_than_its_baseline_is_refused_with_its_figures() {
+        let out = std::path::Path::new("physics.toml");
+        assert_eq!(
+            refusal("ir_amplitude", Some((27.6, 10)), Some((11.6, 10)), Some(out)),
+            None
+        );
+        assert_eq!(
+            refusal("ir_amplitude", Some((11.6, 10)), Some((11.6, 10)), Some(out)),
+            None
+        );
+        let worse = refusal("transmission_law", Some((23.9, 10)), Some((647.9, 10)), Some(out)).unwrap_or_default();
+        assert!(
+            worse.contains("physics.toml was not written") && worse.contains("647.9") && worse.contains("23.9"),
+            "{worse}"
+        );
+        let unknown = refusal("transmission_law", Some((23.9, 10)), None, None).unwrap_or_default();
+        assert!(unknown.contains("could not be measured"), "{unknown}");
+    }
 }

@@ -19,7 +19,7 @@
 use serde::Serialize;
 
 use super::buffer::ImageBuf;
-use super::inversion::PixelObservation;
+use super::inversion::{foreground_distance_without_slopes, InversionBounds, PixelObservation};
 use super::model::{ForwardModel, IrMode, ModelOptions, MAX_BOUNCES};
 use super::sensor::{Sensor, Waveform};
 
@@ -164,8 +164,11 @@ pub struct Fit {
     pub xi: f64,
     /// `rho_f`, the material's albedo (times whatever scale `Lin` carries).
     pub albedo: f64,
-    /// The effects' parameters, by name.
+    /// The effects' parameters, by name, each inside its physical range ([`PHYSICAL_RANGES`]).
     pub params: Vec<(String, f64)>,
+    /// The parameters that sit on a bound of their physical range (the unconstrained
+    /// optimum lies outside it, or on it): the effect is scored at the bound.
+    pub at_bound: Vec<String>,
     /// Bounces kept (when higher-order bounces are in).
     pub bounces: usize,
     /// RMS of the depth residual over every pixel, fitted on all of them, mm.
@@ -176,6 +179,10 @@ pub struct Fit {
     pub heldout_rmse_mm: f64,
     /// Mean held-out loss per pixel (depth and IR, in units of their noise; Huber).
     pub heldout_score: f64,
+    /// Held-out depth recovery: RMS of the recovered minus the true foreground (ray) distance
+    /// over the pixels of frames left out of the fit, each inverted per pixel with the model
+    /// and ξ fitted without its frame; a pixel the model cannot invert counts as read. mm.
+    pub heldout_recovery_rmse_mm: f64,
     /// Held-out loss per pixel (for paired comparisons).
     #[serde(skip)]
     pub heldout_loss: Vec<f64>,
@@ -208,20 +215,24 @@ pub struct CandidateScore {
     pub heldout_rmse_mm: f64,
     /// Mean held-out loss per pixel with it.
     pub heldout_score: f64,
+    /// Held-out depth recovery with it, mm ([`Fit::heldout_recovery_rmse_mm`]).
+    pub heldout_recovery_rmse_mm: f64,
     /// Improvement of the summed held-out loss over the model of that round.
     pub gain: f64,
     /// What the gain had to exceed: the parameter penalty or the noise of the gain, whichever is larger.
     pub threshold: f64,
     /// The gain in units of its own standard error (pixel-paired).
     pub z: f64,
-    /// Its fitted parameters.
+    /// Its fitted parameters (inside their physical ranges).
     pub params: Vec<(String, f64)>,
+    /// The parameters that sit on a bound of their physical range.
+    pub at_bound: Vec<String>,
     /// ξ refitted with it.
     pub xi: f64,
     /// Accepted.
     pub accepted: bool,
-    /// Why it was not accepted though its loss gain passed (held-out depth error worse,
-    /// a parameter outside its physical range); empty otherwise.
+    /// Why it was not accepted though its loss gain passed (held-out depth error worse);
+    /// empty otherwise.
     pub rejected: String,
 }
 
@@ -394,6 +405,8 @@ pub struct AuditSettings {
     pub trend_bins: usize,
     /// Iterations of each Nelder-Mead fit.
     pub max_iterations: usize,
+    /// Bounds of the per-pixel inversion that scores held-out recovery (the pipeline's).
+    pub inversion: InversionBounds,
 }
 
 impl Default for AuditSettings {
@@ -407,6 +420,7 @@ impl Default for AuditSettings {
             max_effects: 3,
             trend_bins: 8,
             max_iterations: 260,
+            inversion: InversionBounds::default(),
         }
     }
 }
@@ -418,6 +432,9 @@ pub struct AuditResult {
     pub baseline: Fit,
     /// Effects accepted, in order, each with the model up to it.
     pub steps: Vec<Fit>,
+    /// How many of `steps` the model to use keeps: it stops at the last step whose held-out
+    /// recovery is no worse than the one before ([`steps_recovering_no_worse`]).
+    pub kept_steps: usize,
     /// Every candidate's score in every round.
     pub candidates: Vec<CandidateScore>,
     /// The baseline's residual trends.
@@ -436,9 +453,18 @@ pub struct AuditResult {
 }
 
 impl AuditResult {
-    /// The final model's fit.
+    /// The final model's fit (every effect claimed).
     pub fn final_fit(&self) -> &Fit {
         self.steps.last().unwrap_or(&self.baseline)
+    }
+
+    /// The fit of the model to use: the claimed steps up to the last one that recovers
+    /// no worse than the one before (the baseline when the first already recovers worse).
+    pub fn kept_fit(&self) -> &Fit {
+        self.kept_steps
+            .checked_sub(1)
+            .and_then(|k| self.steps.get(k))
+            .unwrap_or(&self.baseline)
     }
 }
 
@@ -490,16 +516,55 @@ fn build_model(base: &ForwardModel, effects: &[Effect], p: &[f64], bounces: usiz
 /// Decoder table of the harmonic waveforms the fits try (sensor.rs): coarse, as it is rebuilt per trial.
 const AUDIT_DECODE_TABLE_LEN: usize = 512;
 
-/// Bounds of each effect parameter; outside them the objective is penalised.
-fn param_bounds(e: Effect) -> &'static [(f64, f64)] {
-    match e {
-        Effect::HigherOrderBounces | Effect::IrAmplitude => &[],
-        Effect::WaveformHarmonics => &[(-0.3, 0.3), (-0.2, 0.2)],
-        Effect::AmbientOffset => &[(-1.0e6, 1.0e6)],
-        Effect::SubsurfaceDelay => &[(-200.0, 200.0)],
-        Effect::TransmissionLaw => &[(-1.0, 4.0)],
-        Effect::RefractionShift => &[(-12.0, 12.0), (-12.0, 12.0)],
+/// The physical range of a named parameter ([`PHYSICAL_RANGES`]); unbounded when it has none.
+fn range_of(name: &str) -> (f64, f64) {
+    PHYSICAL_RANGES
+        .iter()
+        .find(|(n, _, _)| *n == name)
+        .map_or((f64::NEG_INFINITY, f64::INFINITY), |&(_, lo, hi)| (lo, hi))
+}
+
+/// `theta` (`[logit xi, ln albedo, effect params...]`) with every effect parameter projected
+/// onto its physical range, and how far outside the ranges it was, in simplex steps.
+fn project(effects: &[Effect], theta: &[f64], steps: &[f64]) -> (Vec<f64>, f64) {
+    let mut t = theta.to_vec();
+    let mut outside = 0.0;
+    for (k, name) in effect_param_names(effects).enumerate() {
+        let j = k + 2;
+        let (lo, hi) = range_of(name);
+        let v = t[j].clamp(lo, hi);
+        let step = steps.get(j).copied().filter(|s| *s > 0.0).unwrap_or(1.0);
+        outside += (t[j] - v).abs() / step;
+        t[j] = v;
     }
+    (t, outside)
+}
+
+/// `f` of the parameters projected onto their ranges, plus how far outside they were (in
+/// simplex steps): flat past a bound but for that small slope back toward it.
+fn bounded<'a>(effects: &'a [Effect], steps: &'a [f64], f: impl Fn(&[f64]) -> f64 + 'a) -> impl Fn(&[f64]) -> f64 + 'a {
+    move |t| {
+        let (inside, outside) = project(effects, t, steps);
+        f(&inside) + outside
+    }
+}
+
+/// The names of the effects' continuous parameters, in `theta` order (after ξ and the albedo).
+fn effect_param_names(effects: &[Effect]) -> impl Iterator<Item = &'static str> + '_ {
+    effects.iter().flat_map(|e| e.param_names().iter().copied())
+}
+
+/// The parameters of `theta` (projected) that sit on a bound of their physical range.
+fn at_bounds(effects: &[Effect], theta: &[f64]) -> Vec<String> {
+    effect_param_names(effects)
+        .zip(theta.iter().skip(2))
+        .filter(|(name, v)| {
+            let (lo, hi) = range_of(name);
+            let tol = 1e-9 * (1.0 + v.abs());
+            (**v - lo).abs() <= tol || (hi - **v).abs() <= tol
+        })
+        .map(|(name, _)| name.to_string())
+        .collect()
 }
 
 /// Where each effect starts, and the simplex step, given a typical IR level.
@@ -536,6 +601,30 @@ struct Prepared<'a> {
     /// IR noise per pixel, counts.
     sigma_i: Vec<f64>,
     huber_k: f64,
+    /// Median IR of the pixels, counts (the scale of an IR offset's simplex step).
+    ir_level: f64,
+}
+
+/// What a hypothesis knows at a pixel: its observation with the background seen
+/// through the layer from the smoothed latch. Every hypothesis sees the background
+/// through the smoothed latch (undisplaced unless the hypothesis refracts), so none
+/// gains merely from less noisy inputs.
+fn observation(model: &ForwardModel, data: &AuditData, p: &AuditPixel, displaced: bool) -> Option<PixelObservation> {
+    let mut obs = p.obs;
+    let mut o = model.options.clone();
+    if !displaced || !o.refracts() {
+        o.refraction_shift_px = [1e-9, 0.0];
+    }
+    let (db, ib) = o.background_through_layer(
+        &data.background_distance_mm,
+        &data.background_ir,
+        &data.emitted_light,
+        p.col,
+        p.row,
+    )?;
+    obs.background_distance_mm = db;
+    obs.background_ir = ib;
+    Some(obs)
 }
 
 /// Prediction of one pixel's `(reading, IR)` under a model, ξ and albedo.
@@ -547,24 +636,7 @@ fn predict(
     albedo: f64,
     displaced: bool,
 ) -> Option<(f64, f64, f64)> {
-    let mut obs = p.obs;
-    {
-        // Every hypothesis sees the background through the smoothed latch (undisplaced
-        // unless the hypothesis refracts), so none gains merely from less noisy inputs.
-        let mut o = model.options.clone();
-        if !displaced || !o.refracts() {
-            o.refraction_shift_px = [1e-9, 0.0];
-        }
-        let (db, ib) = o.background_through_layer(
-            &data.background_distance_mm,
-            &data.background_ir,
-            &data.emitted_light,
-            p.col,
-            p.row,
-        )?;
-        obs.background_distance_mm = db;
-        obs.background_ir = ib;
-    }
+    let obs = observation(model, data, p, displaced)?;
     if !(p.truth_mm < obs.background_distance_mm) {
         return None;
     }
@@ -604,6 +676,7 @@ impl<'a> Prepared<'a> {
             sigma_d: vec![f64::NAN; data.pixels.len()],
             sigma_i,
             huber_k,
+            ir_level: median(data.pixels.iter().map(|p| p.obs.ir).collect()),
         }
     }
 
@@ -652,23 +725,30 @@ impl<'a> Prepared<'a> {
         build_model(&self.base, effects, &theta[2..], bounces)
     }
 
-    /// Summed loss over `pixels` of the hypothesis at `theta`, with a penalty outside the bounds.
+    /// Recovered minus true foreground distance at pixel `i`, mm: the pixel inverted with
+    /// `model` at `xi` as recovery does (Eq. 8-12, the root nearest the reading), the
+    /// reading itself where the model admits no layer (the pixel is left as read).
+    fn recovery_error_mm(
+        &self,
+        model: &ForwardModel,
+        i: usize,
+        xi: f64,
+        displaced: bool,
+        bounds: &InversionBounds,
+    ) -> f64 {
+        let p = &self.data.pixels[i];
+        let recovered = observation(model, self.data, p, displaced)
+            .and_then(|obs| foreground_distance_without_slopes(model, &obs, xi, bounds, None))
+            .map(|e| e.foreground_distance_mm)
+            .filter(|d| d.is_finite())
+            .unwrap_or(p.obs.distance_mm);
+        recovered - p.truth_mm
+    }
+
+    /// Summed loss over `pixels` of the hypothesis at `theta` (its parameters inside their ranges).
     fn objective(&self, effects: &[Effect], theta: &[f64], bounces: usize, pixels: &[usize]) -> f64 {
-        let mut penalty = 0.0;
-        let mut k = 2;
-        for e in effects {
-            for &(lo, hi) in param_bounds(*e) {
-                let v = theta[k];
-                if v < lo {
-                    penalty += 1e3 * (1.0 + (lo - v));
-                } else if v > hi {
-                    penalty += 1e3 * (1.0 + (v - hi));
-                }
-                k += 1;
-            }
-        }
-        if penalty > 0.0 || !theta.iter().all(|v| v.is_finite()) {
-            return 1e12 + penalty;
+        if !theta.iter().all(|v| v.is_finite()) {
+            return 1e12;
         }
         let model = self.model_of(effects, theta, bounces);
         let (xi, albedo) = (logistic(theta[0]), theta[1].exp());
@@ -770,19 +850,8 @@ fn golden(f: &dyn Fn(f64) -> f64, mut a: f64, mut b: f64, iters: usize) -> (f64,
     }
 }
 
-/// Fits a hypothesis on `pixels`: a coarse scan of ξ (albedo by golden
-/// section) for each start of the effects' parameters, then Nelder-Mead from
-/// the best starts. Returns `theta = [logit xi, ln albedo, effect params...]`.
-fn fit_hypothesis(
-    prep: &Prepared,
-    effects: &[Effect],
-    bounces: usize,
-    pixels: &[usize],
-    warm: Option<&[f64]>,
-    settings: &AuditSettings,
-) -> (Vec<f64>, f64) {
-    let ir_level = median(prep.data.pixels.iter().map(|p| p.obs.ir).collect());
-    let obj = |t: &[f64]| prep.objective(effects, t, bounces, pixels);
+/// Where a hypothesis's fits start: every combination of its effects' starts, and the simplex steps.
+fn starts_and_steps(effects: &[Effect], ir_level: f64) -> (Vec<Vec<f64>>, Vec<f64>) {
     let mut steps = vec![0.4, 0.15];
     // Cartesian product of each effect's starts (few: effects rarely exceed 2 with several starts).
     let mut starts: Vec<Vec<f64>> = vec![vec![]];
@@ -800,12 +869,68 @@ fn fit_hypothesis(
             })
             .collect();
     }
-    if let Some(w) = warm {
-        let (x, v) = nelder_mead(&obj, w, &steps, settings.max_iterations / 2);
-        return (x, v);
+    (starts, steps)
+}
+
+/// Fits a hypothesis on `pixels`: a coarse scan of ξ (albedo by golden
+/// section) for each start of the effects' parameters, then Nelder-Mead from
+/// the best starts. Returns `theta = [logit xi, ln albedo, effect params...]`.
+///
+/// Bounded: the effects' parameters are projected onto their physical ranges
+/// before the model is evaluated (a step past a bound costs a little more
+/// than the bound, so the simplex settles on it), and the `theta` returned is
+/// projected: where the unconstrained optimum lies outside, the fit sits on
+/// the bound, reachable exactly (the plain law's power 0 included).
+fn fit_hypothesis(
+    prep: &Prepared,
+    effects: &[Effect],
+    bounces: usize,
+    pixels: &[usize],
+    warm: Option<&[f64]>,
+    settings: &AuditSettings,
+) -> (Vec<f64>, f64) {
+    let (starts, steps) = starts_and_steps(effects, prep.ir_level);
+    let obj = bounded(effects, &steps, |t| prep.objective(effects, t, bounces, pixels));
+    let (x, _) = match warm {
+        Some(w) => nelder_mead(&obj, w, &steps, settings.max_iterations / 2),
+        None => fit_from_starts(&obj, &starts, &steps, settings),
+    };
+    onto_range(&obj, effects, &x, &steps)
+}
+
+/// `x` projected onto the ranges, each parameter within a hundredth of a step of a
+/// bound moved onto it where that fits no worse (the simplex stops short of a bound
+/// by its tolerance): `(theta, objective)`.
+fn onto_range(obj: &dyn Fn(&[f64]) -> f64, effects: &[Effect], x: &[f64], steps: &[f64]) -> (Vec<f64>, f64) {
+    let (mut t, _) = project(effects, x, steps);
+    let mut v = obj(&t);
+    for (k, name) in effect_param_names(effects).enumerate() {
+        let j = k + 2;
+        let (lo, hi) = range_of(name);
+        let near = 0.01 * steps.get(j).copied().unwrap_or(1.0);
+        for bound in [lo, hi] {
+            if bound.is_finite() && t[j] != bound && (t[j] - bound).abs() < near {
+                let mut trial = t.clone();
+                trial[j] = bound;
+                let tv = obj(&trial);
+                if tv <= v {
+                    (t, v) = (trial, tv);
+                }
+            }
+        }
     }
+    (t, v)
+}
+
+/// The coarse ξ scan from every start, the best few refined, the best of those polished.
+fn fit_from_starts(
+    obj: &dyn Fn(&[f64]) -> f64,
+    starts: &[Vec<f64>],
+    steps: &[f64],
+    settings: &AuditSettings,
+) -> (Vec<f64>, f64) {
     let mut seeds: Vec<(Vec<f64>, f64)> = vec![];
-    for s in &starts {
+    for s in starts {
         for k in 0..10 {
             let xi = 0.05 + k as f64 * 0.1;
             let f1 = |la: f64| {
@@ -828,7 +953,7 @@ fn fit_hypothesis(
             continue;
         }
         tried.push(t[0]);
-        let r = nelder_mead(&obj, &t, &steps, settings.max_iterations);
+        let r = nelder_mead(obj, &t, steps, settings.max_iterations);
         if best.as_ref().is_none_or(|b| r.1 < b.1) {
             best = Some(r);
         }
@@ -838,7 +963,7 @@ fn fit_hypothesis(
     }
     let (x, _) = best.unwrap_or((vec![0.0, 0.0], f64::INFINITY));
     // Polish.
-    nelder_mead(&obj, &x, &steps, settings.max_iterations)
+    nelder_mead(obj, &x, steps, settings.max_iterations)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -867,19 +992,7 @@ fn rms(v: impl Iterator<Item = f64>) -> f64 {
 fn score(prep: &Prepared, effects: &[Effect], settings: &AuditSettings) -> Fit {
     let data = prep.data;
     let all: Vec<usize> = (0..data.pixels.len()).collect();
-    let bounce_options: Vec<usize> = if effects.contains(&Effect::HigherOrderBounces) {
-        vec![3, MAX_BOUNCES]
-    } else {
-        vec![prep.base.options.bounces]
-    };
-    let mut best: Option<(Vec<f64>, f64, usize)> = None;
-    for &b in &bounce_options {
-        let (t, v) = fit_hypothesis(prep, effects, b, &all, None, settings);
-        if best.as_ref().is_none_or(|x| v < x.1) {
-            best = Some((t, v, b));
-        }
-    }
-    let (theta, _, bounces) = best.unwrap_or((vec![0.0, 0.0], f64::INFINITY, 2));
+    let (theta, bounces) = fit_all(prep, effects, &all, settings);
     let model = prep.model_of(effects, &theta, bounces);
     let (xi, albedo) = (logistic(theta[0]), theta[1].exp());
     let displaced = effects.contains(&Effect::RefractionShift);
@@ -892,36 +1005,47 @@ fn score(prep: &Prepared, effects: &[Effect], settings: &AuditSettings) -> Fit {
         .iter()
         .zip(&data.pixels)
         .map(|(e, p)| e.res_ir / p.obs.ir.max(1.0)));
-    // Held out: folds of frames, interleaved.
-    let folds = settings.folds.clamp(2, data.frames.max(2));
-    let mut heldout_loss = vec![f64::NAN; all.len()];
-    let mut heldout_res = vec![f64::NAN; all.len()];
-    let mut heldout_ir = vec![f64::NAN; all.len()];
-    for f in 0..folds {
-        let train: Vec<usize> = all
-            .iter()
-            .copied()
-            .filter(|&i| data.pixels[i].frame % folds != f)
-            .collect();
-        let test: Vec<usize> = all
-            .iter()
-            .copied()
-            .filter(|&i| data.pixels[i].frame % folds == f)
-            .collect();
-        if test.is_empty() || train.is_empty() {
-            continue;
-        }
-        let (t, _) = fit_hypothesis(prep, effects, bounces, &train, Some(&theta), settings);
-        let m = prep.model_of(effects, &t, bounces);
-        let (x, a) = (logistic(t[0]), t[1].exp());
-        for &i in &test {
-            let e = prep.eval(&m, i, x, a, displaced);
-            heldout_loss[i] = e.loss;
-            heldout_res[i] = e.res_mm;
-            heldout_ir[i] = e.res_ir;
+    let h = held_out(prep, effects, &theta, bounces, settings);
+    let n = h.loss.iter().filter(|v| v.is_finite()).count().max(1);
+    Fit {
+        effects: effects.to_vec(),
+        xi,
+        albedo,
+        params: named_params(effects, &theta, bounces),
+        at_bound: at_bounds(effects, &theta),
+        bounces,
+        rmse_mm,
+        ir_rel_rmse,
+        heldout_rmse_mm: rms(h.residual_mm.iter().copied()),
+        heldout_score: h.loss.iter().filter(|v| v.is_finite()).sum::<f64>() / n as f64,
+        heldout_recovery_rmse_mm: rms(h.recovery_mm.iter().copied()),
+        heldout_loss: h.loss,
+        heldout_residual_mm: h.residual_mm,
+        heldout_ir_residual: h.ir_residual,
+        theta,
+    }
+}
+
+/// The hypothesis fitted on `pixels`, with the better of its bounce counts: `(theta, bounces)`.
+fn fit_all(prep: &Prepared, effects: &[Effect], pixels: &[usize], settings: &AuditSettings) -> (Vec<f64>, usize) {
+    let bounce_options: Vec<usize> = if effects.contains(&Effect::HigherOrderBounces) {
+        vec![3, MAX_BOUNCES]
+    } else {
+        vec![prep.base.options.bounces]
+    };
+    let mut best: Option<(Vec<f64>, f64, usize)> = None;
+    for &b in &bounce_options {
+        let (t, v) = fit_hypothesis(prep, effects, b, pixels, None, settings);
+        if best.as_ref().is_none_or(|x| v < x.1) {
+            best = Some((t, v, b));
         }
     }
-    let n = heldout_loss.iter().filter(|v| v.is_finite()).count().max(1);
+    let (theta, _, bounces) = best.unwrap_or((vec![0.0, 0.0], f64::INFINITY, 2));
+    (theta, bounces)
+}
+
+/// The effects' parameters by name (and the bounces kept, where they are in).
+fn named_params(effects: &[Effect], theta: &[f64], bounces: usize) -> Vec<(String, f64)> {
     let mut params = vec![];
     let mut k = 2;
     for e in effects {
@@ -933,21 +1057,50 @@ fn score(prep: &Prepared, effects: &[Effect], settings: &AuditSettings) -> Fit {
             params.push(("bounces".to_string(), bounces as f64));
         }
     }
-    Fit {
-        effects: effects.to_vec(),
-        xi,
-        albedo,
-        params,
-        bounces,
-        rmse_mm,
-        ir_rel_rmse,
-        heldout_rmse_mm: rms(heldout_res.iter().copied()),
-        heldout_score: heldout_loss.iter().filter(|v| v.is_finite()).sum::<f64>() / n as f64,
-        heldout_loss,
-        heldout_residual_mm: heldout_res,
-        heldout_ir_residual: heldout_ir,
-        theta,
+    params
+}
+
+/// Per pixel, what a hypothesis refitted without the pixel's frame says of it.
+struct HeldOut {
+    /// Loss (depth and IR in units of their noise; Huber).
+    loss: Vec<f64>,
+    /// Depth residual, mm (predicted minus read, wrapped).
+    residual_mm: Vec<f64>,
+    /// IR residual, counts.
+    ir_residual: Vec<f64>,
+    /// Recovered minus true foreground distance, mm.
+    recovery_mm: Vec<f64>,
+}
+
+/// Folds of frames, interleaved: each fold's pixels scored by the hypothesis refitted on the others.
+fn held_out(prep: &Prepared, effects: &[Effect], theta: &[f64], bounces: usize, settings: &AuditSettings) -> HeldOut {
+    let data = prep.data;
+    let n = data.pixels.len();
+    let mut h = HeldOut {
+        loss: vec![f64::NAN; n],
+        residual_mm: vec![f64::NAN; n],
+        ir_residual: vec![f64::NAN; n],
+        recovery_mm: vec![f64::NAN; n],
+    };
+    let displaced = effects.contains(&Effect::RefractionShift);
+    let folds = settings.folds.clamp(2, data.frames.max(2));
+    for f in 0..folds {
+        let (test, train): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| data.pixels[i].frame % folds == f);
+        if test.is_empty() || train.is_empty() {
+            continue;
+        }
+        let (t, _) = fit_hypothesis(prep, effects, bounces, &train, Some(theta), settings);
+        let m = prep.model_of(effects, &t, bounces);
+        let (x, a) = (logistic(t[0]), t[1].exp());
+        for &i in &test {
+            let e = prep.eval(&m, i, x, a, displaced);
+            h.loss[i] = e.loss;
+            h.residual_mm[i] = e.res_mm;
+            h.ir_residual[i] = e.res_ir;
+            h.recovery_mm[i] = prep.recovery_error_mm(&m, i, x, displaced, &settings.inversion);
+        }
     }
+    h
 }
 
 /// Gain of `new` over `old` in summed held-out loss, and its pixel-paired z.
@@ -1092,25 +1245,7 @@ pub fn run_audit_with_progress(
     settings: &AuditSettings,
     progress: &mut dyn FnMut(&str),
 ) -> Result<AuditResult, AuditError> {
-    if data.frames < MIN_FRAMES {
-        return Err(AuditError::TooFewFrames {
-            got: data.frames,
-            need: MIN_FRAMES,
-        });
-    }
-    if data.pixels.len() < MIN_PIXELS {
-        return Err(AuditError::TooFewPixels {
-            got: data.pixels.len(),
-            need: MIN_PIXELS,
-        });
-    }
-    if !(data.depth_noise_coef.is_finite()
-        && data.depth_noise_coef > 0.0
-        && data.ir_noise_coef.is_finite()
-        && data.ir_noise_coef > 0.0)
-    {
-        return Err(AuditError::NoNoise);
-    }
+    check_inputs(data)?;
     let range_mm = base.sensor.unambiguous_range_mm();
     let mut prep = Prepared::new(data, base, settings.huber_k);
     // Noise weights from a first baseline fit with photon-limited depth noise, then refit.
@@ -1123,72 +1258,17 @@ pub fn run_audit_with_progress(
     prep.set_depth_noise(&prep.model_of(&[], &first, 2), logistic(first[0]), first[1].exp());
     progress("baseline");
     let baseline = score(&prep, &[], settings);
-    let n = data.pixels.len() as f64;
     let mut current = baseline.clone();
     let mut steps: Vec<Fit> = vec![];
     let mut candidates = vec![];
-    let mut remaining: Vec<Effect> = Effect::ALL.to_vec();
-    if base.sensor.waveform != Waveform::Sinusoid {
-        remaining.retain(|e| *e != Effect::WaveformHarmonics);
-    }
-    // What the baseline already models is no candidate.
-    if base.options.ir_mode == IrMode::Amplitude {
-        remaining.retain(|e| *e != Effect::IrAmplitude);
-    }
-    if base.options.bounces > 2 {
-        remaining.retain(|e| *e != Effect::HigherOrderBounces);
-    }
+    let mut remaining = candidate_effects(base);
     for round in 0..settings.max_effects {
-        let mut best: Option<(Fit, usize)> = None;
-        let mut round_scores = vec![];
-        for (ci, e) in remaining.iter().enumerate() {
-            let mut effects = current.effects.clone();
-            effects.push(*e);
-            progress(e.name());
-            let fit = score(&prep, &effects, settings);
-            let (gain, z, _) = paired_gain(&current, &fit);
-            let threshold = (settings.penalty_per_param_ln_n * e.penalty_params() as f64 * n.ln())
-                .max(settings.min_relative_gain * current.heldout_score * n);
-            let passes = gain > threshold && z > settings.min_gain_z;
-            // An effect is claimed only where it also predicts the held-out depths no worse and its
-            // parameters are physical; otherwise the loss gain is the fit bending to something else.
-            let rejected = if !passes {
-                String::new()
-            } else if !(fit.heldout_rmse_mm <= current.heldout_rmse_mm) {
-                format!(
-                    "held-out depth error {:.1} mm against {:.1} without it",
-                    fit.heldout_rmse_mm, current.heldout_rmse_mm
-                )
-            } else {
-                unphysical(&fit.params).unwrap_or_default()
-            };
-            let ok = passes && rejected.is_empty();
-            round_scores.push(CandidateScore {
-                round,
-                effect: *e,
-                heldout_rmse_mm: fit.heldout_rmse_mm,
-                heldout_score: fit.heldout_score,
-                gain,
-                threshold,
-                z,
-                params: fit.params.clone(),
-                xi: fit.xi,
-                accepted: false,
-                rejected,
-            });
-            if ok && best.as_ref().is_none_or(|(b, _)| fit.heldout_score < b.heldout_score) {
-                best = Some((fit, ci));
-            }
-        }
+        let (scores, best) = run_round(&prep, &current, &remaining, round, settings, progress);
+        candidates.extend(scores);
         let Some((fit, ci)) = best else {
-            candidates.extend(round_scores);
             break;
         };
-        let chosen = remaining.remove(ci);
-        for s in &mut round_scores {
-            s.accepted = s.effect == chosen;
-        }
-        candidates.extend(round_scores);
+        remaining.remove(ci);
         current = fit.clone();
         steps.push(fit);
         if remaining.is_empty() {
@@ -1208,9 +1288,12 @@ pub fn run_audit_with_progress(
         // Mean Huber loss of two unit-noise residuals is about 1 (0.5 each).
         v.iter().sum::<f64>() / v.len().max(1) as f64
     };
+    let recovery: Vec<f64> = steps.iter().map(|s| s.heldout_recovery_rmse_mm).collect();
+    let kept_steps = steps_recovering_no_worse(baseline.heldout_recovery_rmse_mm, &recovery);
     Ok(AuditResult {
         baseline,
         steps,
+        kept_steps,
         candidates,
         trends_before,
         trends_after,
@@ -1221,7 +1304,121 @@ pub fn run_audit_with_progress(
     })
 }
 
-/// Physical ranges of the effects' parameters: a fit outside them is not claimed.
+/// The audit's inputs are enough to leave frames out and weigh residuals by their noise.
+fn check_inputs(data: &AuditData) -> Result<(), AuditError> {
+    if data.frames < MIN_FRAMES {
+        return Err(AuditError::TooFewFrames {
+            got: data.frames,
+            need: MIN_FRAMES,
+        });
+    }
+    if data.pixels.len() < MIN_PIXELS {
+        return Err(AuditError::TooFewPixels {
+            got: data.pixels.len(),
+            need: MIN_PIXELS,
+        });
+    }
+    let known = |v: f64| v.is_finite() && v > 0.0;
+    if !(known(data.depth_noise_coef) && known(data.ir_noise_coef)) {
+        return Err(AuditError::NoNoise);
+    }
+    Ok(())
+}
+
+/// The candidates past `base`: what the baseline already models is no candidate.
+fn candidate_effects(base: &ForwardModel) -> Vec<Effect> {
+    let mut remaining: Vec<Effect> = Effect::ALL.to_vec();
+    if base.sensor.waveform != Waveform::Sinusoid {
+        remaining.retain(|e| *e != Effect::WaveformHarmonics);
+    }
+    if base.options.ir_mode == IrMode::Amplitude {
+        remaining.retain(|e| *e != Effect::IrAmplitude);
+    }
+    if base.options.bounces > 2 {
+        remaining.retain(|e| *e != Effect::HigherOrderBounces);
+    }
+    remaining
+}
+
+/// One round of the greedy selection: every remaining effect added to `current`
+/// and scored; the best one claimed (with its index in `remaining`), if any is.
+fn run_round(
+    prep: &Prepared,
+    current: &Fit,
+    remaining: &[Effect],
+    round: usize,
+    settings: &AuditSettings,
+    progress: &mut dyn FnMut(&str),
+) -> (Vec<CandidateScore>, Option<(Fit, usize)>) {
+    let n = prep.data.pixels.len() as f64;
+    let mut best: Option<(Fit, usize)> = None;
+    let mut scores = vec![];
+    for (ci, e) in remaining.iter().enumerate() {
+        let mut effects = current.effects.clone();
+        effects.push(*e);
+        progress(e.name());
+        let fit = score(prep, &effects, settings);
+        let (gain, z, _) = paired_gain(current, &fit);
+        let threshold = (settings.penalty_per_param_ln_n * e.penalty_params() as f64 * n.ln())
+            .max(settings.min_relative_gain * current.heldout_score * n);
+        let passes = gain > threshold && z > settings.min_gain_z;
+        // An effect is claimed only where it also predicts the held-out depths no worse;
+        // otherwise the loss gain is the fit bending to something else. Its parameters are
+        // inside their physical ranges by construction (bounded fits).
+        let rejected = if passes && !(fit.heldout_rmse_mm <= current.heldout_rmse_mm) {
+            format!(
+                "held-out depth error {:.1} mm against {:.1} without it",
+                fit.heldout_rmse_mm, current.heldout_rmse_mm
+            )
+        } else {
+            String::new()
+        };
+        let ok = passes && rejected.is_empty();
+        scores.push(CandidateScore {
+            round,
+            effect: *e,
+            heldout_rmse_mm: fit.heldout_rmse_mm,
+            heldout_score: fit.heldout_score,
+            heldout_recovery_rmse_mm: fit.heldout_recovery_rmse_mm,
+            gain,
+            threshold,
+            z,
+            params: fit.params.clone(),
+            at_bound: fit.at_bound.clone(),
+            xi: fit.xi,
+            accepted: false,
+            rejected,
+        });
+        if ok && best.as_ref().is_none_or(|(b, _)| fit.heldout_score < b.heldout_score) {
+            best = Some((fit, ci));
+        }
+    }
+    if let Some((_, ci)) = &best {
+        for s in &mut scores {
+            s.accepted = s.effect == remaining[*ci];
+        }
+    }
+    (scores, best)
+}
+
+/// How many of the claimed steps a model keeps when it stops at the last step that
+/// recovers no worse than the one before: `recovery[k]` is step `k + 1`'s held-out
+/// recovery error, `baseline` the baseline's. A step whose recovery is unknown (NaN)
+/// counts as worse. The steps kept recover no worse than the baseline, by construction.
+pub fn steps_recovering_no_worse(baseline: f64, recovery: &[f64]) -> usize {
+    let mut prev = baseline;
+    let mut kept = 0;
+    for &r in recovery {
+        if !(r <= prev) {
+            break;
+        }
+        prev = r;
+        kept += 1;
+    }
+    kept
+}
+
+/// Physical ranges of the effects' parameters: every fit is bounded to them.
 /// The harmonics' bounds are a square wave's (1/3 and 1/5 of the fundamental: square
 /// emission read through short windows), the richest correlation a CW sensor has;
 /// `L2 = Ib xi^2 X^p` with `p` from 0 (light crossing the layer) to 2 (the paper's Eq. 2);
@@ -1235,14 +1432,6 @@ pub const PHYSICAL_RANGES: &[(&str, f64, f64)] = &[
     ("shift_columns_px", -20.0, 20.0),
     ("shift_rows_px", -20.0, 20.0),
 ];
-
-/// The first parameter outside its [`PHYSICAL_RANGES`] entry, in words.
-fn unphysical(params: &[(String, f64)]) -> Option<String> {
-    params.iter().find_map(|(name, v)| {
-        let (_, lo, hi) = PHYSICAL_RANGES.iter().find(|(n, _, _)| n == name)?;
-        (!(v >= lo && v <= hi)).then(|| format!("{name} = {v:.3} is outside its physical range [{lo:.3}, {hi:.3}]"))
-    })
-}
 
 /// The baseline fitted on all pixels (internal coordinates), for the noise weights.
 fn score_full_only(prep: &Prepared, settings: &AuditSettings) -> Vec<f64> {
@@ -1268,6 +1457,67 @@ mod tests {
             (x[0] - 1.0).abs() < 1e-3 && (x[1] + 2.0).abs() < 1e-3 && v < 1e-6,
             "{x:?}"
         );
+    }
+
+    #[test]
+    fn a_bounded_fit_reaches_the_bound_where_the_optimum_lies_past_it() {
+        // The plain law (power 0) with the unconstrained optimum at -0.04, as measured on a
+        // rendered sequence: the bounded fit sits exactly on 0 and says so.
+        let effects = [Effect::TransmissionLaw];
+        let steps = [0.4, 0.15, 0.4];
+        let f = |t: &[f64]| (t[0] - 0.5).powi(2) + (t[1] + 0.2).powi(2) + 50.0 * (t[2] + 0.04).powi(2);
+        let obj = bounded(&effects, &steps, f);
+        for start in [2.0, 1.0, 0.0] {
+            let (x, _) = nelder_mead(&obj, &[0.0, 0.0, start], &steps, 400);
+            let (x, _) = onto_range(&obj, &effects, &x, &steps);
+            assert_eq!(x[2], 0.0, "start {start}: {x:?}");
+            assert!((x[0] - 0.5).abs() < 1e-3 && (x[1] + 0.2).abs() < 1e-3, "{x:?}");
+            assert_eq!(at_bounds(&effects, &x), vec!["transmission_albedo_power".to_string()]);
+        }
+        // Inside the range the optimum is found where it is, on no bound.
+        let g = |t: &[f64]| t[0].powi(2) + t[1].powi(2) + (t[2] - 0.7).powi(2);
+        let obj = bounded(&effects, &steps, g);
+        let (x, _) = nelder_mead(&obj, &[0.0, 0.0, 2.0], &steps, 400);
+        let (x, _) = onto_range(&obj, &effects, &x, &steps);
+        assert!((x[2] - 0.7).abs() < 1e-3, "{x:?}");
+        assert!(at_bounds(&effects, &x).is_empty());
+    }
+
+    #[test]
+    fn projection_keeps_every_parameter_in_its_physical_range() {
+        let effects = [
+            Effect::WaveformHarmonics,
+            Effect::AmbientOffset,
+            Effect::SubsurfaceDelay,
+            Effect::TransmissionLaw,
+            Effect::RefractionShift,
+        ];
+        let theta = [9.0, -9.0, 0.5, -0.3, -40.0, 250.0, -1.0, 30.0, 0.0];
+        let steps = vec![1.0; theta.len()];
+        let (t, outside) = project(&effects, &theta, &steps);
+        assert_eq!(t, vec![9.0, -9.0, 1.0 / 3.0, -0.2, 0.0, 200.0, 0.0, 20.0, 0.0]);
+        assert!((outside - (0.5 - 1.0 / 3.0 + 0.1 + 40.0 + 50.0 + 1.0 + 10.0)).abs() < 1e-9);
+        assert_eq!(
+            at_bounds(&effects, &t),
+            [
+                "third",
+                "fifth",
+                "ambient_offset",
+                "subsurface_delay_mm",
+                "transmission_albedo_power",
+                "shift_columns_px"
+            ]
+        );
+    }
+
+    #[test]
+    fn the_model_kept_stops_at_the_last_step_that_recovers_no_worse() {
+        assert_eq!(steps_recovering_no_worse(20.0, &[]), 0);
+        assert_eq!(steps_recovering_no_worse(20.0, &[15.0, 15.0, 12.0]), 3);
+        assert_eq!(steps_recovering_no_worse(20.0, &[15.0, 16.0, 10.0]), 1);
+        assert_eq!(steps_recovering_no_worse(20.0, &[25.0, 10.0]), 0);
+        assert_eq!(steps_recovering_no_worse(20.0, &[f64::NAN, 10.0]), 0);
+        assert_eq!(steps_recovering_no_worse(f64::NAN, &[10.0]), 0);
     }
 
     #[test]
