@@ -719,7 +719,7 @@ fn help_shows_possible_values() {
     );
     let bench = help(&["bench", "-h"]);
     assert!(
-        bench.contains("[possible values: recover, recover_per_pixel, recover_with_interval, observe, xi_estimate, replay, node_latency]"),
+        bench.contains("[possible values: recover, recover_per_pixel, recover_with_interval, observe, xi_estimate, replay, multi_frequency, node_latency]"),
         "{bench}"
     );
     let bad = run(dir.path(), &["replay", "x.mcap", "--xi-mode", "offline"]);
