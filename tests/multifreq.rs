@@ -144,9 +144,10 @@ fn rms(v: &[f64]) -> f64 {
     (v.iter().map(|e| e * e).sum::<f64>() / v.len() as f64).sqrt()
 }
 
+/// NaN for none.
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
 /// What one object frame shows against the truth.
@@ -444,4 +445,319 @@ fn bad_phasor_input_fails_with_a_clear_message() {
         img
     });
     assert_fails_saying(&replay("short.mcap", &[]), &["phasor image", "data bytes"]);
+}
+
+// ------------------------------------------------------------ the node over DDS
+
+mod common;
+
+use common::netns::isolated;
+use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, QosProfile};
+use std::time::{Duration, Instant};
+use translucent_tof::node::peer::Peer;
+
+/// One rendered frame as a driver publishes it: depth, IR, phasors, and the truth.
+struct Published {
+    depth: Image,
+    ir: Image,
+    phasors: Vec<Image>,
+    truth_z_mm: ImageBuf<f32>,
+}
+
+fn published(scene: &Scene) -> Vec<Published> {
+    render_all(scene)
+        .into_iter()
+        .map(|f| {
+            let h = Header::new(f.stamp_ns, "tof_optical_frame");
+            Published {
+                depth: depth_image(&h, &f.depth_z_mm, "16UC1").expect("depth"),
+                ir: ir_image(&h, &f.ir, "16UC1").expect("IR"),
+                phasors: f.phasors.iter().map(|p| phasor_image(&h, p).expect("phasor")).collect(),
+                truth_z_mm: f.truth_z_mm,
+            }
+        })
+        .collect()
+}
+
+/// The node, started with `params`, stopped (SIGINT) when dropped or by [`Self::stop`].
+struct Node(std::process::Child, PathBuf, TempDir);
+
+impl Node {
+    fn start(params: &[&str]) -> Self {
+        let dir = TempDir::new().expect("temp dir");
+        let stats = dir.path().join("stats.json");
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_translucent_tof"));
+        cmd.arg("node").arg("--stats-json").arg(&stats);
+        cmd.args(["--ros-args", "-r", "__ns:=/tof"]);
+        for p in params {
+            cmd.args(["-p", p]);
+        }
+        let log = std::fs::File::create(dir.path().join("node.log")).expect("log file");
+        let child = cmd
+            .stdin(std::process::Stdio::null())
+            .stderr(log)
+            .spawn()
+            .expect("starting the node");
+        Node(child, stats, dir)
+    }
+
+    fn stop(mut self) -> Value {
+        let pid = self.0.id().to_string();
+        Command::new("kill").args(["-INT", &pid]).status().expect("kill");
+        let t0 = Instant::now();
+        while self.0.try_wait().expect("waiting").is_none() {
+            assert!(t0.elapsed() < Duration::from_secs(20), "node did not stop on SIGINT");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        eprint!(
+            "{}",
+            std::fs::read_to_string(self.2.path().join("node.log")).unwrap_or_default()
+        );
+        read_json(&self.1)
+    }
+}
+
+impl Drop for Node {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+        if std::thread::panicking() {
+            eprint!(
+                "{}",
+                std::fs::read_to_string(self.2.path().join("node.log")).unwrap_or_default()
+            );
+        }
+    }
+}
+
+/// Phasor publishers and a `~/translucency_image` listener beside the [`Peer`].
+struct PhasorPeer {
+    node: ros2_client::Node,
+    phasors: Vec<ros2_client::Publisher<Image>>,
+    translucency: ros2_client::Subscription<Image>,
+    received: BTreeMap<u64, Image>,
+}
+
+impl PhasorPeer {
+    fn new(ctx: &ros2_client::Context, frequencies: usize) -> Self {
+        let mut node = ctx
+            .new_node(
+                NodeName::new("/", "phasor_peer").expect("name"),
+                NodeOptions::new().enable_rosout(false),
+            )
+            .expect("peer node");
+        tokio::spawn(node.spinner().expect("spinner").spin());
+        let history = ros2_client::qos::History::KeepLast { depth: 50 };
+        let reliable = QosProfile::publisher_default().history(history);
+        let image = MessageTypeName::new("sensor_msgs", "Image");
+        let topic = |node: &mut ros2_client::Node, name: &str| {
+            node.create_topic(&Name::parse(name).expect("topic name"), image.clone(), &reliable)
+                .expect("topic")
+        };
+        let phasors = (0..frequencies)
+            .map(|k| {
+                let t = topic(&mut node, &format!("/tof/phasor_{k}/image_raw"));
+                node.create_publisher(&t, Some(reliable.clone())).expect("publisher")
+            })
+            .collect();
+        let t = topic(&mut node, "/tof/translucent_tof/translucency_image");
+        let translucency = node
+            .create_subscription(&t, Some(reliable.clone()))
+            .expect("subscription");
+        Self {
+            node,
+            phasors,
+            translucency,
+            received: BTreeMap::new(),
+        }
+    }
+
+    async fn wait_for_node(&self) {
+        let all = async {
+            for p in &self.phasors {
+                p.wait_for_subscription(&self.node).await;
+            }
+            self.translucency.wait_for_publisher(&self.node).await;
+        };
+        tokio::time::timeout(Duration::from_secs(30), all)
+            .await
+            .expect("the node's phasor subscriptions and translucency_image publisher");
+    }
+
+    /// Publishes a frame's phasors (its depth, IR and camera_info go through the [`Peer`]).
+    fn publish(&self, f: &Published) {
+        for (p, img) in self.phasors.iter().zip(&f.phasors) {
+            p.publish(img.clone()).expect("publishing a phasor image");
+        }
+    }
+
+    fn drain(&mut self) {
+        while let Ok(Some((m, _))) = self.translucency.take() {
+            self.received.insert(m.header.stamp.as_log_time_ns(), m);
+        }
+    }
+}
+
+#[test]
+fn the_node_takes_the_multi_frequency_path_over_dds() {
+    if !isolated("the_node_takes_the_multi_frequency_path_over_dds") {
+        return;
+    }
+    let (text, drawn) = sheet_and_box(41, "[20e6, 50e6, 100e6]", 2000.0);
+    let mut scene = Scene::from_toml(&text, "s.toml").expect("scene");
+    scene.background.frames = 5;
+    let k = scene_intrinsics(&scene);
+    let frames = published(&scene);
+    let (background, objects) = frames.split_at(5);
+    let node = Node::start(&[
+        "background_frames:=5",
+        "latch_timeout_s:=30",
+        "modulation_frequencies_hz:=[20000000.0, 50000000.0, 100000000.0]",
+    ]);
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let (checks, latch_reply) = rt.block_on(async {
+        let ctx = translucent_tof::node::context(0, false).expect("DDS context");
+        let mut peer = Peer::new(
+            &ctx,
+            "mf_driver",
+            "/tof",
+            "/tof/translucent_tof",
+            ros2_client::ServiceMapping::Enhanced,
+        )
+        .expect("peer");
+        peer.wait_for_node(Duration::from_secs(30))
+            .await
+            .expect("the node on DDS");
+        // A participant of its own: one node per context sees the match events.
+        let ctx2 = translucent_tof::node::context(0, false).expect("DDS context");
+        let mut phasors = PhasorPeer::new(&ctx2, 3);
+        phasors.wait_for_node().await;
+        let info = camera_info(&Header::new(0, "tof_optical_frame"), &k);
+        let send = |peer: &Peer, phasors: &PhasorPeer, f: &Published, stamp: u64| {
+            let re = |img: &Image| translucent_tof::node::peer::restamp(img, stamp);
+            let restamped = Published {
+                depth: re(&f.depth),
+                ir: re(&f.ir),
+                phasors: f.phasors.iter().map(re).collect(),
+                truth_z_mm: f.truth_z_mm.clone(),
+            };
+            phasors.publish(&restamped);
+            peer.publish(&info, &restamped.depth, &restamped.ir)
+                .expect("publishing");
+        };
+        // The latch, while the empty scene streams (every frame with its phasors).
+        let mut stamp = 1_000_000_000u64;
+        let mut tick = tokio::time::interval(Duration::from_millis(60));
+        for f in background.iter().take(2) {
+            tick.tick().await;
+            stamp += 33_000_000;
+            send(&peer, &phasors, f, stamp);
+        }
+        let reply = {
+            let call = peer.call(true, Duration::from_secs(60));
+            tokio::pin!(call);
+            let mut j = 2;
+            loop {
+                tokio::select! {
+                    r = &mut call => break r.expect("the latch's reply"),
+                    _ = tick.tick() => {
+                        stamp += 33_000_000;
+                        send(&peer, &phasors, &background[j % background.len()], stamp);
+                        j += 1;
+                    }
+                }
+            }
+        };
+        // The object frames, each awaited.
+        let mut checks = vec![];
+        for f in objects {
+            stamp += 33_000_000;
+            send(&peer, &phasors, f, stamp);
+            assert!(
+                peer.wait_for(stamp, Duration::from_secs(20)).await,
+                "no corrected depth at {stamp}"
+            );
+            // The mask and the translucency image follow the corrected depth.
+            let until = Instant::now() + Duration::from_secs(10);
+            while !(phasors.received.contains_key(&stamp) && peer.received.mask.contains_key(&stamp))
+                && Instant::now() < until
+            {
+                phasors.drain();
+                peer.drain();
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+            let xi = floats(phasors.received.get(&stamp).expect("a translucency_image"));
+            let corrected = depth_mm(&peer.received.corrected[&stamp]).expect("corrected depth");
+            let mask = peer
+                .received
+                .mask
+                .get(&stamp)
+                .map(|m| m.data.clone())
+                .unwrap_or_default();
+            checks.push(dds_check(&f.truth_z_mm, &corrected, &mask, &xi, drawn));
+        }
+        (checks, reply)
+    });
+    let stats = node.stop();
+    assert!(
+        latch_reply.success && latch_reply.message.contains("phasors at 3 frequencies"),
+        "{latch_reply:?}"
+    );
+    for c in &checks {
+        println!("xi {:.4}: {c:?}", drawn.xi);
+        assert!(c.sheet_in_mask * 100 >= c.sheet_pixels * 95, "{c:?}");
+        assert!(
+            c.sheet_rms_mm <= 30.0 && (c.xi_median - drawn.xi).abs() <= 0.03,
+            "{c:?}"
+        );
+        assert!(c.box_pixels > 500 && c.box_in_mask * 20 <= c.box_pixels, "{c:?}");
+    }
+    // Frames of the empty scene streamed after the latch are recovered too (nothing changed).
+    assert!(stats["published"].as_u64() >= Some(objects.len() as u64), "{stats}");
+    assert!(stats["dropped"].get("unpaired").is_none(), "{stats}");
+}
+
+/// The DDS test's checks against the truth: the sheet's depth and ξ, the box out of the mask.
+#[derive(Debug)]
+struct DdsCheck {
+    sheet_pixels: usize,
+    sheet_in_mask: usize,
+    sheet_rms_mm: f64,
+    xi_median: f64,
+    box_pixels: usize,
+    box_in_mask: usize,
+}
+
+fn dds_check(truth: &ImageBuf<f32>, corrected: &ImageBuf<f32>, mask: &[u8], xi: &[f32], drawn: Drawn) -> DdsCheck {
+    let (mut err, mut xis, mut sheet_pixels, mut box_pixels, mut box_in_mask) = (vec![], vec![], 0, 0, 0);
+    assert_eq!(
+        (corrected.len(), mask.len(), xi.len()),
+        (truth.len(), truth.len(), truth.len())
+    );
+    for (i, (&t, &x)) in truth.data.iter().zip(xi).enumerate() {
+        let t = f64::from(t);
+        let masked = mask[i] == 255;
+        if t < drawn.box_z_mm - 100.0 {
+            sheet_pixels += 1;
+            if masked {
+                err.push(f64::from(corrected.data[i]) - t);
+                xis.push(f64::from(x));
+            }
+        } else if (t - drawn.box_z_mm).abs() < 1.0 {
+            box_pixels += 1;
+            box_in_mask += usize::from(masked || x.is_finite());
+        }
+    }
+    DdsCheck {
+        sheet_pixels,
+        sheet_in_mask: err.len(),
+        sheet_rms_mm: rms(&err),
+        xi_median: median(xis),
+        box_pixels,
+        box_in_mask,
+    }
 }

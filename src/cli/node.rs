@@ -10,6 +10,7 @@ use clap::Args;
 use crate::node::ros_args::{NameResolver, ParamValue, RosArgs};
 use crate::node::{NodeSettings, NodeStats, RuntimeSettings};
 use crate::physics::XiMethod;
+use crate::pipeline::multifreq::MAX_FREQUENCIES;
 use crate::pipeline::XiChoice;
 use crate::viz::RerunTarget;
 
@@ -97,6 +98,13 @@ pub const PARAMETERS: &[ParamSpec] = &[
         Some("30000000.0"),
         false,
         "the camera's modulation frequency, Hz",
+    ),
+    spec(
+        "modulation_frequencies_hz",
+        "double_array",
+        None,
+        false,
+        "a multi-frequency camera's frequencies, Hz, one per phasor_<k>/image_raw ([20e6, 50e6, 100e6]); unset: single frequency",
     ),
     spec("waveform", "string", Some("sinusoid"), false, "sinusoid or triangle"),
     spec(
@@ -272,6 +280,29 @@ fn flag_or(p: &Params, name: &str, default: bool) -> Result<bool> {
     }
 }
 
+/// `modulation_frequencies_hz`: `None` unset (or empty), else at least two
+/// positive frequencies, at most [`MAX_FREQUENCIES`].
+fn frequencies(p: &Params) -> Result<Option<Vec<f64>>> {
+    const NAME: &str = "modulation_frequencies_hz";
+    let v = match p.get(NAME) {
+        None => return Ok(None),
+        Some(ParamValue::DoubleArray(v)) if v.is_empty() => return Ok(None),
+        Some(ParamValue::DoubleArray(v)) => v.clone(),
+        Some(other) => bail!(
+            "parameter {NAME}: expected an array of frequencies in Hz such as [20e6, 50e6, 100e6], got {:?}",
+            other.as_text()
+        ),
+    };
+    if !(2..=MAX_FREQUENCIES).contains(&v.len()) {
+        bail!(
+            "parameter {NAME}: {} frequencies; the multi-frequency path takes 2 to {MAX_FREQUENCIES}",
+            v.len()
+        );
+    }
+    crate::physics::multifreq::common_unambiguous_range_mm(&v).map_err(|e| anyhow!("parameter {NAME}: {e}"))?;
+    Ok(Some(v))
+}
+
 /// What may change while the node runs (the parameters marked so in
 /// [`PARAMETERS`]), read from the whole parameter set.
 pub fn runtime_settings(p: &Params) -> Result<RuntimeSettings> {
@@ -404,6 +435,7 @@ pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
         diagnostics_period: Duration::from_secs_f64(diagnostics_period_s),
         stats_json: a.stats_json.clone(),
         max_frames: a.max_frames,
+        multi_frequency: frequencies(p)?,
     })
 }
 
@@ -422,4 +454,35 @@ fn typed(kind: &str, v: ParamValue) -> ParamValue {
 pub fn run(a: NodeArgs) -> Result<NodeStats> {
     let s = settings(&a)?;
     crate::node::run(s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with(v: &str) -> Params {
+        Params::from([("modulation_frequencies_hz".to_string(), ParamValue::parse(v))])
+    }
+
+    #[test]
+    fn modulation_frequencies_are_an_array_of_two_or_more() {
+        assert_eq!(frequencies(&Params::new()).unwrap(), None);
+        assert_eq!(frequencies(&with("[]")).unwrap(), None);
+        assert_eq!(
+            frequencies(&with("[20e6, 50e6, 100000000]")).unwrap(),
+            Some(vec![20e6, 50e6, 1e8])
+        );
+        for (bad, says) in [
+            ("20e6", "expected an array of frequencies"),
+            ("[20e6]", "1 frequencies"),
+            ("[20e6, -5]", "not positive"),
+            ("[a, b]", "expected an array"),
+        ] {
+            let e = format!("{:#}", frequencies(&with(bad)).unwrap_err());
+            assert!(
+                e.contains("modulation_frequencies_hz") && e.contains(says),
+                "{bad}: {e}"
+            );
+        }
+    }
 }

@@ -133,6 +133,29 @@ pub struct NodeOutputs {
 }
 
 impl NodeOutputs {
+    /// The outputs of a frame recovered beside [`NodeCore`] (the multi-frequency
+    /// path), made as the core makes its own: the corrected depth in `depth`'s
+    /// encoding, camera_info with its header.
+    pub fn recovered(
+        depth: &Image,
+        camera_info: Option<&CameraInfo>,
+        frame: FrameOutput,
+        rays: Option<Arc<ImageBuf<Vector3<f64>>>>,
+        ir: ImageBuf<f32>,
+    ) -> Result<Self, crate::image::ImageError> {
+        Ok(Self {
+            corrected: corrected_message(&depth.header, &frame, &depth.encoding)?,
+            camera_info: camera_info.map(|ci| CameraInfo {
+                header: depth.header.clone(),
+                ..ci.clone()
+            }),
+            frame,
+            header: depth.header.clone(),
+            rays,
+            ir,
+        })
+    }
+
     /// The sigma image, mask, cloud and estimates (the same as `replay` writes);
     /// before the first camera_info, no cloud.
     pub fn companions(&self) -> Result<Companions, crate::image::ImageError> {
@@ -228,6 +251,11 @@ impl<T> NodeCore<T> {
     /// The latched background, if any.
     pub fn background(&self) -> Option<&Background> {
         self.pipeline.as_ref().and_then(|p| p.background())
+    }
+
+    /// The camera_info in use, once one has come.
+    pub fn camera_info(&self) -> Option<&CameraInfo> {
+        self.info.as_ref().map(|(ci, _)| ci)
     }
 
     /// The camera, once camera_info has come.

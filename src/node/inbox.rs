@@ -189,6 +189,88 @@ impl StampPairer {
     }
 }
 
+/// One frame for the processing thread: depth and IR of one stamp and, from a
+/// multi-frequency camera, its phasor images in the order of `k`.
+#[derive(Debug, Clone)]
+pub struct PairedFrame {
+    /// Depth.
+    pub depth: Image,
+    /// IR.
+    pub ir: Image,
+    /// `phasor_<k>/image_raw` (empty for a single-frequency camera).
+    pub phasors: Vec<Image>,
+}
+
+impl From<(Image, Image)> for PairedFrame {
+    fn from((depth, ir): (Image, Image)) -> Self {
+        Self {
+            depth,
+            ir,
+            phasors: vec![],
+        }
+    }
+}
+
+/// Gathers the depth, IR and `K` phasor images of one stamp (a multi-frequency
+/// camera): slot 0 depth, 1 IR, `2 + k` phasor `k`. At most `capacity` stamps
+/// wait; the oldest is evicted (its images unpaired), and once a stamp is
+/// complete the older ones will not be (a driver stamps in order).
+#[derive(Debug)]
+pub struct FramePairer {
+    slots: usize,
+    capacity: usize,
+    waiting: BTreeMap<u64, Vec<Option<Image>>>,
+    /// Images that never completed their frame.
+    pub unpaired: u64,
+}
+
+impl FramePairer {
+    /// A pairer for depth, IR and `phasors` phasor images.
+    pub fn new(phasors: usize, capacity: usize) -> Self {
+        Self {
+            slots: 2 + phasors,
+            capacity: capacity.max(1),
+            waiting: BTreeMap::new(),
+            unpaired: 0,
+        }
+    }
+
+    /// The image for `slot`; returns the frame when it completes it.
+    pub fn offer(&mut self, slot: usize, img: Image) -> Option<PairedFrame> {
+        if slot >= self.slots {
+            self.unpaired += 1;
+            return None;
+        }
+        let stamp = img.header.stamp.as_log_time_ns();
+        let entry = self.waiting.entry(stamp).or_insert_with(|| vec![None; self.slots]);
+        // A repeated image replaces the earlier one: that one is unpaired.
+        self.unpaired += u64::from(entry[slot].replace(img).is_some());
+        if entry.iter().all(Option::is_some) {
+            let images: Vec<Image> = self.waiting.remove(&stamp)?.into_iter().flatten().collect();
+            let newer = self.waiting.split_off(&stamp);
+            self.unpaired += self
+                .waiting
+                .values()
+                .map(|v| v.iter().flatten().count() as u64)
+                .sum::<u64>();
+            self.waiting = newer;
+            let mut it = images.into_iter();
+            let (depth, ir) = (it.next()?, it.next()?);
+            return Some(PairedFrame {
+                depth,
+                ir,
+                phasors: it.collect(),
+            });
+        }
+        while self.waiting.len() > self.capacity {
+            if let Some((_, lost)) = self.waiting.pop_first() {
+                self.unpaired += lost.iter().flatten().count() as u64;
+            }
+        }
+        None
+    }
+}
+
 fn insert_bounded(side: &mut BTreeMap<u64, Image>, stamp: u64, img: Image, capacity: usize) -> u64 {
     // A repeated stamp replaces the earlier image: that one is unpaired.
     let mut lost = u64::from(side.insert(stamp, img).is_some());
@@ -216,7 +298,7 @@ pub enum Command<T> {
 
 #[derive(Debug)]
 struct Lanes<T> {
-    frames: VecDeque<(Image, Image)>,
+    frames: VecDeque<PairedFrame>,
     commands: VecDeque<Command<T>>,
     dropped: u64,
 }
@@ -235,7 +317,7 @@ pub enum Next<T> {
     /// A command (commands go first).
     Command(Command<T>),
     /// A paired frame.
-    Frame(Box<(Image, Image)>),
+    Frame(Box<PairedFrame>),
     /// Nothing within the wait.
     Idle,
 }
@@ -260,13 +342,13 @@ impl<T> Inbox<T> {
     }
 
     /// Queues a frame; when full, the oldest frame is dropped (and counted).
-    pub fn push_frame(&self, pair: (Image, Image)) {
+    pub fn push_frame(&self, frame: impl Into<PairedFrame>) {
         let mut l = self.lanes();
         if l.frames.len() >= self.capacity {
             l.frames.pop_front();
             l.dropped += 1;
         }
-        l.frames.push_back(pair);
+        l.frames.push_back(frame.into());
         self.ready.notify_one();
     }
 
@@ -327,6 +409,32 @@ mod tests {
         assert!(p.ir(img(12)).is_some());
         // 11 had no depth and is now older than a paired stamp.
         assert_eq!(p.unpaired, 1);
+    }
+
+    #[test]
+    fn frames_of_a_multi_frequency_camera_complete_in_any_order() {
+        let mut p = FramePairer::new(2, 3);
+        // Stamp 10: phasor 1, depth, phasor 0, IR.
+        for slot in [3, 0, 2] {
+            assert!(p.offer(slot, img(10)).is_none());
+        }
+        assert!(p.offer(0, img(11)).is_none());
+        let f = p.offer(1, img(10)).expect("complete at 10");
+        assert_eq!((f.phasors.len(), f.depth.header.stamp.as_log_time_ns()), (2, 10));
+        assert_eq!(p.unpaired, 0);
+        // 11 waits; 12 completes and leaves 11's depth unpaired.
+        for slot in 0..3 {
+            assert!(p.offer(slot, img(12)).is_none());
+        }
+        assert!(p.offer(3, img(12)).is_some());
+        assert_eq!(p.unpaired, 1);
+        // Bounded: the oldest incomplete stamps are evicted; a slot past the last is unpaired.
+        for s in 20..30 {
+            assert!(p.offer(0, img(s)).is_none());
+        }
+        assert_eq!(p.unpaired, 8);
+        assert!(p.offer(9, img(40)).is_none());
+        assert_eq!(p.unpaired, 9);
     }
 
     #[test]
@@ -399,7 +507,7 @@ mod tests {
         let Next::Frame(f) = q.next(Duration::ZERO) else {
             panic!("expected a frame")
         };
-        assert_eq!(f.0.header.stamp.as_log_time_ns(), 3);
+        assert_eq!(f.depth.header.stamp.as_log_time_ns(), 3);
         assert!(matches!(q.next(Duration::ZERO), Next::Frame(_)));
         assert!(matches!(q.next(Duration::from_millis(5)), Next::Idle));
     }

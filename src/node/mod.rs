@@ -8,6 +8,7 @@ pub mod core;
 pub mod echo;
 pub mod inbox;
 pub mod latency;
+pub mod multifreq;
 pub mod params_file;
 pub mod peer;
 pub mod qos_overrides;
@@ -36,7 +37,8 @@ use crate::pipeline::PipelineConfig;
 use crate::viz::{FrameViz, RerunTarget, VizSink};
 
 use self::core::{DropCause, NodeCore};
-use self::inbox::{Command, Inbox, Intake, Next, StampPairer};
+use self::inbox::{Command, FramePairer, Inbox, Intake, Next, StampPairer};
+use self::multifreq::{MultiFrequencyNode, MultiFrequencyResult};
 use self::ros_args::{NameResolver, ParamValue};
 
 impl ros2_client::Message for Image {}
@@ -73,6 +75,13 @@ pub mod names {
     pub const CORRECTED_SIGMA: &str = "~/depth/corrected_sigma";
     /// ROS 2's diagnostics topic.
     pub const DIAGNOSTICS: &str = "/diagnostics";
+    /// Per-pixel ξ (multi-frequency path).
+    pub const TRANSLUCENCY_IMAGE: &str = "~/translucency_image";
+
+    /// A multi-frequency camera's phasor image at frequency `k`.
+    pub fn phasor(k: usize) -> String {
+        format!("phasor_{k}/image_raw")
+    }
 }
 
 /// The settings that may change while the node runs (`ros2 param set`).
@@ -135,6 +144,9 @@ pub struct NodeSettings {
     pub stats_json: Option<PathBuf>,
     /// Stop after this many processed frames (tests, benchmarks).
     pub max_frames: Option<u64>,
+    /// A multi-frequency camera's frequencies, Hz (`modulation_frequencies_hz`):
+    /// subscribe to `phasor_<k>/image_raw` and take the multi-frequency path.
+    pub multi_frequency: Option<Vec<f64>>,
 }
 
 /// Counters and timings, logged on exit and written with `--stats-json`.
@@ -198,6 +210,8 @@ struct Outputs {
     mask: Publisher<Image>,
     points: Publisher<PointCloud2>,
     estimate: Publisher<TranslucencyEstimate>,
+    /// `~/translucency_image` (multi-frequency path only).
+    translucency_image: Option<Publisher<Image>>,
 }
 
 fn qos_sensor() -> QosProfile {
@@ -263,12 +277,17 @@ fn from_parameter(name: &str, v: &ParameterValue) -> Result<ParamValue, String> 
         ParameterValue::Integer(i) => ParamValue::Integer(*i),
         ParameterValue::Double(x) => ParamValue::Double(*x),
         ParameterValue::String(s) => ParamValue::String(s.clone()),
+        ParameterValue::DoubleArray(v) => ParamValue::DoubleArray(v.clone()),
         ParameterValue::NotSet => {
             return Err(format!(
                 "{name} cannot be unset at run time (restart the node without it)"
             ))
         }
-        _ => return Err(format!("{name}: arrays are not among this node's parameter types")),
+        _ => {
+            return Err(format!(
+                "{name}: arrays other than of doubles are not among this node's parameter types"
+            ))
+        }
     })
 }
 
@@ -459,6 +478,7 @@ fn to_parameter(v: &ParamValue) -> ParameterValue {
         ParamValue::Integer(i) => ParameterValue::Integer(*i),
         ParamValue::Double(x) => ParameterValue::Double(*x),
         ParamValue::String(s) => ParameterValue::String(s.clone()),
+        ParamValue::DoubleArray(v) => ParameterValue::DoubleArray(v.clone()),
     }
 }
 
@@ -522,6 +542,10 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     let r = |n: &str| s.names.resolve(n);
     // Each output's QoS: the default, changed by `qos_overrides./TOPIC.publisher.*`.
     let given: BTreeMap<String, ParamValue> = s.params.iter().cloned().collect();
+    let multi_outputs = s
+        .multi_frequency
+        .as_ref()
+        .map(|_| (names::TRANSLUCENCY_IMAGE, qos_outputs()));
     let outputs_qos: Vec<(String, QosProfile)> = [
         (names::CORRECTED, qos_outputs()),
         (names::CORRECTED_INFO, qos_outputs()),
@@ -531,6 +555,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         (names::DIAGNOSTICS, qos_diagnostics()),
     ]
     .into_iter()
+    .chain(multi_outputs)
     .map(|(n, base)| {
         let full = r(n)?;
         let q = qos_overrides::apply(&base, &full, &given)?;
@@ -612,6 +637,19 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     let info_sub = node
         .create_subscription::<CameraInfo>(&t, Some(sensor.clone()))
         .map_err(|e| anyhow::anyhow!("subscribing {info_t}: {e:?}"))?;
+    // A multi-frequency camera's phasor images, one topic per frequency.
+    let frequencies = s.multi_frequency.as_ref().map_or(0, |f| f.len());
+    let phasor_t: Vec<String> = (0..frequencies)
+        .map(|k| r(&names::phasor(k)))
+        .collect::<Result<_, _>>()?;
+    let phasor_subs = phasor_t
+        .iter()
+        .map(|name| {
+            let t = topic(name, "sensor_msgs", "Image", &sensor)?;
+            node.create_subscription::<Image>(&t, Some(sensor.clone()))
+                .map_err(|e| anyhow::anyhow!("subscribing {name}: {e:?}"))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
 
     let publisher = |name: &str, pkg: &str, ty: &str| -> anyhow::Result<_> {
         let full = r(name)?;
@@ -641,6 +679,13 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     let estimate = node.create_publisher(&t, Some(q)).map_err(pe(&est_n))?;
     let (diag_n, t, q) = publisher(names::DIAGNOSTICS, "diagnostic_msgs", "DiagnosticArray")?;
     let diagnostics: Publisher<DiagnosticArray> = node.create_publisher(&t, Some(q)).map_err(pe(&diag_n))?;
+    let translucency_image = match s.multi_frequency {
+        Some(_) => {
+            let (n, t, q) = publisher(names::TRANSLUCENCY_IMAGE, "sensor_msgs", "Image")?;
+            Some(node.create_publisher(&t, Some(q)).map_err(pe(&n))?)
+        }
+        None => None,
+    };
     let outputs = Outputs {
         corrected,
         corrected_info,
@@ -648,6 +693,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         mask,
         points,
         estimate,
+        translucency_image,
     };
 
     let trigger = ServiceTypeName::new("std_srvs", "Trigger");
@@ -683,6 +729,13 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
             crate::pipeline::XiChoice::Estimate(m) => format!("estimated ({})", m.as_str()),
         }
     );
+    if let Some(f) = &s.multi_frequency {
+        info!(
+            "multi-frequency path: phasors at {f:?} Hz on {}; publishes {}",
+            phasor_t.join(", "),
+            r(names::TRANSLUCENCY_IMAGE)?
+        );
+    }
 
     let live = Arc::new(Mutex::new(Live::default()));
     let (reply_tx, mut reply_rx) = tokio::sync::mpsc::unbounded_channel::<(Token, TriggerResponse)>();
@@ -715,6 +768,14 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     let mut latch_stream = std::pin::pin!(latch_srv.receive_request_stream());
     let mut clear_stream = std::pin::pin!(clear_srv.receive_request_stream());
     let mut pairer = StampPairer::new(s.queue_depth.max(4) * 2);
+    let mut frame_pairer = FramePairer::new(frequencies, s.queue_depth.max(4) * 2);
+    let multi = frequencies > 0;
+    let mut phasor_stream = futures::stream::select_all(
+        phasor_subs
+            .iter()
+            .enumerate()
+            .map(|(k, sub)| Box::pin(sub.async_stream().map(move |m| (k, m)))),
+    );
     let mut counts = NodeStats::default();
     let mut last_info: Option<CameraInfo> = None;
     let mut intake = Intake::default();
@@ -726,7 +787,9 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
                 Some(Ok((img, _))) => {
                     counts.depth_received += 1;
                     let img = intake.image(&depth_t, img, last_info.as_ref());
-                    if let Some(pair) = img.and_then(|img| pairer.depth(img)) { counts.pairs += 1; inbox.push_frame(pair); }
+                    if multi {
+                        if let Some(f) = img.and_then(|img| frame_pairer.offer(0, img)) { counts.pairs += 1; inbox.push_frame(f); }
+                    } else if let Some(pair) = img.and_then(|img| pairer.depth(img)) { counts.pairs += 1; inbox.push_frame(pair); }
                 }
                 Some(Err(e)) => intake.unreadable(&depth_t, &e),
                 None => break,
@@ -735,9 +798,19 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
                 Some(Ok((img, _))) => {
                     counts.ir_received += 1;
                     let img = intake.image(&ir_t, img, last_info.as_ref());
-                    if let Some(pair) = img.and_then(|img| pairer.ir(img)) { counts.pairs += 1; inbox.push_frame(pair); }
+                    if multi {
+                        if let Some(f) = img.and_then(|img| frame_pairer.offer(1, img)) { counts.pairs += 1; inbox.push_frame(f); }
+                    } else if let Some(pair) = img.and_then(|img| pairer.ir(img)) { counts.pairs += 1; inbox.push_frame(pair); }
                 }
                 Some(Err(e)) => intake.unreadable(&ir_t, &e),
+                None => break,
+            },
+            m = phasor_stream.next(), if multi => match m {
+                Some((k, Ok((img, _)))) => {
+                    let img = intake.image(&phasor_t[k], img, last_info.as_ref());
+                    if let Some(f) = img.and_then(|img| frame_pairer.offer(2 + k, img)) { counts.pairs += 1; inbox.push_frame(f); }
+                }
+                Some((k, Err(e))) => intake.unreadable(&phasor_t[k], &e),
                 None => break,
             },
             m = info_stream.next() => match m {
@@ -779,7 +852,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
             _ = diag_tick.tick(), if !s.diagnostics_period.is_zero() => {
                 let inputs = Inputs {
                     counts: &counts,
-                    unpaired: pairer.unpaired,
+                    unpaired: pairer.unpaired + frame_pairer.unpaired,
                     queue_full: inbox.dropped(),
                     intake: &intake.drops.by_cause,
                 };
@@ -810,7 +883,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     stats.info_received = counts.info_received;
     stats.pairs = counts.pairs;
     stats.services = counts.services;
-    let unpaired = pairer.unpaired;
+    let unpaired = pairer.unpaired + frame_pairer.unpaired;
     if unpaired > 0 {
         stats.dropped.insert(DropCause::Unpaired, unpaired);
     }
@@ -874,6 +947,7 @@ fn worker(
     };
     let mut core: NodeCore<Token> = NodeCore::new(s.config.clone(), s.background_frames, s.latch_timeout)
         .with_watch(s.passthrough, s.relatch_on_move);
+    let mut multi = s.multi_frequency.clone().map(|f| MultiFrequencyNode::new(f, &s.config));
     let mut latencies: Vec<f64> = Vec::with_capacity(LATENCY_WINDOW);
     let mut last_report = Instant::now();
     let (mut last_sample, mut last_trim) = (Instant::now(), Instant::now());
@@ -894,13 +968,16 @@ fn worker(
                     camera_moved: core.camera_moved(),
                     latch: if core.latching() {
                         "latching"
-                    } else if core.background().is_some() {
+                    } else if core.background().is_some() && multi.as_ref().is_none_or(|m| m.latched()) {
                         "latched"
                     } else {
                         "none"
                     },
                     xi: stats.xi,
-                    xi_method: core.xi_method().to_string(),
+                    xi_method: match multi {
+                        Some(_) => crate::physics::XiMethod::MultiFrequency.as_str().to_string(),
+                        None => core.xi_method().to_string(),
+                    },
                     processing_ms: percentiles(&mut latencies.clone()),
                 };
             }
@@ -913,8 +990,14 @@ fn worker(
             Next::Idle => {}
             Next::Command(Command::Shutdown) => break,
             Next::Command(Command::CameraInfo(ci)) => match core.on_camera_info(&ci) {
-                Ok(Some(note)) => warn!("{note}"),
-                Ok(None) => {}
+                Ok(note) => {
+                    if let Some(note) = note {
+                        warn!("{note}");
+                    }
+                    if let Some(Err(e)) = multi.as_mut().map(|m| m.on_camera_info(&core)) {
+                        warn!("camera_info {}x{}: {e}", ci.width, ci.height);
+                    }
+                }
                 Err((cause, why)) => {
                     if core.drops.record(cause) {
                         warn!(
@@ -937,8 +1020,13 @@ fn worker(
                 } else {
                     core.start_latch(t)
                 };
-                if let Err((t, r)) = started {
-                    reply(t, r);
+                match started {
+                    Err((t, r)) => reply(t, r),
+                    Ok(()) => {
+                        if let Some(m) = &mut multi {
+                            m.on_latch_started();
+                        }
+                    }
                 }
             }
             Next::Command(Command::Reconfigure(r, forget_evidence)) => {
@@ -951,16 +1039,28 @@ fn worker(
             }
             Next::Command(Command::Clear(t)) => {
                 let (r, cancelled) = core.clear();
+                if let Some(m) = &mut multi {
+                    m.clear();
+                }
                 if let Some((t2, r2)) = cancelled {
                     reply(t2, r2);
                 }
                 reply(t, r);
             }
-            Next::Frame(pair) => {
+            Next::Frame(frame) => {
                 let start = Instant::now();
-                let (depth, ir) = *pair;
                 let latching = core.latching();
-                let res = core.on_frame(&depth, &ir);
+                let MultiFrequencyResult {
+                    frame: res,
+                    translucency,
+                } = match &mut multi {
+                    Some(m) => m.on_frame(&mut core, &frame),
+                    None => MultiFrequencyResult {
+                        frame: core.on_frame(&frame.depth, &frame.ir),
+                        translucency: None,
+                    },
+                };
+                let depth = frame.depth;
                 for (t, r) in res.replies {
                     reply(t, r);
                 }
@@ -990,6 +1090,9 @@ fn worker(
                             }
                             for e in c.estimates {
                                 results.push(out.estimate.publish(e).err().map(|e| format!("{e:?}")));
+                            }
+                            if let (Some(p), Some(t)) = (&out.translucency_image, translucency) {
+                                results.push(p.publish(t).err().map(|e| format!("{e:?}")));
                             }
                         }
                         Err(e) => results.push(Some(format!("Companions {e}"))),

@@ -124,7 +124,16 @@ fn flatten(prefix: &str, y: &Yaml, out: &mut Vec<(String, ParamValue)>) -> Resul
                 None => return Err(format!("{full}: {r:?} is not a number")),
             },
             Yaml::String(s) => ParamValue::String(s.clone()),
-            Yaml::Array(_) => return Err(format!("{full}: arrays are not among this node's parameter types")),
+            Yaml::Array(items) => {
+                let numbers: Option<Vec<f64>> = items
+                    .iter()
+                    .map(|i| i.as_f64().or_else(|| i.as_i64().map(|v| v as f64)))
+                    .collect();
+                match numbers {
+                    Some(v) => ParamValue::DoubleArray(v),
+                    None => return Err(format!("{full}: an array of numbers is the only array this node takes")),
+                }
+            }
             Yaml::Null => return Err(format!("{full}: no value")),
             Yaml::Alias(_) | Yaml::BadValue => return Err(format!("{full}: unsupported YAML value")),
         };
@@ -224,8 +233,13 @@ mod tests {
     fn a_wrong_layout_says_where() {
         let e = parse("f", "/**:\n  xi: 0.3\n", "/n").unwrap_err();
         assert!(e.to_string().contains("ros__parameters"), "{e}");
-        let e = parse("f", "/**:\n  ros__parameters:\n    xi: [1, 2]\n", "/n").unwrap_err();
-        assert!(e.to_string().contains("xi: arrays"), "{e}");
+        let e = parse("f", "/**:\n  ros__parameters:\n    xi: [a, 2]\n", "/n").unwrap_err();
+        assert!(
+            e.to_string().contains("xi: an array of numbers is the only array"),
+            "{e}"
+        );
+        let p = parse("f", "/**:\n  ros__parameters:\n    f: [2.0e7, 100000000]\n", "/n").unwrap();
+        assert_eq!(p, [("f".to_string(), ParamValue::DoubleArray(vec![2e7, 1e8]))]);
         let e = parse("f", "/**: [\n", "/n").unwrap_err();
         assert!(matches!(e, ParamsFileError::Layout { .. }));
         assert!(matches!(

@@ -45,6 +45,8 @@ pub enum ParamValue {
     Double(f64),
     /// Anything else (quotes removed).
     String(String),
+    /// A YAML flow sequence of numbers, `[20e6, 50e6, 100e6]`.
+    DoubleArray(Vec<f64>),
 }
 
 impl ParamValue {
@@ -62,12 +64,24 @@ impl ParamValue {
         if let Ok(x) = t.parse::<f64>() {
             return ParamValue::Double(x);
         }
+        if let Some(v) = Self::numbers(t) {
+            return ParamValue::DoubleArray(v);
+        }
         let unquoted = t
             .strip_prefix('"')
             .and_then(|s| s.strip_suffix('"'))
             .or_else(|| t.strip_prefix('\'').and_then(|s| s.strip_suffix('\'')))
             .unwrap_or(t);
         ParamValue::String(unquoted.to_string())
+    }
+
+    /// `[a, b, ...]` of numbers (integers too), else `None`.
+    fn numbers(t: &str) -> Option<Vec<f64>> {
+        let inner = t.strip_prefix('[')?.strip_suffix(']')?.trim();
+        if inner.is_empty() {
+            return Some(vec![]);
+        }
+        inner.split(',').map(|v| v.trim().parse::<f64>().ok()).collect()
     }
 
     /// As a number (integers too).
@@ -86,6 +100,9 @@ impl ParamValue {
             ParamValue::Integer(i) => i.to_string(),
             ParamValue::Double(x) => x.to_string(),
             ParamValue::String(s) => s.clone(),
+            ParamValue::DoubleArray(v) => {
+                format!("[{}]", v.iter().map(|x| x.to_string()).collect::<Vec<_>>().join(", "))
+            }
         }
     }
 }
@@ -323,6 +340,13 @@ mod tests {
         assert_eq!(r.namespace.as_deref(), Some("/robot"));
         assert_eq!(r.params["xi"], ParamValue::Double(0.7));
         assert_eq!(r.params["threshold_mm"], ParamValue::Integer(25));
+        assert_eq!(
+            ParamValue::parse("[2e7, 5e7,100000000]"),
+            ParamValue::DoubleArray(vec![2e7, 5e7, 1e8])
+        );
+        assert_eq!(ParamValue::parse("[]"), ParamValue::DoubleArray(vec![]));
+        assert_eq!(ParamValue::parse("[2e7, x]"), ParamValue::String("[2e7, x]".into()));
+        assert_eq!(ParamValue::DoubleArray(vec![2e7, 1.5]).as_text(), "[20000000, 1.5]");
         assert_eq!(r.params["rerun"], ParamValue::String("off".into()));
         assert_eq!(r.params["flag"], ParamValue::Bool(true));
         let n = NameResolver::new("translucent_tof", &r).unwrap();

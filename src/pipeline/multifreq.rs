@@ -677,105 +677,140 @@ impl MultiFrequencyStage {
 
     /// The frame's mask, regions and outputs from its pixels' results.
     fn assemble(&self, depth: &DepthFrame, stamp_ns: u64, results: &[PixelResult]) -> MultiFrequencyOutput {
-        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
-        let min = self.config.min_region_pixels;
         let count = |c: PixelClass| results.iter().filter(|r| r.class == c).count();
-        let class_mask = |keep: &dyn Fn(&PixelResult) -> bool| ImageBuf {
-            width: w,
-            height: h,
-            data: results.iter().map(keep).collect(),
-        };
-        let (mask, _) = remove_small_regions(&class_mask(&|r| r.class == PixelClass::Layer), min);
-        let changed_opaque = class_mask(&|r| matches!(r.class, PixelClass::Opaque | PixelClass::Layer));
-        let mut opaque = changed_opaque;
-        for (o, &m) in opaque.data.iter_mut().zip(&mask.data) {
-            *o &= !m;
-        }
-        let (opaque, _) = remove_small_regions(&opaque, min);
-        let distance = ImageBuf {
-            width: w,
-            height: h,
-            data: results.iter().map(|r| r.distance_mm).collect(),
-        };
-        let range = self.common_unambiguous_range_mm();
-        let noise = |i: usize| results[i].distance_sigma_mm;
-        let (layer_labels, layer_sizes) = label_regions(&mask, &distance, noise, range, min);
-        let (opaque_labels, opaque_sizes) = label_regions(&opaque, &distance, noise, range, min);
-        let layers = layer_sizes.len() as u32;
-        let labels = ImageBuf {
-            width: w,
-            height: h,
-            data: layer_labels
-                .data
-                .iter()
-                .zip(&opaque_labels.data)
-                .map(|(&l, &o)| {
-                    if l > 0 {
-                        l
-                    } else if o > 0 {
-                        o + layers
-                    } else {
-                        0
-                    }
-                })
-                .collect(),
-        };
-        let mut members: Vec<Vec<usize>> = vec![vec![]; layer_sizes.len() + opaque_sizes.len()];
-        for (i, &l) in labels.data.iter().enumerate() {
-            if l > 0 {
-                members[l as usize - 1].push(i);
-            }
-        }
-        let regions: Vec<RegionOutput> = members
-            .iter()
-            .enumerate()
-            .map(|(r, px)| {
-                let id = r as u32 + 1;
-                if id <= layers {
-                    layer_region(id, px, results)
-                } else {
-                    opaque_region(id, px, results)
-                }
-            })
-            .collect();
-        let mut corrected = depth.z_mm.clone();
-        let mut sigma = ImageBuf::filled(w, h, f32::NAN);
-        let mut translucency = ImageBuf::filled(w, h, f32::NAN);
-        let mut xis = vec![];
-        for i in mask.data.iter().enumerate().filter(|(_, &m)| m).map(|(i, _)| i) {
-            let (r, s) = (&results[i], self.scale.data[i]);
-            corrected.data[i] = (r.distance_mm / s) as f32;
-            sigma.data[i] = (r.distance_sigma_mm / s) as f32;
-            translucency.data[i] = r.xi as f32;
-            xis.push(r.xi);
-        }
-        let translucent_pixels = xis.len();
-        let xi_pixel_median = median_select(&mut xis);
+        let (mask, opaque) = self.masks(results);
+        let (labels, layers) = self.labels(results, &mask, &opaque);
+        let regions = regions(&labels, layers, results);
+        let filled = self.fill(depth, &mask, results);
         let xi = frame_estimate(&regions, layers as usize);
         MultiFrequencyOutput {
             frame: FrameOutput {
                 stamp_ns,
                 mask,
-                corrected_z_mm: corrected,
-                corrected_sigma_mm: sigma,
+                corrected_z_mm: filled.corrected_z_mm,
+                corrected_sigma_mm: filled.sigma_mm,
                 xi,
                 regions,
-                translucent_pixels,
-                recovered_pixels: translucent_pixels,
+                translucent_pixels: filled.pixels,
+                recovered_pixels: filled.pixels,
                 pinned_pixels: 0,
                 unresolved_pixels: count(PixelClass::Failed),
                 fit_residual_mm: f64::NAN,
                 passthrough: None,
             },
-            translucency,
+            translucency: filled.translucency,
             labels,
             changed_pixels: count(PixelClass::Opaque) + count(PixelClass::Layer) + count(PixelClass::Failed),
             opaque_pixels: count(PixelClass::Opaque),
             failed_pixels: count(PixelClass::Failed),
             unusable_pixels: count(PixelClass::Unusable),
-            xi_pixel_median,
+            xi_pixel_median: filled.xi_median,
         }
     }
+
+    /// The mask (layer pixels in pieces of at least `min_region_pixels`) and the
+    /// changed opaque pixels (the layers' small pieces among them), likewise cleaned.
+    fn masks(&self, results: &[PixelResult]) -> (ImageBuf<bool>, ImageBuf<bool>) {
+        let min = self.config.min_region_pixels;
+        let class_mask = |keep: &dyn Fn(&PixelResult) -> bool| ImageBuf {
+            width: self.intrinsics.width,
+            height: self.intrinsics.height,
+            data: results.iter().map(keep).collect(),
+        };
+        let (mask, _) = remove_small_regions(&class_mask(&|r| r.class == PixelClass::Layer), min);
+        let mut opaque = class_mask(&|r| matches!(r.class, PixelClass::Opaque | PixelClass::Layer));
+        for (o, &m) in opaque.data.iter_mut().zip(&mask.data) {
+            *o &= !m;
+        }
+        (mask, remove_small_regions(&opaque, min).0)
+    }
+
+    /// Each pixel's region (layers first, then the opaque ones; 0 none), split
+    /// where the fitted distance steps, and the number of layer regions.
+    fn labels(&self, results: &[PixelResult], mask: &ImageBuf<bool>, opaque: &ImageBuf<bool>) -> (ImageBuf<u32>, u32) {
+        let distance = ImageBuf {
+            width: mask.width,
+            height: mask.height,
+            data: results.iter().map(|r| r.distance_mm).collect(),
+        };
+        let (range, min) = (self.common_unambiguous_range_mm(), self.config.min_region_pixels);
+        let noise = |i: usize| results[i].distance_sigma_mm;
+        let (layer_labels, layer_sizes) = label_regions(mask, &distance, noise, range, min);
+        let (opaque_labels, _) = label_regions(opaque, &distance, noise, range, min);
+        let layers = layer_sizes.len() as u32;
+        let data = layer_labels
+            .data
+            .iter()
+            .zip(&opaque_labels.data)
+            .map(|(&l, &o)| match (l, o) {
+                (0, 0) => 0,
+                (0, o) => o + layers,
+                (l, _) => l,
+            })
+            .collect();
+        let labels = ImageBuf {
+            width: mask.width,
+            height: mask.height,
+            data,
+        };
+        (labels, layers)
+    }
+
+    /// The corrected depth (the layer's in the mask, the reading elsewhere),
+    /// its σ and the ξ image.
+    fn fill(&self, depth: &DepthFrame, mask: &ImageBuf<bool>, results: &[PixelResult]) -> Filled {
+        let (w, h) = (mask.width, mask.height);
+        let mut f = Filled {
+            corrected_z_mm: depth.z_mm.clone(),
+            sigma_mm: ImageBuf::filled(w, h, f32::NAN),
+            translucency: ImageBuf::filled(w, h, f32::NAN),
+            pixels: 0,
+            xi_median: f64::NAN,
+        };
+        let mut xis = vec![];
+        for i in (0..mask.len()).filter(|&i| mask.data[i]) {
+            let (r, s) = (&results[i], self.scale.data[i]);
+            f.corrected_z_mm.data[i] = (r.distance_mm / s) as f32;
+            f.sigma_mm.data[i] = (r.distance_sigma_mm / s) as f32;
+            f.translucency.data[i] = r.xi as f32;
+            xis.push(r.xi);
+        }
+        f.pixels = xis.len();
+        f.xi_median = median_select(&mut xis);
+        f
+    }
+}
+
+/// What [`MultiFrequencyStage::fill`] makes.
+struct Filled {
+    corrected_z_mm: ImageBuf<f32>,
+    sigma_mm: ImageBuf<f32>,
+    translucency: ImageBuf<f32>,
+    pixels: usize,
+    xi_median: f64,
+}
+
+/// Every region's estimate, in the order of their labels (`layers` layer regions first).
+fn regions(labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> Vec<RegionOutput> {
+    let count = labels.data.iter().copied().max().unwrap_or(0) as usize;
+    let mut members: Vec<Vec<usize>> = vec![vec![]; count];
+    for (i, &l) in labels.data.iter().enumerate() {
+        if l > 0 {
+            members[l as usize - 1].push(i);
+        }
+    }
+    members
+        .iter()
+        .enumerate()
+        .map(|(r, px)| {
+            let id = r as u32 + 1;
+            if id <= layers {
+                layer_region(id, px, results)
+            } else {
+                opaque_region(id, px, results)
+            }
+        })
+        .collect()
 }
 
 /// A region's estimate on this path.
