@@ -52,5 +52,9 @@ pub fn isolated(test: &str) -> bool {
 pub fn skipped(test: &str, claim: bool, why: &str) {
     use std::io::Write;
     let tag = if claim { "SKIPPED(claim)" } else { "SKIPPED" };
-    let _ = writeln!(std::io::stderr().lock(), "{tag}: {test}: {why}");
+    // On a line of its own, in one write: inside `isolated`'s child (one test
+    // thread) the harness has already printed `test NAME ... ` without a newline,
+    // and `scripts/test` only counts the tag at the start of a line.
+    let line = format!("\n{tag}: {test}: {why}\n");
+    let _ = std::io::stderr().lock().write_all(line.as_bytes());
 }

@@ -51,14 +51,25 @@ pub const REPAIR_FRAGS_MAX_BYTES: usize = 64 * 1024;
 // push load (PUSH_PACING_LOAD_FACTOR times it, within the bounds below): a
 // light load goes out as single datagrams spread in time, so that a remote
 // reader on the Linux default receive buffer (208 KiB) has time to drain it;
-// a heavy one as fast as the upper bound allows.
-pub const PUSH_PACING_BURST_BYTES: usize = 128 * 1024;
-pub const PUSH_PACING_RATE_BYTES_PER_SEC: usize = 128 * 1024 * 1024;
+// a heavy one as fast as the upper bound allows. The upper bound must exceed
+// the heaviest load it paces, or a reliable writer's unsent samples fill its
+// history and `write` returns WouldBlock: translucent_tof at 640x480 publishes
+// about 10 MB a frame (a 7.4 MB cloud and three images), 200 MB/s at the
+// 20 frames/s it processes; 128 MiB/s lost 8-11 % of the clouds (PATCHED.md).
+pub const PUSH_PACING_BURST_BYTES: usize = 1024 * 1024;
+pub const PUSH_PACING_RATE_BYTES_PER_SEC: usize = 256 * 1024 * 1024;
 pub const PUSH_PACING_SMALL_BURST_BYTES: usize = 64 * 1024;
 pub const PUSH_PACING_MIN_RATE_BYTES_PER_SEC: usize = 24 * 1024 * 1024;
 pub const PUSH_PACING_LOAD_FACTOR: f64 = 4.0;
 // Time constant of the push load's running average.
 pub const PUSH_PACING_LOAD_TAU_SECS: f64 = 0.25;
+
+// Capacity of a participant's queues of Writers and Readers to remove (patched
+// in, see PATCHED.md; upstream 4). A dropped DataWriter or DataReader waits up
+// to 20 ms for room, then logs `Cannot remove Writer` / `Reader` at error
+// level; a node dropping its dozen entities at shutdown while the event loop
+// is still pushing a backlog of large samples filled a queue of 4.
+pub const ENTITY_REMOVAL_QUEUE_CAPACITY: usize = 64;
 
 // Periodic HEARTBEAT period for reliable Writers. The period is adaptive: while
 // some matched reader is behind (has unacknowledged samples), heartbeats are
