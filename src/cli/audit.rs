@@ -629,7 +629,7 @@ mod tests {
         );
         let worse = refusal("transmission_law", Some((23.9, 10)), Some((647.9, 10)), Some(out)).unwrap_or_default();
         assert!(
-            worse.contains("physics.toml was not written") && worse.contains("647.9") && worse.contains("23.9"),
+            worse.contains("--physics-out physics.toml NOT WRITTEN") && worse.contains("647.9") && worse.contains("23.9"),
             "{worse}"
         );
         let unknown = refusal("transmission_law", Some((23.9, 10)), None, None).unwrap_or_default();
