@@ -1864,7 +1864,10 @@ fn audit_refuses_a_physics_file_that_recovers_worse() {
     assert!(num(rec, "after") > num(rec, "before"), "{rec}");
     assert_eq!(po["stopped_before"], "transmission_law", "{po}");
     assert_eq!(po["effects"], serde_json::json!([]), "{po}");
-    assert!(num(po, "recovery_rmse_mm") <= num(po, "baseline_recovery_rmse_mm"), "{po}");
+    assert!(
+        num(po, "recovery_rmse_mm") <= num(po, "baseline_recovery_rmse_mm"),
+        "{po}"
+    );
     let written = std::fs::read_to_string(dir.path().join("p.toml")).expect("p.toml");
     assert!(!written.contains("transmission_albedo_power = 0.0"), "{written}");
     let s = stdout_of(&out);

@@ -346,12 +346,15 @@ fn summary(
     }
     for s in &result.steps {
         summary += &format!(
-            "+ {}: xi {:.3}, held-out {:.1} mm, held-out recovery {:.1} mm ({}){}\n",
+            "+ {}: xi {:.3}, held-out {:.1} mm, held-out recovery {:.1} mm{}{}\n",
             s.effects.last().map(|e| e.name()).unwrap_or(""),
             s.xi,
             s.heldout_rmse_mm,
             s.heldout_recovery_rmse_mm,
-            params_text(&s.params),
+            match params_text(&s.params) {
+                p if p.is_empty() => p,
+                p => format!(" ({p})"),
+            },
             bound_text(&s.at_bound)
         );
     }
@@ -629,7 +632,9 @@ mod tests {
         );
         let worse = refusal("transmission_law", Some((23.9, 10)), Some((647.9, 10)), Some(out)).unwrap_or_default();
         assert!(
-            worse.contains("--physics-out physics.toml NOT WRITTEN") && worse.contains("647.9") && worse.contains("23.9"),
+            worse.contains("--physics-out physics.toml NOT WRITTEN")
+                && worse.contains("647.9")
+                && worse.contains("23.9"),
             "{worse}"
         );
         let unknown = refusal("transmission_law", Some((23.9, 10)), None, None).unwrap_or_default();
