@@ -79,18 +79,31 @@ pub struct Agreement {
     pub several_roots: usize,
 }
 
+impl Agreement {
+    /// Nothing compared yet, at `tolerance_mm`.
+    fn within(tolerance_mm: f64) -> Self {
+        Self {
+            compared: 0,
+            disagree: 0,
+            max_diff_mm: 0.0,
+            tolerance_mm,
+            several_roots: 0,
+        }
+    }
+
+    /// Counts one pixel whose depths differ by `diff_mm`.
+    fn add(&mut self, diff_mm: f64) {
+        self.compared += 1;
+        self.max_diff_mm = self.max_diff_mm.max(diff_mm);
+        self.disagree += usize::from(diff_mm > self.tolerance_mm);
+    }
+}
+
 /// Compares per-pixel ray distances `fast` (NaN where none) with the grid's.
 /// Pixels with several roots (`several[i]`) are left out: there the pipeline's
 /// root rule (nearest the reading) and the grid's best residual may choose differently.
 pub fn agreement(fast: &ImageBuf<f64>, several: &[bool], grid: &ImageBuf<f64>, grid_res: &ImageBuf<f64>) -> Agreement {
-    let tolerance_mm = 1.0;
-    let mut a = Agreement {
-        compared: 0,
-        disagree: 0,
-        max_diff_mm: 0.0,
-        tolerance_mm,
-        several_roots: 0,
-    };
+    let mut a = Agreement::within(1.0);
     for i in 0..fast.len() {
         if !fast.data[i].is_finite() {
             continue;
@@ -102,12 +115,7 @@ pub fn agreement(fast: &ImageBuf<f64>, several: &[bool], grid: &ImageBuf<f64>, g
         if !(grid_res.data[i] <= GRID_STEP_MM) {
             continue;
         }
-        let d = (fast.data[i] - grid.data[i]).abs();
-        a.compared += 1;
-        a.max_diff_mm = a.max_diff_mm.max(d);
-        if d > tolerance_mm {
-            a.disagree += 1;
-        }
+        a.add((fast.data[i] - grid.data[i]).abs());
     }
     a
 }
@@ -206,22 +214,12 @@ fn two_returns_at(sensors: &[Sensor], delay_mm: f64, p: &PixelInputs, d: f64) ->
 /// How the multi-frequency path's layer distances (`fast`, ray distance, mm, NaN
 /// off the mask) compare with the grid's.
 pub fn multi_frequency_agreement(fast: &ImageBuf<f64>, grid: &ImageBuf<f64>) -> Agreement {
-    let tolerance_mm = 1.0;
-    let mut a = Agreement {
-        compared: 0,
-        disagree: 0,
-        max_diff_mm: 0.0,
-        tolerance_mm,
-        several_roots: 0,
-    };
+    let mut a = Agreement::within(1.0);
     for (f, g) in fast.data.iter().zip(&grid.data) {
         if !(f.is_finite() && g.is_finite()) {
             continue;
         }
-        let d = (f - g).abs();
-        a.compared += 1;
-        a.max_diff_mm = a.max_diff_mm.max(d);
-        a.disagree += usize::from(d > tolerance_mm);
+        a.add((f - g).abs());
     }
     a
 }

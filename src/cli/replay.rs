@@ -180,13 +180,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
 
     // Pass 2: recover and write.
     let mut writer = BagWriter::create(&out_path).with_context(|| format!("creating {}", out_path.display()))?;
-    let viz = match &a.rerun {
-        Some(r) => Some(
-            crate::viz::Recorder::open(&crate::viz::RerunTarget::File(r.clone()), "translucent_tof_replay")
-                .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?,
-        ),
-        None => None,
-    };
+    let viz = open_rerun(&a)?;
     let pb = a.output.progress(objects.len() as u64, "recovering");
     let mut per_frame = vec![];
     let mut last: Option<XiEstimate> = None;
@@ -250,12 +244,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         pb.inc(1);
     }
     pb.finish_and_clear();
-    writer
-        .finish()
-        .with_context(|| format!("finishing {}", out_path.display()))?;
-    if let (Some(v), Some(r)) = (viz, &a.rerun) {
-        v.finish().map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
-    }
+    finish_outputs(writer, &out_path, viz, &a)?;
 
     let bgd = pipe.background().context("background")?;
     // The material with the most evidence (the last frame's when ξ is given or nothing pooled).
@@ -341,6 +330,30 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     report["error_summary"] = json!(errors.summary_line());
     a.output.summary(&summary(&report, &rec));
     a.output.write_json(&report)
+}
+
+/// The Rerun recording `--rerun` asks for, opened (its directory made before).
+pub(super) fn open_rerun(a: &ReplayArgs) -> Result<Option<crate::viz::Recorder>> {
+    let Some(r) = &a.rerun else { return Ok(None) };
+    crate::viz::Recorder::open(&crate::viz::RerunTarget::File(r.clone()), "translucent_tof_replay")
+        .map(Some)
+        .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))
+}
+
+/// Finishes the output bag and the Rerun recording.
+pub(super) fn finish_outputs(
+    writer: BagWriter,
+    out_path: &Path,
+    viz: Option<crate::viz::Recorder>,
+    a: &ReplayArgs,
+) -> Result<()> {
+    writer
+        .finish()
+        .with_context(|| format!("finishing {}", out_path.display()))?;
+    if let (Some(v), Some(r)) = (viz, &a.rerun) {
+        v.finish().map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
+    }
+    Ok(())
 }
 
 fn write_outputs(

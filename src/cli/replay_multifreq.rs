@@ -14,7 +14,7 @@ use crate::pipeline::multifreq::{MultiFrequencyConfig, MultiFrequencyOutput, Mul
 use crate::pipeline::{rmse_against_truth, DepthFrame, PipelineConfig};
 
 use super::recording::{PhasorRecording, Recording};
-use super::replay::{out_path, ReplayArgs};
+use super::replay::{finish_outputs, open_rerun, out_path, ReplayArgs};
 
 /// The frequencies: `--modulation-frequencies-hz`, else the bag's record; one per phasor topic.
 fn frequencies(given: &[f64], mf: &PhasorRecording) -> Result<Vec<f64>> {
@@ -77,16 +77,10 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
     let out_path = out_path(&a.bag, a.out.as_deref());
     super::common::create_parent(&out_path)?;
     let mut writer = BagWriter::create(&out_path).with_context(|| format!("creating {}", out_path.display()))?;
-    let viz = match &a.rerun {
-        Some(r) => {
-            super::common::create_parent(r)?;
-            Some(
-                crate::viz::Recorder::open(&crate::viz::RerunTarget::File(r.clone()), "translucent_tof_replay")
-                    .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?,
-            )
-        }
-        None => None,
-    };
+    if let Some(r) = &a.rerun {
+        super::common::create_parent(r)?;
+    }
+    let viz = open_rerun(a)?;
     let objects = bg.count..rec.frames.len();
     let pb = a.output.progress(objects.len() as u64, "recovering");
     let (mut per_frame, mut errors, mut total_px, mut last) = (vec![], Errors::default(), 0, None);
@@ -114,12 +108,7 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
         pb.inc(1);
     }
     pb.finish_and_clear();
-    writer
-        .finish()
-        .with_context(|| format!("finishing {}", out_path.display()))?;
-    if let (Some(v), Some(r)) = (viz, &a.rerun) {
-        v.finish().map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
-    }
+    finish_outputs(writer, &out_path, viz, a)?;
     let mut report = json!({
         "bag": a.bag.display().to_string(),
         "out": out_path.display().to_string(),
