@@ -747,9 +747,11 @@ impl Pipeline {
                         )
                     })
                 });
+                let (distance_mm, spread_mm) = distance_quartiles(&obs.distance_mm, pixels);
                 RegionEvidence {
                     pixels,
-                    distance_mm: median_distance(&obs.distance_mm, pixels),
+                    distance_mm,
+                    spread_mm,
                     profile,
                 }
             })
@@ -1350,18 +1352,19 @@ fn without_evidence(method: XiMethod) -> XiEstimate {
     }
 }
 
-/// Median of the finite distances at `pixels` (NaN if none), mm.
-fn median_distance(distance_mm: &ImageBuf<f64>, pixels: &[u32]) -> f64 {
+/// Median and interquartile range of the finite distances at `pixels` (NaN if none), mm.
+fn distance_quartiles(distance_mm: &ImageBuf<f64>, pixels: &[u32]) -> (f64, f64) {
     let mut d: Vec<f64> = pixels
         .iter()
         .filter_map(|&i| distance_mm.data.get(i as usize).copied())
         .filter(|d| d.is_finite())
         .collect();
     if d.is_empty() {
-        return f64::NAN;
+        return (f64::NAN, f64::NAN);
     }
-    let mid = d.len() / 2;
-    *d.select_nth_unstable_by(mid, f64::total_cmp).1
+    d.sort_unstable_by(f64::total_cmp);
+    let n = d.len();
+    (d[n / 2], d[3 * n / 4] - d[n / 4])
 }
 
 fn region_observations(obs: &Observed, label: u32) -> Option<SparseImage<PixelObservation>> {

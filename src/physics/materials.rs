@@ -5,14 +5,22 @@
 //!
 //! A region continues an object when it is where the object can be (issue 31):
 //! it covers much of the image the object covered in an earlier frame, and its
-//! measured distance moved by no more than an object can move in the time
-//! between (`max_object_speed_m_s`). Each object takes at most one region of a
-//! frame, and each region one object, the pairs that share most pixels first:
-//! two regions seen at once are two objects. An object that reappears
-//! elsewhere, or farther than it could have moved, is a new one. Regions are
-//! never joined on albedo alone: two objects seen in one pose each can nearly
-//! always be given one ξ at which their albedos agree, and pooling them would
-//! make an undetermined ξ look determined.
+//! measured distance is where the object's motion puts it. An object carried
+//! through the scene moves smoothly: its distance changes by no more than
+//! `max_object_speed_m_s` allows between two frames, and, once its speed is
+//! known from two frames, departs from that speed by no more than
+//! `max_object_acceleration_m_s2` allows. A region farther off jumped: the
+//! scene was cut (objects put down elsewhere, taken away, exchanged). After a
+//! cut, an object continues only where that is beyond doubt: one object before
+//! it and one region after. With several in view, the data cannot tell an
+//! object moved from one that took another's place (both fit one ξ at which
+//! their albedos agree, `same_material_statistic` measured), so each region
+//! then starts a new object: an undetermined ξ is kept as read, a wrongly
+//! pooled one would be corrected wrongly.
+//!
+//! Each object takes at most one region of a frame, and each region one
+//! object, the pairs that share most pixels first: two regions seen at once
+//! are two objects. An object that reappears elsewhere is a new one.
 
 use super::translucency::{self, FrameProfile, XiEstimate, XiMethod, XiSettings};
 
@@ -25,9 +33,9 @@ const MIN_OVERLAP: f64 = 0.5;
 /// Most materials kept: past it the one seen longest ago is forgotten.
 pub const MAX_MATERIALS: usize = 16;
 
-/// Reading noise and a region's changing outline move its median distance by this much
-/// between frames even when the object stands still, mm.
-const DISTANCE_SLACK_MM: f64 = 100.0;
+/// Reading noise moves a region's median distance by this much between frames even when the
+/// object stands still, mm (its changing outline adds half the region's interquartile range).
+const DISTANCE_SLACK_MM: f64 = 20.0;
 
 /// Where an object's region was in one frame.
 #[derive(Debug, Clone, Default)]
@@ -37,6 +45,8 @@ struct Footprint {
     stamp_ns: u64,
     /// Median measured distance over the region, mm.
     distance_mm: f64,
+    /// Interquartile range of the measured distances over the region, mm.
+    spread_mm: f64,
     /// Pixel indices, ascending.
     pixels: Vec<u32>,
 }
@@ -48,6 +58,9 @@ pub struct RegionEvidence<'a> {
     pub pixels: &'a [u32],
     /// Median measured distance over it, mm.
     pub distance_mm: f64,
+    /// Interquartile range of the measured distances over it, mm (how far its median
+    /// moves when its outline changes).
+    pub spread_mm: f64,
     /// Its evidence about ξ (`None` when too small to carry any).
     pub profile: Option<FrameProfile>,
 }
@@ -121,17 +134,68 @@ impl Material {
         self.estimate = estimate(&self.profiles, method).or(self.estimate.take());
     }
 
+    /// Whether a region's evidence is what this object shows (the likelihood-ratio test of
+    /// [`translucency::same_material_statistic`]): where its albedo fits the object's at no ξ,
+    /// another object took its place. A region without evidence is not refused.
+    fn same_material(&self, evidence: Option<&FrameProfile>) -> bool {
+        evidence
+            .and_then(|p| translucency::same_material_statistic(&self.profiles, p))
+            .is_none_or(|q| q <= translucency::SAME_MATERIAL_LEVEL)
+    }
+
     fn record(&mut self, footprint: Footprint) {
         self.before = std::mem::replace(&mut self.latest, footprint);
     }
 
-    /// Whether a region at `distance_mm` in a frame at `stamp_ns` is where this object could
-    /// be, having been at `before`: moved no faster than `max_speed_m_s`.
-    fn reachable(before: &Footprint, distance_mm: f64, stamp_ns: u64, max_speed_m_s: f64) -> bool {
-        let dt_s = stamp_ns.saturating_sub(before.stamp_ns) as f64 * 1e-9;
-        let moved = (distance_mm - before.distance_mm).abs();
-        !(moved > max_speed_m_s * 1e3 * dt_s + DISTANCE_SLACK_MM)
+    /// How a region at `distance_mm` (spread `spread_mm`) in a frame at `stamp_ns` follows
+    /// this object's motion: still, moving as it can, or jumped. `None` without an earlier
+    /// footprint.
+    fn motion(&self, region: &RegionEvidence, frame: u64, stamp_ns: u64, limits: &Kinematics) -> Option<Motion> {
+        let last = self.earlier_than(frame)?;
+        let dt_s = stamp_ns.saturating_sub(last.stamp_ns) as f64 * 1e-9;
+        let spread = [last.spread_mm, region.spread_mm]
+            .into_iter()
+            .filter(|s| s.is_finite())
+            .fold(0.0, f64::max);
+        let slack = DISTANCE_SLACK_MM + 0.5 * spread;
+        let moved = (region.distance_mm - last.distance_mm).abs();
+        if !(moved > slack) {
+            return Some(Motion::Still);
+        }
+        // The speed from the two footprints before, where there are two.
+        let speed_mm_s = (self.before.frame < last.frame && !self.before.pixels.is_empty())
+            .then(|| {
+                let dt = last.stamp_ns.saturating_sub(self.before.stamp_ns) as f64 * 1e-9;
+                (dt > 0.0).then(|| (last.distance_mm - self.before.distance_mm) / dt)
+            })
+            .flatten();
+        let off = match speed_mm_s {
+            Some(v) => {
+                let predicted = last.distance_mm + v * dt_s;
+                (region.distance_mm - predicted).abs() - 0.5 * limits.acceleration_m_s2 * 1e3 * dt_s * dt_s
+            }
+            None => moved - limits.speed_m_s * 1e3 * dt_s,
+        };
+        Some(if off > slack { Motion::Jumped } else { Motion::Moving })
     }
+}
+
+/// How a region's distance follows an object's motion.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Motion {
+    /// Within reading noise and outline of where it was.
+    Still,
+    /// As far as it can move between the frames.
+    Moving,
+    /// Farther: a cut.
+    Jumped,
+}
+
+/// How fast objects move.
+#[derive(Debug, Clone, Copy)]
+struct Kinematics {
+    speed_m_s: f64,
+    acceleration_m_s2: f64,
 }
 
 /// The materials seen since the background was latched.
@@ -170,7 +234,11 @@ impl Materials {
         method: XiMethod,
         settings: &XiSettings,
     ) -> Vec<Option<u32>> {
-        let pairs = self.assignment(&regions, frame, stamp_ns, settings.max_object_speed_m_s);
+        let limits = Kinematics {
+            speed_m_s: settings.max_object_speed_m_s,
+            acceleration_m_s2: settings.max_object_acceleration_m_s2,
+        };
+        let pairs = self.assignment(&regions, frame, stamp_ns, &limits);
         let mut ids = vec![None; regions.len()];
         let mut new = vec![];
         for (k, region) in regions.into_iter().enumerate() {
@@ -178,6 +246,7 @@ impl Materials {
                 frame,
                 stamp_ns,
                 distance_mm: region.distance_mm,
+                spread_mm: region.spread_mm,
                 pixels: region.pixels.to_vec(),
             };
             match (pairs[k], region.profile) {
@@ -204,18 +273,19 @@ impl Materials {
     }
 
     /// Which object each region continues: among the pairs where the region covers at least
-    /// [`MIN_OVERLAP`] of the smaller of it and the object's earlier region, and the object
-    /// could have moved there, the pairs sharing most pixels first, each region and each
+    /// [`MIN_OVERLAP`] of the smaller of it and the object's earlier region, the object's
+    /// motion allows it (after a cut only beyond doubt, see the module's note) and its
+    /// evidence is the object's, the pairs sharing most pixels first, each region and each
     /// object taken once.
     fn assignment(
         &self,
         regions: &[RegionEvidence],
         frame: u64,
         stamp_ns: u64,
-        max_speed_m_s: f64,
+        limits: &Kinematics,
     ) -> Vec<Option<usize>> {
-        // (pixels shared, distance moved, region, object)
-        let mut pairs: Vec<(usize, f64, usize, usize)> = vec![];
+        // (pixels shared, distance moved, motion, region, object)
+        let mut pairs: Vec<(usize, f64, Motion, usize, usize)> = vec![];
         for (i, m) in self.materials.iter().enumerate() {
             let Some(before) = m.earlier_than(frame) else {
                 continue;
@@ -223,22 +293,48 @@ impl Materials {
             for (k, r) in regions.iter().enumerate() {
                 let shared = before.overlap(r.pixels);
                 let smaller = before.pixels.len().min(r.pixels.len()).max(1);
-                let overlaps = shared as f64 / smaller as f64 >= MIN_OVERLAP;
-                if overlaps && Material::reachable(before, r.distance_mm, stamp_ns, max_speed_m_s) {
-                    pairs.push((shared, (r.distance_mm - before.distance_mm).abs(), k, i));
+                if (shared as f64 / smaller as f64) < MIN_OVERLAP {
+                    continue;
+                }
+                if let Some(motion) = m.motion(r, frame, stamp_ns, limits) {
+                    pairs.push((shared, (r.distance_mm - before.distance_mm).abs(), motion, k, i));
                 }
             }
         }
+        // A cut: a region where objects were, farther from each than it can have moved.
+        let cut = (0..regions.len()).any(|k| {
+            let mut of_region = pairs.iter().filter(|p| p.3 == k).peekable();
+            of_region.peek().is_some() && of_region.all(|p| p.2 == Motion::Jumped)
+        });
+        let beyond_doubt = regions.len() == 1 && self.seen_in_latest_frame(frame) == 1;
+        pairs.retain(|&(_, _, motion, k, i)| {
+            let follows = match motion {
+                Motion::Still => true,
+                Motion::Moving => !cut || beyond_doubt,
+                Motion::Jumped => beyond_doubt,
+            };
+            follows && self.materials[i].same_material(regions[k].profile.as_ref())
+        });
         pairs.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.total_cmp(&b.1)));
         let mut region_to = vec![None; regions.len()];
         let mut taken = vec![false; self.materials.len()];
-        for (_, _, k, i) in pairs {
+        for (_, _, _, k, i) in pairs {
             if region_to[k].is_none() && !taken[i] {
                 region_to[k] = Some(i);
                 taken[i] = true;
             }
         }
         region_to
+    }
+
+    /// Objects seen in the latest frame before `frame` that had any.
+    fn seen_in_latest_frame(&self, frame: u64) -> usize {
+        let seen = |m: &Material| m.earlier_than(frame).map(|f| f.frame);
+        let latest = self.materials.iter().filter_map(seen).max();
+        self.materials
+            .iter()
+            .filter(|m| latest.is_some() && seen(m) == latest)
+            .count()
     }
 
     /// A new material of this evidence; the one seen longest ago goes if there are too many.
@@ -290,6 +386,7 @@ mod tests {
         RegionEvidence {
             pixels,
             distance_mm,
+            spread_mm: 0.0,
             profile: Some(evidence()),
         }
     }
@@ -332,16 +429,57 @@ mod tests {
     }
 
     #[test]
-    fn a_jump_farther_than_an_object_moves_is_a_new_object() {
+    fn a_jump_with_several_objects_in_view_starts_new_objects() {
+        let mut objects = Materials::default();
+        let (a, b): (Vec<u32>, Vec<u32>) = ((0..400).collect(), (1000..1400).collect());
+        let first = add(&mut objects, 1, vec![region(&a, 1000.0), region(&b, 2000.0)]);
+        // 2 m/s for 0.1 s is 200 mm (with 20 mm slack): 300 mm is a cut, and with two
+        // objects in view either may have taken the other's place.
+        let second = add(&mut objects, 2, vec![region(&a, 1300.0), region(&b, 2300.0)]);
+        for (f, s) in first.iter().zip(&second) {
+            assert_ne!(f, s);
+        }
+        // Standing still after it, each continues its new object.
+        let third = add(&mut objects, 3, vec![region(&a, 1305.0), region(&b, 2295.0)]);
+        assert_eq!(second, third);
+    }
+
+    #[test]
+    fn one_object_moved_to_another_distance_continues() {
+        // The paper's calibration: one object, shown at several distances.
         let mut objects = Materials::default();
         let a: Vec<u32> = (0..400).collect();
-        let first = add(&mut objects, 1, vec![region(&a, 1000.0)]);
-        // 10 m/s for 0.1 s is 1 m (with 100 mm slack): 1.5 m is another object.
-        let second = add(&mut objects, 2, vec![region(&a, 2500.0)]);
-        assert_ne!(first, second);
-        // Within reach, the same place continues the latest one.
-        let third = add(&mut objects, 3, vec![region(&a, 2400.0)]);
+        let first = add(&mut objects, 1, vec![region(&a, 600.0)]);
+        let second = add(&mut objects, 2, vec![region(&a, 600.0)]);
+        let third = add(&mut objects, 3, vec![region(&a, 1300.0)]);
+        assert_eq!(first, second);
         assert_eq!(second, third);
+        assert_eq!(objects.get(first[0].unwrap()).unwrap().frames(), 3);
+    }
+
+    #[test]
+    fn objects_carried_through_the_scene_keep_their_identity() {
+        // 30 Hz, 50 and 30 mm a frame (1.5 and 0.9 m/s), the second speeding up.
+        let mut objects = Materials::default();
+        let (a, b): (Vec<u32>, Vec<u32>) = ((0..400).collect(), (1000..1400).collect());
+        let frame_ns = 33_333_333;
+        let mut ids = vec![];
+        for f in 1..=12u64 {
+            let t = f as f64 * frame_ns as f64 * 1e-9;
+            let regions = vec![
+                region(&a, 1000.0 + 50.0 * f as f64),
+                region(&b, 2500.0 - 30.0 * f as f64 - 2.0 * t * t * 1e3),
+            ];
+            ids.push(objects.add_frame(regions, f, f * frame_ns, XiMethod::OneMaterial, &XiSettings::default()));
+        }
+        assert!(ids.iter().all(|f| *f == ids[0]), "{ids:?}");
+        // A still object that jumps by 100 mm in 0.1 s (10 m/s^2 allows 50) with another
+        // object in view is a cut.
+        let mut objects = Materials::default();
+        let first = add(&mut objects, 1, vec![region(&a, 1000.0), region(&b, 2000.0)]);
+        add(&mut objects, 2, vec![region(&a, 1000.0), region(&b, 2000.0)]);
+        let jumped = add(&mut objects, 3, vec![region(&a, 1100.0), region(&b, 2000.0)]);
+        assert_ne!(jumped[0], first[0]);
     }
 
     #[test]
@@ -367,6 +505,7 @@ mod tests {
         let bare = |pixels| RegionEvidence {
             pixels,
             distance_mm: 1000.0,
+            spread_mm: 0.0,
             profile: None,
         };
         let ids = add(&mut objects, 2, vec![bare(&a), bare(&far)]);

@@ -133,9 +133,12 @@ pub struct XiSettings {
     /// bounded and follows a material that changes.
     pub max_frames_pooled: usize,
     /// Fastest an object moves along the camera's rays, m/s: a region farther from
-    /// where an object was than this allows in the time between is another object
-    /// (faster than a hand or a robot carries one: a jump beyond it is a cut).
+    /// where an object was than this allows in the time between jumped (faster than a
+    /// hand or a robot carries one: a cut).
     pub max_object_speed_m_s: f64,
+    /// Largest change of an object's speed along the rays, m/s²: once its speed is known
+    /// from two frames, a region farther from where that speed puts it jumped.
+    pub max_object_acceleration_m_s2: f64,
 }
 
 impl Default for XiSettings {
@@ -147,7 +150,8 @@ impl Default for XiSettings {
             groups_per_frame: 3,
             min_group_pixels: 40,
             max_frames_pooled: 64,
-            max_object_speed_m_s: 10.0,
+            max_object_speed_m_s: 2.0,
+            max_object_acceleration_m_s2: 10.0,
         }
     }
 }
@@ -663,6 +667,39 @@ fn one_material_objective(
         .collect()
 }
 
+/// The groups' scatter within poses, the poses' misfit and a floor for it,
+/// `(phi_within, tau2, tau2_floor)`, from the ξ the plain objective prefers (among the `ok`
+/// ones), then held over the grid.
+///
+/// The floor is the variance the groups show within a pose: with
+/// two poses the spread between them is not measurable at the ξ that makes them agree (it
+/// is what picks that ξ), and what the model cannot explain between two distances along a
+/// tilted object it does not explain better between two poses (objects.md, "Intervals that
+/// hold": overdispersion from the object's own residuals).
+fn misfit_scales(profiles: &[FrameProfile], pose: &[usize], poses: usize, ok: &[bool]) -> Option<(f64, f64, f64)> {
+    let plain: Vec<f64> = one_material_objective(profiles, pose, poses, (1.0, 0.0))
+        .iter()
+        .zip(ok)
+        .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
+        .collect();
+    let (k0, _) = argmin(&plain)?;
+    let at_k0 = pose_sums(profiles, pose, poses, k0);
+    let phi_within = within_pose_overdispersion(&at_k0);
+    let sums = scaled(&at_k0, phi_within);
+    Some((phi_within, pose_variance(&sums), group_variance(&sums)))
+}
+
+/// The groups' variance (their harmonic mean), in log albedo squared; 0 with fewer than two
+/// poses (one pose has no offset to bound).
+fn group_variance(sums: &[PoseSums]) -> f64 {
+    let seen: Vec<&PoseSums> = sums.iter().filter(|s| s.3 > 0).collect();
+    if seen.len() < 2 {
+        return 0.0;
+    }
+    let (w, n) = seen.iter().fold((0.0, 0usize), |a, s| (a.0 + s.0, a.1 + s.3));
+    n as f64 / w
+}
+
 /// Poses among the frames: their median distances clustered, a gap of more than 5 % (and
 /// 50 mm) between clusters. Returns each frame's pose (`usize::MAX` without a distance) and
 /// the number of poses.
@@ -709,16 +746,10 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
             .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
             .collect()
     };
-    // The groups' scatter within poses and the poses' misfit, from the ξ the plain objective
-    // prefers, then held over the grid.
-    let plain = admissible(&one_material_objective(profiles, &pose, poses, (1.0, 0.0)));
-    let (k0, _) = argmin(&plain)?;
-    let at_k0 = pose_sums(profiles, &pose, poses, k0);
-    let phi_within = within_pose_overdispersion(&at_k0);
-    let tau2 = pose_variance(&scaled(&at_k0, phi_within));
+    let (phi_within, tau2, tau2_floor) = misfit_scales(profiles, &pose, poses, &ok)?;
     let obj = one_material_objective(profiles, &pose, poses, (phi_within, tau2));
     let q = admissible(&obj);
-    let (kmin, qmin) = argmin(&q)?;
+    let (kmin, _) = argmin(&q)?;
     let groups = obj[kmin].1;
     let estimate = |xi: f64, interval: [f64; 2], note: String| XiEstimate {
         xi,
@@ -739,15 +770,26 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         ));
     }
     let xi = refine_minimum(&grid, &q, kmin);
-    let phi = (qmin / (groups as f64 - 2.0)).max(1.0);
-    let level = qmin + 3.84 * phi;
-    let interval = cover(threshold_interval(&grid, &q, kmin, level), xi);
+    // The interval with the poses' misfit at least the groups' (`group_variance`): the
+    // estimate stays where the measured misfit puts it, the interval says what the poses
+    // cannot show.
+    let wide = admissible(&one_material_objective(
+        profiles,
+        &pose,
+        poses,
+        (phi_within, tau2.max(tau2_floor)),
+    ));
+    let (kwide, qwide) = argmin(&wide)?;
+    let phi = (qwide / (groups as f64 - 2.0)).max(1.0);
+    let level = qwide + 3.84 * phi;
+    let interval = cover(threshold_interval(&grid, &wide, kwide, level), xi);
     let evidence = format!(
-        "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi_within:.2} within poses and {phi:.2} left, pose misfit sd {:.3} in log albedo",
+        "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi_within:.2} within poses and {phi:.2} left, pose misfit sd {:.3} in log albedo (at least {:.3}, the groups')",
         profiles.len(),
-        tau2.sqrt()
+        tau2.sqrt(),
+        tau2_floor.sqrt()
     );
-    if q[0] <= level || interval[0] <= OPAQUE_XI {
+    if wide[0] <= level || interval[0] <= OPAQUE_XI {
         return Some(estimate(
             0.0,
             [0.0, interval[1]],
@@ -755,6 +797,39 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         ));
     }
     Some(estimate(xi, interval, evidence))
+}
+
+/// The level of [`same_material_statistic`] above which a frame's region is not the object
+/// it would continue: chi-square with 2 degrees of freedom (one ξ and one albedo shared) at
+/// 99.9 %, so that one object in a thousand frames is split, never pooled wrongly more often.
+pub const SAME_MATERIAL_LEVEL: f64 = 13.82;
+
+/// How much worse one material explains an object's evidence and a new frame's together than
+/// each on its own: `min Q(joint) - min Q(object) - min Q(frame)`, the objectives with the
+/// joint's overdispersion and pose misfit, over the ξ the joint admits. A likelihood-ratio
+/// statistic, about chi-square with 2 degrees of freedom when the frame shows the object:
+/// a region that takes another object's place (a swap between poses) exceeds
+/// [`SAME_MATERIAL_LEVEL`] unless some ξ makes both albedos agree (then the data cannot tell).
+/// `None` when the evidence holds too few groups to say.
+pub fn same_material_statistic(object: &[FrameProfile], frame: &FrameProfile) -> Option<f64> {
+    let joint: Vec<FrameProfile> = object.iter().chain(std::iter::once(frame)).cloned().collect();
+    let ok = eligible(&joint);
+    let (pose, poses) = pose_labels(&joint);
+    let (phi, tau2, _) = misfit_scales(&joint, &pose, poses, &ok)?;
+    let scales = (phi, tau2);
+    let least = |profiles: &[FrameProfile], pose: &[usize], poses: usize| -> Option<f64> {
+        let q: Vec<f64> = one_material_objective(profiles, pose, poses, scales)
+            .iter()
+            .zip(&ok)
+            .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
+            .collect();
+        argmin(&q).map(|(_, v)| v)
+    };
+    let n = object.len();
+    let q_joint = least(&joint, &pose, poses)?;
+    let q_object = least(object, &pose[..n], poses).unwrap_or(0.0);
+    let q_frame = least(std::slice::from_ref(frame), &pose[n..], poses).unwrap_or(0.0);
+    Some((q_joint - q_object - q_frame).max(0.0))
 }
 
 /// Why the albedo-consistency objective does not determine ξ, if it does not.
