@@ -725,37 +725,44 @@ impl Pipeline {
                 p.push(i as u32);
             }
         }
-        let regions: Vec<RegionEvidence> = pixels
+        let mut regions: Vec<RegionEvidence> = pixels
             .iter()
-            .enumerate()
-            .map(|(k, pixels)| {
-                let observations = if single {
-                    Some(std::borrow::Cow::Borrowed(&obs.observations))
-                } else {
-                    region_observations(obs, k as u32 + 1).map(std::borrow::Cow::Owned)
-                };
-                let profile = observations.and_then(|observations| {
-                    let sample =
-                        FrameSample::from_image(&observations, &self.rays, None, settings.max_pixels_per_frame);
-                    (sample.pixel_count() >= settings.min_group_pixels).then(|| {
-                        translucency::frame_profile(
-                            &self.config.model,
-                            &self.bounds,
-                            &sample,
-                            &settings,
-                            translucency::ProfileUse::Estimation,
-                        )
-                    })
-                });
+            .map(|pixels| {
                 let (distance_mm, spread_mm) = distance_quartiles(&obs.distance_mm, pixels);
                 RegionEvidence {
                     pixels,
                     distance_mm,
                     spread_mm,
-                    profile,
+                    profile: None,
                 }
             })
             .collect();
+        // Evidence only where it adds (an object standing still repeats itself), the frame's
+        // lattice shared among those regions (each at least a fifth of it).
+        let needed = self
+            .materials
+            .needs_evidence(&regions, self.evidence_frames, obs.stamp_ns, &settings);
+        let count = needed.iter().filter(|&&n| n).count().max(1);
+        let budget = (settings.max_pixels_per_frame / count).max(settings.max_pixels_per_frame / 5);
+        for (k, region) in regions.iter_mut().enumerate().filter(|&(k, _)| needed[k]) {
+            let observations = if single {
+                Some(std::borrow::Cow::Borrowed(&obs.observations))
+            } else {
+                region_observations(obs, k as u32 + 1).map(std::borrow::Cow::Owned)
+            };
+            region.profile = observations.and_then(|observations| {
+                let sample = FrameSample::from_image(&observations, &self.rays, None, budget);
+                (sample.pixel_count() >= settings.min_group_pixels).then(|| {
+                    translucency::frame_profile(
+                        &self.config.model,
+                        &self.bounds,
+                        &sample,
+                        &settings,
+                        translucency::ProfileUse::Estimation,
+                    )
+                })
+            });
+        }
         let ids = self
             .materials
             .add_frame(regions, self.evidence_frames, obs.stamp_ns, method, &settings);

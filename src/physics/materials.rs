@@ -134,6 +134,16 @@ impl Material {
         self.estimate = estimate(&self.profiles, method).or(self.estimate.take());
     }
 
+    /// Frames of evidence at the pose `distance_mm` (within the 5 % and 50 mm that separate
+    /// poses).
+    fn frames_near(&self, distance_mm: f64) -> usize {
+        let gap = (0.05 * distance_mm).max(50.0);
+        self.profiles
+            .iter()
+            .filter(|p| (p.median_distance_mm - distance_mm).abs() <= gap)
+            .count()
+    }
+
     /// Whether a region's evidence is what this object shows (the likelihood-ratio test of
     /// [`translucency::same_material_statistic`]): where its albedo fits the object's at no ξ,
     /// another object took its place. A region without evidence is not refused.
@@ -198,6 +208,27 @@ struct Kinematics {
     acceleration_m_s2: f64,
 }
 
+impl Kinematics {
+    fn of(settings: &XiSettings) -> Self {
+        Self {
+            speed_m_s: settings.max_object_speed_m_s,
+            acceleration_m_s2: settings.max_object_acceleration_m_s2,
+        }
+    }
+}
+
+/// A region and an object it may continue.
+#[derive(Debug, Clone, Copy)]
+struct Pair {
+    /// Pixels the region shares with the object's earlier footprint.
+    shared: usize,
+    /// How far its median distance moved, mm.
+    moved: f64,
+    motion: Motion,
+    region: usize,
+    object: usize,
+}
+
 /// The materials seen since the background was latched.
 #[derive(Debug, Clone, Default)]
 pub struct Materials {
@@ -234,11 +265,7 @@ impl Materials {
         method: XiMethod,
         settings: &XiSettings,
     ) -> Vec<Option<u32>> {
-        let limits = Kinematics {
-            speed_m_s: settings.max_object_speed_m_s,
-            acceleration_m_s2: settings.max_object_acceleration_m_s2,
-        };
-        let pairs = self.assignment(&regions, frame, stamp_ns, &limits);
+        let pairs = self.assignment(&regions, frame, stamp_ns, &Kinematics::of(settings));
         let mut ids = vec![None; regions.len()];
         let mut new = vec![];
         for (k, region) in regions.into_iter().enumerate() {
@@ -272,9 +299,7 @@ impl Materials {
         ids
     }
 
-    /// Which object each region continues: among the pairs where the region covers at least
-    /// [`MIN_OVERLAP`] of the smaller of it and the object's earlier region, the object's
-    /// motion allows it (after a cut only beyond doubt, see the module's note) and its
+    /// Which object each region continues: among the pairs [`Self::candidates`] allows whose
     /// evidence is the object's, the pairs sharing most pixels first, each region and each
     /// object taken once.
     fn assignment(
@@ -284,8 +309,19 @@ impl Materials {
         stamp_ns: u64,
         limits: &Kinematics,
     ) -> Vec<Option<usize>> {
-        // (pixels shared, distance moved, motion, region, object)
-        let mut pairs: Vec<(usize, f64, Motion, usize, usize)> = vec![];
+        let mut pairs = self.candidates(regions, frame, stamp_ns, limits);
+        pairs.retain(|p| self.materials[p.object].same_material(regions[p.region].profile.as_ref()));
+        self.pick(pairs, regions.len())
+            .into_iter()
+            .map(|p| p.map(|p| p.object))
+            .collect()
+    }
+
+    /// The pairs where the region covers at least [`MIN_OVERLAP`] of the smaller of it and the
+    /// object's earlier region and the object's motion allows it (after a cut only beyond
+    /// doubt, see the module's note).
+    fn candidates(&self, regions: &[RegionEvidence], frame: u64, stamp_ns: u64, limits: &Kinematics) -> Vec<Pair> {
+        let mut pairs = vec![];
         for (i, m) in self.materials.iter().enumerate() {
             let Some(before) = m.earlier_than(frame) else {
                 continue;
@@ -297,34 +333,67 @@ impl Materials {
                     continue;
                 }
                 if let Some(motion) = m.motion(r, frame, stamp_ns, limits) {
-                    pairs.push((shared, (r.distance_mm - before.distance_mm).abs(), motion, k, i));
+                    let moved = (r.distance_mm - before.distance_mm).abs();
+                    pairs.push(Pair {
+                        shared,
+                        moved,
+                        motion,
+                        region: k,
+                        object: i,
+                    });
                 }
             }
         }
         // A cut: a region where objects were, farther from each than it can have moved.
         let cut = (0..regions.len()).any(|k| {
-            let mut of_region = pairs.iter().filter(|p| p.3 == k).peekable();
-            of_region.peek().is_some() && of_region.all(|p| p.2 == Motion::Jumped)
+            let mut of_region = pairs.iter().filter(|p| p.region == k).peekable();
+            of_region.peek().is_some() && of_region.all(|p| p.motion == Motion::Jumped)
         });
         let beyond_doubt = regions.len() == 1 && self.seen_in_latest_frame(frame) == 1;
-        pairs.retain(|&(_, _, motion, k, i)| {
-            let follows = match motion {
-                Motion::Still => true,
-                Motion::Moving => !cut || beyond_doubt,
-                Motion::Jumped => beyond_doubt,
-            };
-            follows && self.materials[i].same_material(regions[k].profile.as_ref())
+        pairs.retain(|p| match p.motion {
+            Motion::Still => true,
+            Motion::Moving => !cut || beyond_doubt,
+            Motion::Jumped => beyond_doubt,
         });
-        pairs.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.total_cmp(&b.1)));
-        let mut region_to = vec![None; regions.len()];
+        pairs
+    }
+
+    /// Each region's pair: most pixels shared first (then least moved), each region and each
+    /// object taken once.
+    fn pick(&self, mut pairs: Vec<Pair>, regions: usize) -> Vec<Option<Pair>> {
+        pairs.sort_by(|a, b| b.shared.cmp(&a.shared).then(a.moved.total_cmp(&b.moved)));
+        let mut region_to = vec![None; regions];
         let mut taken = vec![false; self.materials.len()];
-        for (_, _, _, k, i) in pairs {
-            if region_to[k].is_none() && !taken[i] {
-                region_to[k] = Some(i);
-                taken[i] = true;
+        for p in pairs {
+            if region_to[p.region].is_none() && !taken[p.object] {
+                region_to[p.region] = Some(p);
+                taken[p.object] = true;
             }
         }
         region_to
+    }
+
+    /// Which regions of a frame bring evidence worth computing (their `profile` is not looked
+    /// at): all but those standing still where their object has `frames_per_pose` frames of
+    /// evidence already (a still object's next frame repeats what it showed).
+    pub fn needs_evidence(
+        &self,
+        regions: &[RegionEvidence],
+        frame: u64,
+        stamp_ns: u64,
+        settings: &XiSettings,
+    ) -> Vec<bool> {
+        let pairs = self.candidates(regions, frame, stamp_ns, &Kinematics::of(settings));
+        self.pick(pairs, regions.len())
+            .iter()
+            .zip(regions)
+            .map(|(p, r)| match p {
+                Some(p) if p.motion == Motion::Still => {
+                    self.materials[p.object].frames_near(r.distance_mm) < settings.frames_per_pose
+                }
+                _ => true,
+            })
+            .collect()
     }
 
     /// Objects seen in the latest frame before `frame` that had any.
@@ -480,6 +549,34 @@ mod tests {
         add(&mut objects, 2, vec![region(&a, 1000.0), region(&b, 2000.0)]);
         let jumped = add(&mut objects, 3, vec![region(&a, 1100.0), region(&b, 2000.0)]);
         assert_ne!(jumped[0], first[0]);
+    }
+
+    #[test]
+    fn a_still_object_needs_no_more_evidence_once_it_has_enough() {
+        let mut objects = Materials::default();
+        let a: Vec<u32> = (0..400).collect();
+        let settings = XiSettings::default();
+        let needs = |objects: &Materials, frame: u64, d: f64| {
+            objects.needs_evidence(&[region(&a, d)], frame, frame * FRAME_NS, &settings)[0]
+        };
+        let at = |d: f64| FrameProfile {
+            median_distance_mm: d,
+            ..evidence()
+        };
+        for frame in 1..=settings.frames_per_pose as u64 {
+            assert!(needs(&objects, frame, 1000.0), "frame {frame}");
+            let r = RegionEvidence {
+                profile: Some(at(1000.0)),
+                ..region(&a, 1000.0)
+            };
+            add(&mut objects, frame, vec![r]);
+        }
+        let next = settings.frames_per_pose as u64 + 1;
+        assert!(!needs(&objects, next, 1005.0));
+        // Moved to another pose, or a new object elsewhere: evidence again.
+        assert!(needs(&objects, next, 1150.0));
+        let far: Vec<u32> = (5000..5400).collect();
+        assert!(objects.needs_evidence(&[region(&far, 1000.0)], next, next * FRAME_NS, &settings)[0]);
     }
 
     #[test]

@@ -115,8 +115,12 @@ pub fn xi_grid() -> Vec<f64> {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct XiSettings {
-    /// Most pixels a frame contributes (a regular lattice over the object).
+    /// Most pixels a frame contributes (a regular lattice over its objects, shared among
+    /// the objects whose evidence it computes).
     pub max_pixels_per_frame: usize,
+    /// Frames of evidence an object gathers at one pose while it stands still; after them its
+    /// frames there add none (they repeat what it showed) and cost nothing.
+    pub frames_per_pose: usize,
     /// Narrowest radius, in image pixels, of the local planes that give the normals
     /// (widened up to 6x where the recovered layer is too noisy for it).
     pub normal_radius_px: usize,
@@ -145,6 +149,7 @@ impl Default for XiSettings {
     fn default() -> Self {
         Self {
             max_pixels_per_frame: 1500,
+            frames_per_pose: 3,
             normal_radius_px: 3,
             normal_block_steps: 3,
             groups_per_frame: 3,
@@ -671,7 +676,7 @@ fn one_material_objective(
 /// `(phi_within, tau2, tau2_floor)`, from the ξ the plain objective prefers (among the `ok`
 /// ones), then held over the grid.
 ///
-/// The floor is the variance the groups show within a pose: with
+/// The floor, for two poses, is the variance the groups show within a pose: with
 /// two poses the spread between them is not measurable at the ξ that makes them agree (it
 /// is what picks that ξ), and what the model cannot explain between two distances along a
 /// tilted object it does not explain better between two poses (objects.md, "Intervals that
@@ -689,11 +694,12 @@ fn misfit_scales(profiles: &[FrameProfile], pose: &[usize], poses: usize, ok: &[
     Some((phi_within, pose_variance(&sums), group_variance(&sums)))
 }
 
-/// The groups' variance (their harmonic mean), in log albedo squared; 0 with fewer than two
-/// poses (one pose has no offset to bound).
+/// The groups' variance (their harmonic mean), in log albedo squared, where there are exactly
+/// two poses; 0 otherwise (one pose has no offset to bound; from three on, the poses' spread
+/// about the ξ that fits them all is measured).
 fn group_variance(sums: &[PoseSums]) -> f64 {
     let seen: Vec<&PoseSums> = sums.iter().filter(|s| s.3 > 0).collect();
-    if seen.len() < 2 {
+    if seen.len() != 2 {
         return 0.0;
     }
     let (w, n) = seen.iter().fold((0.0, 0usize), |a, s| (a.0 + s.0, a.1 + s.3));
