@@ -149,7 +149,7 @@ impl Default for XiSettings {
     fn default() -> Self {
         Self {
             max_pixels_per_frame: 1500,
-            frames_per_pose: 3,
+            frames_per_pose: 8,
             normal_radius_px: 3,
             normal_block_steps: 3,
             groups_per_frame: 3,
@@ -706,9 +706,11 @@ fn group_variance(sums: &[PoseSums]) -> f64 {
     n as f64 / w
 }
 
-/// Poses among the frames: their median distances clustered, a gap of more than 5 % (and
-/// 50 mm) between clusters. Returns each frame's pose (`usize::MAX` without a distance) and
-/// the number of poses.
+/// Poses among the frames: their median distances, nearest first, each pose spanning at most
+/// 5 % (and 50 mm) from its nearest frame, so that an object carried continuously through
+/// the scene shows a pose every 5 % of distance it travels, as one moved in steps does at
+/// each step. Returns each frame's pose (`usize::MAX` without a distance) and the number of
+/// poses.
 fn pose_labels(profiles: &[FrameProfile]) -> (Vec<usize>, usize) {
     let mut order: Vec<(f64, usize)> = profiles
         .iter()
@@ -719,9 +721,11 @@ fn pose_labels(profiles: &[FrameProfile]) -> (Vec<usize>, usize) {
     order.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut labels = vec![usize::MAX; profiles.len()];
     let mut pose = 0;
-    for (j, &(d, i)) in order.iter().enumerate() {
-        if j > 0 && d - order[j - 1].0 > (0.05 * order[j - 1].0).max(50.0) {
+    let mut first = order.first().map_or(0.0, |o| o.0);
+    for &(d, i) in &order {
+        if d - first > (0.05 * first).max(50.0) {
             pose += 1;
+            first = d;
         }
         labels[i] = pose;
     }
