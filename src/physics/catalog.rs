@@ -36,7 +36,7 @@ pub const OPAQUE: &str = "opaque";
 pub const UNKNOWN: &str = "unknown";
 
 /// How finely ξ is integrated over a class's interval.
-const XI_STEP: f64 = 0.0025;
+const XI_STEP: f64 = 0.001;
 
 /// A calibration's albedo range is widened by this much in `ln rho` each side when written:
 /// what a calibration's poses show is not all a later scene's geometry gives (normals,
@@ -349,9 +349,8 @@ impl Catalog {
             let t: f64 = classes.iter().map(|c| c.1).sum();
             classes.iter().map(|c| c.1 / t).collect()
         };
-        let best = (0..classes.len())
-            .max_by(|&a, &b| posterior[a].total_cmp(&posterior[b]))
-            .unwrap_or(0);
+        // The first of equals: opaque before unknown before the materials (a tie keeps the reading).
+        let best = (1..classes.len()).fold(0, |b, k| if posterior[k] > posterior[b] { k } else { b });
         // The evidence told nothing when every class fits it alike: say that the prior decided.
         let spread = likelihoods
             .iter()
@@ -384,17 +383,17 @@ impl Catalog {
 
     /// The likelihood of the evidence under a class, relative to that at the best ξ.
     fn likelihood(&self, class: Class, e: &AlbedoEvidence, scale: &AlbedoScale, notes: &mut Vec<String>) -> f64 {
-        let qmin =
-            e.q.iter()
-                .copied()
-                .filter(|q| q.is_finite())
-                .fold(f64::INFINITY, f64::min);
+        let top = e.xi.last().copied().unwrap_or(0.99);
+        // The minimum between grid points too (the objective can be far sharper than the grid).
+        let qmin = (0..=(top / XI_STEP).round() as usize)
+            .filter_map(|j| quadratic(&e.xi, &e.q, j as f64 * XI_STEP))
+            .chain(e.q.iter().copied().filter(|q| q.is_finite()))
+            .fold(f64::INFINITY, f64::min);
         if !qmin.is_finite() {
             return 1.0;
         }
-        let top = e.xi.last().copied().unwrap_or(0.99);
         let at = |xi: f64| -> f64 {
-            interpolate(&e.xi, &e.q, xi.min(top))
+            quadratic(&e.xi, &e.q, xi.min(top))
                 .map(|q| (-(q - qmin) / 2.0).exp())
                 .unwrap_or(0.0)
         };
@@ -457,6 +456,27 @@ fn check_prior(field: &str, w: f64) -> Result<(), CatalogError> {
     Ok(())
 }
 
+/// `v` at `x` on `grid` by the parabola through the three grid points nearest `x` (all
+/// finite; else linear between the two around it, if finite), never below 0: `Q` is about
+/// quadratic near its minimum, and a sharp minimum between grid points is where a linear
+/// interpolation fails most.
+fn quadratic(grid: &[f64], v: &[f64], x: f64) -> Option<f64> {
+    if grid.len() < 3 {
+        return interpolate(grid, v, x);
+    }
+    let nearest = (0..grid.len()).min_by(|&a, &b| (grid[a] - x).abs().total_cmp(&(grid[b] - x).abs()))?;
+    let j = nearest.clamp(1, grid.len() - 2);
+    let (x0, x1, x2) = (grid[j - 1], grid[j], grid[j + 1]);
+    let (y0, y1, y2) = (v[j - 1], v[j], v[j + 1]);
+    if !(y0.is_finite() && y1.is_finite() && y2.is_finite()) || x < x0 || x > x2 {
+        return interpolate(grid, v, x);
+    }
+    let l0 = (x - x1) * (x - x2) / ((x0 - x1) * (x0 - x2));
+    let l1 = (x - x0) * (x - x2) / ((x1 - x0) * (x1 - x2));
+    let l2 = (x - x0) * (x - x1) / ((x2 - x0) * (x2 - x1));
+    Some((y0 * l0 + y1 * l1 + y2 * l2).max(0.0))
+}
+
 /// The mean of `f` over `[lo, hi]` (its value at `lo` when the interval is a point).
 fn mean_over(lo: f64, hi: f64, f: impl Fn(f64) -> f64) -> f64 {
     let n = ((hi - lo) / XI_STEP).ceil().max(0.0) as usize;
@@ -506,9 +526,10 @@ pub enum Class {
 }
 
 /// An object's class and how sure.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Classification {
     /// The most probable class.
+    #[serde(skip)]
     pub class: Class,
     /// Its name: `opaque`, `unknown` or the material's.
     pub name: String,
