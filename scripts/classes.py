@@ -71,8 +71,10 @@ def main():
     ap.add_argument("--materials", required=True)
     ap.add_argument("--json")
     ap.add_argument("bags", nargs="+")
-    args, extra = ap.parse_known_args()
-    replay_args = [a for a in extra if a != "--"]
+    argv = sys.argv[1:]
+    cut = argv.index("--") if "--" in argv else len(argv)
+    args = ap.parse_args(argv[:cut])
+    replay_args = argv[cut + 1:]
     everything, wrong = [], 0
     for bag in args.bags:
         report, rows = classes(bag, args.exe, args.materials, replay_args)

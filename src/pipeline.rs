@@ -824,16 +824,20 @@ impl Pipeline {
     /// opaque's 0 (its reading kept), or, unknown, `own` (its own estimate). `own` alone
     /// without a materials file.
     fn with_class(&self, material: &Material, own: XiEstimate) -> (XiEstimate, Option<Classification>) {
-        let Some(class) = self.classify(material) else {
+        let Some(catalog) = self.config.materials.as_deref() else {
             return (own, None);
         };
-        let catalog = self.config.materials.as_deref();
-        let xi = match (class.class, catalog) {
-            (Class::Known(i), Some(c)) if i < c.materials.len() => {
-                let m = &c.materials[i];
+        let evidence = translucency::albedo_evidence(material.profiles());
+        let class = catalog.classify(evidence.as_ref(), &self.albedo_scale());
+        let xi = match class.class {
+            Class::Known(i) if i < catalog.materials.len() => {
+                let m = &catalog.materials[i];
+                // The object's own most likely ξ within the material's, where its evidence
+                // prefers one; the calibrated ξ where it does not (one pose, say).
+                let best = evidence.as_ref().and_then(|e| catalog.best_xi(i, e));
                 XiEstimate {
-                    xi: m.xi,
-                    interval: m.xi_interval,
+                    xi: best.unwrap_or(m.xi),
+                    interval: m.classification_interval(),
                     method: XiMethod::Calibrated,
                     frames: material.frames(),
                     pixels: material.pixels(),
@@ -844,7 +848,7 @@ impl Pipeline {
                     ..own
                 }
             }
-            (Class::Opaque, _) => XiEstimate {
+            Class::Opaque => XiEstimate {
                 xi: 0.0,
                 interval: [0.0, own.interval[1].max(translucency::OPAQUE_XI)],
                 note: format!("opaque (probability {:.2}): its reading is kept", class.probability),

@@ -109,6 +109,12 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
                 );
             }
             let bg = pipe.background().context("background")?;
+            // Where albedo consistency (what classifies objects) puts this material's ξ in its
+            // own recording, when the poses determine it.
+            let own: Vec<_> = albedo_evidence.iter().flatten().cloned().collect();
+            let one_material_interval = translucency::one_material(&own)
+                .filter(|e| !e.is_opaque())
+                .map(|e| e.interval);
             let name = match &a.name {
                 Some(n) => n.clone(),
                 None => a
@@ -128,6 +134,7 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
                     AlbedoReference::Background
                 },
                 background_albedo: (!bg.lin_calibrated).then_some(pipe.config.background_albedo),
+                evidence_xi_interval: one_material_interval,
                 prior: a.prior,
                 recording: a.bag.display().to_string(),
                 physics: Some(physics.option.clone().unwrap_or_else(|| describe_model(&physics.model))),

@@ -117,6 +117,12 @@ pub struct KnownMaterial {
     /// With `albedo_reference = "background"`: the background albedo the calibration assumed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub background_albedo: Option<f64>,
+    /// Where the one-material objective (albedo consistency, what classifies a scene's
+    /// objects) put ξ in the calibration recording itself, when it determined it: at high ξ
+    /// it can differ from the fit to known distances by more than either's interval (the
+    /// model's misfit). Classification takes ξ over the hull of this and `xi_interval`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub evidence_xi_interval: Option<[f64; 2]>,
     /// Its prior weight (relative to the other classes').
     #[serde(default = "one")]
     pub prior: f64,
@@ -128,6 +134,17 @@ pub struct KnownMaterial {
     /// Frames of the calibration.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frames: Option<usize>,
+}
+
+impl KnownMaterial {
+    /// The ξ a scene's object of this material may show: the hull of `xi_interval` and
+    /// `evidence_xi_interval`.
+    pub fn classification_interval(&self) -> [f64; 2] {
+        match self.evidence_xi_interval {
+            Some([lo, hi]) => [self.xi_interval[0].min(lo), self.xi_interval[1].max(hi)],
+            None => self.xi_interval,
+        }
+    }
 }
 
 fn one() -> f64 {
@@ -266,6 +283,14 @@ impl Catalog {
                     return Err(field_error(f("background_albedo"), format!("{g} is not in (0, 1]")))
                 }
                 _ => {}
+            }
+            if let Some([lo, hi]) = m.evidence_xi_interval {
+                if !(0.0 <= lo && lo <= hi && hi <= 1.0) {
+                    return Err(field_error(
+                        f("evidence_xi_interval"),
+                        format!("[{lo}, {hi}] must be ordered within [0, 1]"),
+                    ));
+                }
             }
             check_prior(&f("prior"), m.prior)?;
         }
@@ -409,7 +434,8 @@ impl Catalog {
                         None
                     }
                 };
-                mean_over(m.xi_interval[0], m.xi_interval[1], |x| {
+                let [lo, hi] = m.classification_interval();
+                let integrand = |x: f64| {
                     let fit = at(x);
                     match albedo {
                         None => fit,
@@ -426,9 +452,27 @@ impl Catalog {
                         }
                         _ => 0.0,
                     }
-                })
+                };
+                mean_over(lo, hi, integrand)
             }
         }
+    }
+
+    /// The most likely ξ of the evidence within a material's classification interval, when
+    /// the evidence prefers part of it (the likelihood varies by more than a factor 2 over
+    /// it); `None` when it is about flat there (the calibrated ξ stands).
+    pub fn best_xi(&self, i: usize, e: &AlbedoEvidence) -> Option<f64> {
+        let m = self.materials.get(i)?;
+        let [lo, hi] = m.classification_interval();
+        let top = e.xi.last().copied().unwrap_or(0.99);
+        let n = ((hi - lo) / XI_STEP).ceil().max(1.0) as usize;
+        let q: Vec<(f64, f64)> = (0..=n)
+            .map(|j| lo + (hi - lo) * j as f64 / n as f64)
+            .filter_map(|x| Some((x, quadratic(&e.xi, &e.q, x.min(top))?)))
+            .collect();
+        let best = q.iter().copied().min_by(|a, b| a.1.total_cmp(&b.1))?;
+        let worst = q.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max);
+        (worst - best.1 > 2.0 * std::f64::consts::LN_2).then_some(best.0)
     }
 
     /// What to add to a material's `ln rho` to put it on `scale`; why not, if it cannot be.
@@ -554,6 +598,7 @@ mod tests {
             albedo_range: [albedo * 0.9, albedo * 1.1],
             albedo_reference: AlbedoReference::Background,
             background_albedo: Some(1.0),
+            evidence_xi_interval: None,
             prior: 1.0,
             recording: format!("calib_{name}.mcap"),
             physics: Some("physical".into()),
