@@ -1950,9 +1950,15 @@ fn calibrate_xi_writes_a_materials_file_that_replay_classifies_with() {
     let names: Vec<&str> = catalog.materials.iter().map(|m| m.name.as_str()).collect();
     assert_eq!(names, ["sheet", "file_box"]);
     let sheet = &catalog.materials[0];
-    assert!(sheet.xi_interval[0] <= 0.676 + 0.01 && 0.676 - 0.01 <= sheet.xi_interval[1], "{sheet:?}");
+    assert!(
+        sheet.xi_interval[0] <= 0.676 + 0.01 && 0.676 - 0.01 <= sheet.xi_interval[1],
+        "{sheet:?}"
+    );
     // The implied albedo on the background's scale (wall albedo 1): the sheet's 0.558.
-    assert!(sheet.albedo_range[0] < 0.558 && 0.558 < sheet.albedo_range[1], "{sheet:?}");
+    assert!(
+        sheet.albedo_range[0] < 0.558 && 0.558 < sheet.albedo_range[1],
+        "{sheet:?}"
+    );
     assert!(sheet.recording.ends_with("calibration_sequence.mcap"));
 
     // The paper's document holder (xi 0.65, rho 0.6 before a white wall) is a sheet of

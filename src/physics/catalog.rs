@@ -424,7 +424,7 @@ impl Catalog {
         };
         match class {
             Class::Opaque => at(0.0),
-            Class::Unknown => mean_over(0.0, top, |x| at(x)),
+            Class::Unknown => mean_over(0.0, top, at),
             Class::Known(i) => {
                 let m = &self.materials[i];
                 let albedo = match self.albedo_shift(m, scale) {
