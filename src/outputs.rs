@@ -78,6 +78,8 @@ pub fn companion_messages(
 ) -> Result<Companions, ImageError> {
     let count = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
     let estimate = |xi: &XiEstimate, region_id: u32, region_pixels: usize, opaque: bool| TranslucencyEstimate {
+        material: String::new(),
+        class_probability: f64::NAN,
         header: header.clone(),
         xi: xi.xi,
         xi_lower: xi.interval[0],
@@ -93,7 +95,14 @@ pub fn companion_messages(
     let mut estimates: Vec<TranslucencyEstimate> = out
         .regions
         .iter()
-        .map(|r| estimate(&r.xi, r.id, r.pixels, r.opaque))
+        .map(|r| match &r.class {
+            Some(c) => TranslucencyEstimate {
+                material: c.name.clone(),
+                class_probability: c.probability,
+                ..estimate(&r.xi, r.id, r.pixels, r.opaque)
+            },
+            None => estimate(&r.xi, r.id, r.pixels, r.opaque),
+        })
         .collect();
     if let Some(why) = out.passthrough {
         estimates = vec![TranslucencyEstimate {

@@ -13,6 +13,7 @@ use serde::Serialize;
 use thiserror::Error;
 
 use crate::physics::camera::z_to_ray_distance;
+use crate::physics::catalog::{AlbedoReference, AlbedoScale, Catalog, Class, Classification};
 use crate::physics::emitted_light::{emitted_light_from_plane, fill_off_plane, EmittedLightError};
 use crate::physics::materials::{Material, Materials, RegionEvidence};
 use crate::physics::parallel::{map_chunks_ordered, map_ordered};
@@ -130,6 +131,9 @@ pub struct PipelineConfig {
     /// A pixel whose layer the reading noise leaves more uncertain than this
     /// (1 sigma, mm) is not used: a nearly invisible layer is not guessed.
     pub max_layer_sigma_mm: f64,
+    /// Known materials (a materials file, `--materials`): each object is classified among
+    /// them, opaque and unknown, and a known material's ξ recovers it.
+    pub materials: Option<Arc<Catalog>>,
 }
 
 impl Default for PipelineConfig {
@@ -146,6 +150,7 @@ impl Default for PipelineConfig {
             prior_stride_px: 3,
             xi_settings: XiSettings::default(),
             max_layer_sigma_mm: 300.0,
+            materials: None,
         }
     }
 }
@@ -411,6 +416,9 @@ pub struct RegionOutput {
     /// The data say it is opaque ([`XiEstimate::is_opaque`]): its readings are kept and
     /// it is not in the mask.
     pub opaque: bool,
+    /// Its object's class among the known materials, opaque and unknown (with a materials
+    /// file; `None` without one, or for a region of no object).
+    pub class: Option<Classification>,
 }
 
 /// The outputs of one frame.
@@ -799,6 +807,84 @@ impl Pipeline {
         Some(self.region_estimates_with(obs, &self.xi()?))
     }
 
+    /// The albedo scale of this run: what `Lin` is (a calibration's, or the background's).
+    pub fn albedo_scale(&self) -> AlbedoScale {
+        AlbedoScale {
+            reference: if self.background.as_ref().is_some_and(|b| b.lin_calibrated) {
+                AlbedoReference::LinCalibration
+            } else {
+                AlbedoReference::Background
+            },
+            background_albedo: self.config.background_albedo,
+        }
+    }
+
+    /// An object's class among the known materials, opaque and unknown, from its pooled
+    /// evidence (`None` without a materials file).
+    pub fn classify(&self, material: &Material) -> Option<Classification> {
+        let catalog = self.config.materials.as_ref()?;
+        let evidence = translucency::albedo_evidence(material.profiles());
+        Some(catalog.classify(evidence.as_ref(), &self.albedo_scale()))
+    }
+
+    /// An object's ξ as its class gives it: a known material's calibrated ξ and interval,
+    /// opaque's 0 (its reading kept), or, unknown, `own` (its own estimate). `own` alone
+    /// without a materials file.
+    fn with_class(&self, material: &Material, own: XiEstimate) -> (XiEstimate, Option<Classification>) {
+        let Some(catalog) = self.config.materials.as_deref() else {
+            return (own, None);
+        };
+        let evidence = translucency::albedo_evidence(material.profiles());
+        let class = catalog.classify(evidence.as_ref(), &self.albedo_scale());
+        let xi = match class.class {
+            Class::Known(i) if i < catalog.materials.len() => {
+                let m = &catalog.materials[i];
+                // The object's own most likely ξ within the material's, where its evidence
+                // prefers one; the calibrated ξ where it does not (one pose, say).
+                let best = evidence.as_ref().and_then(|e| catalog.best_xi(i, e));
+                XiEstimate {
+                    xi: best.unwrap_or(m.xi),
+                    interval: m.classification_interval(),
+                    method: XiMethod::Calibrated,
+                    frames: material.frames(),
+                    pixels: material.pixels(),
+                    note: format!(
+                        "material {:?} (probability {:.2}), calibrated from {}",
+                        m.name, class.probability, m.recording
+                    ),
+                    ..own
+                }
+            }
+            Class::Opaque => XiEstimate {
+                xi: 0.0,
+                interval: [0.0, own.interval[1].max(translucency::OPAQUE_XI)],
+                note: format!("opaque (probability {:.2}): its reading is kept", class.probability),
+                ..own
+            },
+            _ => own,
+        };
+        (xi, Some(class))
+    }
+
+    /// The evidence about ξ of a frame's largest region, as [`Self::add_xi_evidence`] computes
+    /// it (the same sample, bounds and groups), without pooling it: what a calibration
+    /// measures the implied albedo of. `None` when the frame has no region with enough pixels.
+    pub fn largest_region_profile(&self, obs: &Observed) -> Option<FrameProfile> {
+        let settings = self.config.xi_settings;
+        let (k, _) = obs.regions.iter().enumerate().max_by_key(|(_, r)| r.pixels)?;
+        let observations = region_observations(obs, k as u32 + 1)?;
+        let sample = FrameSample::from_image(&observations, &self.rays, None, settings.max_pixels_per_frame);
+        (sample.pixel_count() >= settings.min_group_pixels).then(|| {
+            translucency::frame_profile(
+                &self.config.model,
+                &self.bounds,
+                &sample,
+                &settings,
+                translucency::ProfileUse::Estimation,
+            )
+        })
+    }
+
     /// [`Self::region_estimates`] with the frame's ξ already found. With ξ estimated, a
     /// region of no object with an estimate (too small to carry evidence) is kept as read:
     /// another object's evidence is not its own.
@@ -815,11 +901,16 @@ impl Pipeline {
                     (XiChoice::Estimate(method), None) => (0, without_evidence(method)),
                     (XiChoice::Fixed(_), _) => (0, fallback.clone()),
                 };
+                let (xi, class) = match material.filter(|_| matches!(self.config.xi, XiChoice::Estimate(_))) {
+                    Some(m) => self.with_class(m, xi),
+                    None => (xi, None),
+                };
                 RegionOutput {
                     id,
                     opaque: xi.is_opaque(),
                     xi,
                     pixels: r.pixels,
+                    class,
                 }
             })
             .collect()
@@ -843,6 +934,7 @@ impl Pipeline {
                 xi: xi.clone(),
                 pixels: r.pixels,
                 opaque: xi.is_opaque(),
+                class: None,
             })
             .collect();
         self.recover_with(frame, obs, regions, xi)

@@ -71,6 +71,19 @@ pub struct FrameViz {
     pub mask: ImageBuf<bool>,
     /// ξ and its interval, when known.
     pub xi: Option<(f64, [f64; 2])>,
+    /// The classes of the frame's objects (with a materials file): object id, class name
+    /// (a known material's, `opaque` or `unknown`) and its probability.
+    pub classes: Vec<(u32, String, f64)>,
+}
+
+impl FrameViz {
+    /// The classes of a frame's regions, as [`FrameViz::classes`] holds them.
+    pub fn classes_of(regions: &[crate::pipeline::RegionOutput]) -> Vec<(u32, String, f64)> {
+        regions
+            .iter()
+            .filter_map(|r| Some((r.id, r.class.as_ref()?.name.clone(), r.class.as_ref()?.probability)))
+            .collect()
+    }
 }
 
 /// A running logger. Dropping it (or [`VizSink::finish`]) flushes the recording.
@@ -279,6 +292,15 @@ mod backend {
         }
         let n = f.mask.data.iter().filter(|&&m| m).count();
         rec.log("translucency/pixels", &Scalars::new([n as f64])).map_err(err)?;
+        for (id, name, p) in &f.classes {
+            rec.log(
+                format!("objects/{id}/class"),
+                &rerun::TextLog::new(format!("{name} (probability {p:.2})")),
+            )
+            .map_err(err)?;
+            rec.log(format!("objects/{id}/class_probability"), &Scalars::new([*p]))
+                .map_err(err)?;
+        }
         Ok(())
     }
 

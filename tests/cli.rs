@@ -1920,3 +1920,134 @@ fn readme_says_where_the_binary_is_and_what_xi_mode_does() {
         );
     }
 }
+
+/// Issue 31 item 3: `calibrate-xi -o` writes a materials file and appends to it; `replay
+/// --materials` reads it and classifies each object among its materials, opaque and unknown
+/// (JSON and the estimate message), and a bad file fails naming the file and the field.
+#[test]
+fn calibrate_xi_writes_a_materials_file_that_replay_classifies_with() {
+    let dir = temp();
+    let rendered = |name: &str| bundled("rendered").join(name).to_str().unwrap().to_string();
+    let calibrate = |bag: &str, name: &str, append: bool| {
+        let mut args = vec!["calibrate-xi", bag, "-o", "materials.toml", "--name", name];
+        if append {
+            args.push("--append");
+        }
+        run(dir.path(), &args)
+    };
+    // The calibration sheet (xi 0.676, rho 0.558) and the paper's file box (xi 0.94), each
+    // from its own recording with known distances.
+    assert_ok(&calibrate(&rendered("calibration_sequence.mcap"), "sheet", false));
+    let again = calibrate(&rendered("paper_file_box.mcap"), "file_box", false);
+    assert!(
+        !again.status.success() && text(&again.stderr).contains("--append"),
+        "{}",
+        describe(&again)
+    );
+    assert_ok(&calibrate(&rendered("paper_file_box.mcap"), "file_box", true));
+    let file = std::fs::read_to_string(dir.path().join("materials.toml")).unwrap();
+    let catalog = translucent_tof::physics::catalog::Catalog::from_toml(&file).unwrap();
+    let names: Vec<&str> = catalog.materials.iter().map(|m| m.name.as_str()).collect();
+    assert_eq!(names, ["sheet", "file_box"]);
+    let sheet = &catalog.materials[0];
+    assert!(
+        sheet.xi_interval[0] <= 0.676 + 0.01 && 0.676 - 0.01 <= sheet.xi_interval[1],
+        "{sheet:?}"
+    );
+    // The implied albedo on the background's scale (wall albedo 1): the sheet's 0.558.
+    assert!(
+        sheet.albedo_range[0] < 0.558 && 0.558 < sheet.albedo_range[1],
+        "{sheet:?}"
+    );
+    assert!(sheet.recording.ends_with("calibration_sequence.mcap"));
+
+    // The paper's document holder (xi 0.65, rho 0.6 before a white wall) is a sheet of
+    // nearly the calibrated one's material: classified as it, and recovered.
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            &rendered("paper_document_holder.mcap"),
+            "--materials",
+            "materials.toml",
+            "-o",
+            "holder.mcap",
+            "--json",
+            "holder.json",
+        ],
+    );
+    assert_ok(&out);
+    let r = read_json(&dir.path().join("holder.json"));
+    let objects = r["materials"].as_array().unwrap();
+    assert_eq!(objects.len(), 1, "{objects:?}");
+    let class = &objects[0]["class"];
+    assert_eq!(class["material"], "sheet", "{class}");
+    assert!(num(class, "probability") > 0.8, "{class}");
+    assert!(text(&out.stdout).contains("class sheet"), "{}", describe(&out));
+    let regions: Vec<&Value> = r["per_frame"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|f| f["regions"].as_array().into_iter().flatten())
+        .collect();
+    assert!(!regions.is_empty());
+    for region in &regions {
+        assert_eq!(region["material"], "sheet", "{region}");
+        assert!(num(region, "class_probability") > 0.5, "{region}");
+    }
+    assert!(num(&r, "rmse_mm") < 30.0, "{}", r["error_summary"]);
+    // The estimate message carries the class.
+    let outs = messages_by_topic(&dir.path().join("holder.mcap"));
+    let estimates: Vec<TranslucencyEstimate> = outs["/translucent_tof/translucency"]
+        .iter()
+        .map(|(_, data, _)| decode(data))
+        .collect();
+    assert!(!estimates.is_empty());
+    for e in &estimates {
+        assert_eq!(e.material, "sheet", "{e:?}");
+        assert!(e.class_probability > 0.5 && e.class_probability <= 1.0, "{e:?}");
+        assert_eq!(e.method, "calibrated");
+    }
+
+    // Priors over the file's weigh classes, they do not overrule evidence that excludes one:
+    // the holder's xi is far from the file box's, however probable a file box was.
+    let out = run(
+        dir.path(),
+        &[
+            "replay",
+            &rendered("paper_document_holder.mcap"),
+            "--materials",
+            "materials.toml",
+            "--material-prior",
+            "file_box=100,opaque=0.01",
+            "-o",
+            "holder2.mcap",
+            "--json",
+            "holder2.json",
+        ],
+    );
+    assert_ok(&out);
+    let r2 = read_json(&dir.path().join("holder2.json"));
+    assert_eq!(r2["materials"][0]["class"]["material"], "sheet", "{}", r2["materials"]);
+
+    // Bad files and priors: the file and the field named, no output written.
+    let bad_dir = dir.path().join("bad");
+    std::fs::create_dir(&bad_dir).unwrap();
+    std::fs::write(bad_dir.join("materials.toml"), &file).unwrap();
+    let bad = file.replacen("name = \"file_box\"", "name = \"sheet\"", 1);
+    std::fs::write(bad_dir.join("bad.toml"), bad).unwrap();
+    replay_fails(
+        &bad_dir,
+        &rendered("paper_document_holder.mcap"),
+        &["--materials", "bad.toml"],
+        &["materials file bad.toml", "material[2].name"],
+        &["materials.toml", "bad.toml"],
+    );
+    replay_fails(
+        &bad_dir,
+        &rendered("paper_document_holder.mcap"),
+        &["--materials", "materials.toml", "--material-prior", "glass=2"],
+        &["materials file materials.toml", "glass"],
+        &["materials.toml", "bad.toml"],
+    );
+}

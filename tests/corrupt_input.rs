@@ -601,6 +601,8 @@ fn all_cdr_mutants(per_type: usize) {
         region_id: 2,
         region_pixels: 900,
         opaque: false,
+        material: "folder".into(),
+        class_probability: 0.9,
     };
     let image_after = |m: &Image| {
         let _ = depth_mm(m);

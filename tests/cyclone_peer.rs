@@ -101,6 +101,9 @@ fn cyclone_peer_latches_and_receives_points_and_xi() {
         "[{lo}, {hi}] misses the true xi 0.65: {e}"
     );
     assert!(e["translucent_pixels"].as_u64().unwrap() > 100);
+    // The fields appended for the materials file decode too: without one, no class.
+    assert_eq!(e["material"], "", "{e}");
+    assert!(e["class_probability"].is_null(), "{e}");
     let st: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
     assert_eq!(st["services"][0], 1);
 }

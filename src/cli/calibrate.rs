@@ -6,6 +6,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
 
+use crate::physics::catalog::{AlbedoReference, Catalog, KnownMaterial, ALBEDO_MARGIN_LN};
 use crate::physics::emitted_light::emitted_light_from_plane;
 use crate::physics::translucency;
 use crate::pipeline::{BackgroundLatch, PipelineConfig};
@@ -21,6 +22,20 @@ use crate::physics::Preset;
 pub struct CalibrateXiArgs {
     /// A recording of the material at known distances, with `ground_truth/depth`.
     pub bag: PathBuf,
+    /// Write the material (its xi, interval, albedo range and this recording) to a materials
+    /// file, for `replay --materials` and the node's `materials` parameter.
+    #[arg(short = 'o', long = "out", value_name = "MATERIALS.toml")]
+    pub out: Option<PathBuf>,
+    /// Add the material to the existing file `--out` (without it an existing file is refused).
+    #[arg(long, requires = "out")]
+    pub append: bool,
+    /// The material's name in the file (default: the bag's file stem).
+    #[arg(long, requires = "out")]
+    pub name: Option<String>,
+    /// The material's prior weight in the file (relative to opaque's, unknown's and the
+    /// other materials'; 1 each unless set).
+    #[arg(long, default_value_t = 1.0, requires = "out")]
+    pub prior: f64,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
     #[command(flatten)]
@@ -42,9 +57,14 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
     let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
     let pipe = rec.latched_pipeline(config, bg.count)?;
     let objects = &rec.frames[bg.count..];
+    if let Some(out) = &a.out {
+        // Refused before the work, not after it.
+        materials_target(out, a.append)?;
+    }
     let pb = a.output.progress(objects.len() as u64, "fitting xi");
     let mut profiles = vec![];
     let mut used = vec![];
+    let mut albedo_evidence = vec![];
     for f in objects {
         pb.inc(1);
         let Some(truth) = rec.truth.get(&f.stamp_ns) else {
@@ -53,6 +73,11 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
         if let Some(profile) = pipe.calibration_profile(f, truth)? {
             profiles.push(profile);
             used.push(f.stamp_ns);
+            if a.out.is_some() {
+                // The albedo the estimation implies, as replay computes it: one frame at a time.
+                let obs = pipe.observe(f)?;
+                albedo_evidence.push(pipe.largest_region_profile(&obs));
+            }
         }
     }
     pb.finish_and_clear();
@@ -64,6 +89,62 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
         );
     }
     let est = translucency::calibrate(&profiles).context("no pixel carried a usable error against the truth")?;
+    let written = match &a.out {
+        Some(out) => {
+            let albedos: Vec<f64> = albedo_evidence
+                .iter()
+                .flatten()
+                .filter_map(|p| translucency::albedo_evidence(std::slice::from_ref(p))?.albedo_at(est.xi))
+                .map(|(albedo, _)| albedo)
+                .filter(|v| v.is_finite() && *v > 0.0)
+                .collect();
+            let (lo, hi) = albedos
+                .iter()
+                .fold((f64::INFINITY, 0.0f64), |r, &v| (r.0.min(v), r.1.max(v)));
+            if albedos.is_empty() {
+                bail!(
+                    "bag {}: no frame gave an albedo at xi {:.3} (too few pixels in the largest region, or every pixel pinned there): no material written",
+                    a.bag.display(),
+                    est.xi
+                );
+            }
+            let bg = pipe.background().context("background")?;
+            // Where albedo consistency (what classifies objects) puts this material's ξ in its
+            // own recording, when the poses determine it.
+            let own: Vec<_> = albedo_evidence.iter().flatten().cloned().collect();
+            let one_material_interval = translucency::one_material(&own)
+                .filter(|e| !e.is_opaque())
+                .map(|e| e.interval);
+            let name = match &a.name {
+                Some(n) => n.clone(),
+                None => a
+                    .bag
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| "material".into()),
+            };
+            let material = KnownMaterial {
+                name,
+                xi: est.xi,
+                xi_interval: est.interval,
+                albedo_range: [lo * (-ALBEDO_MARGIN_LN).exp(), hi * ALBEDO_MARGIN_LN.exp()],
+                albedo_reference: if bg.lin_calibrated {
+                    AlbedoReference::LinCalibration
+                } else {
+                    AlbedoReference::Background
+                },
+                background_albedo: (!bg.lin_calibrated).then_some(pipe.config.background_albedo),
+                evidence_xi_interval: one_material_interval,
+                prior: a.prior,
+                recording: a.bag.display().to_string(),
+                physics: Some(physics.option.clone().unwrap_or_else(|| describe_model(&physics.model))),
+                frames: Some(used.len()),
+            };
+            write_material(out, a.append, &material)?;
+            Some((material, albedos.len(), [lo, hi]))
+        }
+        None => None,
+    };
     let report = json!({
         "bag": a.bag.display().to_string(),
         "xi": est.xi,
@@ -78,6 +159,15 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
         "note": est.note,
         "physics": physics.json(),
         "warnings": rec.cut.iter().chain(&physics.warning).collect::<Vec<_>>(),
+        "materials_file": written.as_ref().map(|(m, n, measured)| json!({
+            "path": a.out.as_ref().map(|p| p.display().to_string()),
+            "appended": a.append,
+            "name": m.name,
+            "albedo_range": m.albedo_range,
+            "albedo_measured": measured,
+            "albedo_frames": n,
+            "albedo_reference": m.albedo_reference.as_str(),
+        })),
     });
     // ξ is that of a model: say which, and how to give the same one elsewhere.
     let (replay_physics, node_physics) = match physics.option.as_deref() {
@@ -105,8 +195,58 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
                 .join("\n")
         );
     }
+    if let (Some((m, n, measured)), Some(out)) = (&written, &a.out) {
+        summary += &format!(
+            "\n{} material {:?} to {}: xi {:.3} [{:.3}, {:.3}], implied albedo {:.3}-{:.3} over {n} frame(s) (range {:.3}-{:.3} with the margin), relative to {}",
+            if a.append { "appended" } else { "wrote" },
+            m.name,
+            out.display(),
+            m.xi,
+            m.xi_interval[0],
+            m.xi_interval[1],
+            measured[0],
+            measured[1],
+            m.albedo_range[0],
+            m.albedo_range[1],
+            match m.background_albedo {
+                Some(g) => format!("the background taken as albedo {g} (Lin from the latched wall: compare before a wall of the same albedo)"),
+                None => "the Lin calibration (absolute)".to_string(),
+            }
+        );
+    }
     a.output.summary(&summary);
     a.output.write_json(&report)
+}
+
+/// Checks that a materials file may be written at `out`: new, or `append`ed to.
+fn materials_target(out: &std::path::Path, append: bool) -> Result<()> {
+    if out.exists() && !append {
+        bail!(
+            "materials file {} exists: give --append to add the material to it, or another path",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
+/// Writes `material` to a new materials file at `out`, or appends it to the existing one.
+fn write_material(out: &std::path::Path, append: bool, material: &KnownMaterial) -> Result<()> {
+    materials_target(out, append)?;
+    let text = if out.exists() {
+        let old = std::fs::read_to_string(out).with_context(|| format!("reading materials file {}", out.display()))?;
+        Catalog::append_to(&old, material).map_err(|e| anyhow::anyhow!("materials file {}: {e}", out.display()))?
+    } else {
+        let catalog = Catalog {
+            materials: vec![material.clone()],
+            ..Catalog::default()
+        };
+        catalog
+            .to_toml()
+            .map_err(|e| anyhow::anyhow!("materials file {}: {e}", out.display()))?
+    };
+    super::common::create_parent(out)?;
+    write_atomic(out, text.as_bytes())?;
+    Ok(())
 }
 
 /// Arguments of `calibrate-lin`.

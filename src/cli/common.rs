@@ -3,7 +3,7 @@
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde::{Deserialize, Serialize};
@@ -655,3 +655,15 @@ pub fn create_parent(path: &Path) -> Result<()> {
 }
 
 pub use crate::files::write_atomic;
+
+/// Reads a materials file (`calibrate-xi -o`) and sets the priors given as `NAME=WEIGHT`
+/// items: every error names the file and the field.
+pub fn load_materials<S: AsRef<str>>(path: &Path, priors: &[S]) -> Result<crate::physics::catalog::Catalog> {
+    use crate::physics::catalog::Catalog;
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading materials file {}", path.display()))?;
+    let mut catalog = Catalog::from_toml(&text).map_err(|e| anyhow!("materials file {}: {e}", path.display()))?;
+    catalog
+        .set_priors(priors)
+        .map_err(|e| anyhow!("materials file {}: prior {e}", path.display()))?;
+    Ok(catalog)
+}

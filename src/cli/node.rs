@@ -143,6 +143,20 @@ pub const PARAMETERS: &[ParamSpec] = &[
         "physical (L2 = Ib xi^2, amplitude IR), paper (Eq. 2 and 7), or a physics TOML as audit writes ('': physical)",
     ),
     spec(
+        "materials",
+        "string",
+        Some(""),
+        false,
+        "a materials file from calibrate-xi -o: objects classified among its materials, opaque and unknown ('': none)",
+    ),
+    spec(
+        "material_priors",
+        "string",
+        Some(""),
+        false,
+        "class priors over the file's: NAME=WEIGHT,... (a material's name, opaque or unknown)",
+    ),
+    spec(
         "rerun",
         "string",
         Some("off"),
@@ -338,6 +352,15 @@ pub fn runtime_settings(p: &Params) -> Result<RuntimeSettings> {
         topics: TopicArgs::default(),
     };
     let mut config = args.config().context("node parameters")?;
+    if let Some(path) = text("materials").filter(|s| !s.is_empty()) {
+        let priors = text("material_priors").unwrap_or_default();
+        let priors: Vec<&str> = priors.split(',').collect();
+        let catalog =
+            super::common::load_materials(std::path::Path::new(&path), &priors).context("parameter materials")?;
+        config.materials = Some(std::sync::Arc::new(catalog));
+    } else if text("material_priors").is_some_and(|p| !p.trim().is_empty()) {
+        bail!("parameter material_priors: needs a materials file (parameter materials)");
+    }
     config.prior_radius_px = count(p, "prior_radius_px", config.prior_radius_px)?;
     config.xi = match xi {
         Some(x) => XiChoice::Fixed(x),

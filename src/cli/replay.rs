@@ -52,6 +52,14 @@ pub struct ReplayArgs {
     /// Ignore phasor topics: recover from the depth and IR alone, as for a single-frequency camera.
     #[arg(long)]
     pub single_frequency: bool,
+    /// Known materials (a materials file from `calibrate-xi -o`): each object is classified
+    /// among them, opaque and unknown, and a known material's xi recovers it.
+    #[arg(long, value_name = "FILE")]
+    pub materials: Option<PathBuf>,
+    /// A class's prior weight, over the file's: NAME=WEIGHT, NAME a material's, `opaque` or
+    /// `unknown` (repeat, or separate by commas).
+    #[arg(long, value_name = "NAME=WEIGHT", value_delimiter = ',', requires = "materials")]
+    pub material_prior: Vec<String>,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
     #[command(flatten)]
@@ -140,9 +148,19 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         Some(x) => XiChoice::Fixed(x),
         None => XiChoice::Estimate(method),
     };
+    if let Some(path) = &a.materials {
+        if a.xi.is_some() {
+            bail!("--materials and --xi: a given xi leaves nothing to classify; give one of them");
+        }
+        config.materials = Some(std::sync::Arc::new(super::common::load_materials(
+            path,
+            &a.material_prior,
+        )?));
+    }
     let rec = load_with_phasors(&a.bag, &a.pipeline.topics, !a.single_frequency)?;
     let physics = rec.physics_choice(&a.pipeline.model)?;
     config.model = physics.model.clone();
+    let materials_warnings = materials_physics_warnings(&config, &physics);
     if rec.multi_frequency.is_some() {
         return super::replay_multifreq::run(&a, config, rec);
     }
@@ -208,6 +226,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 recovered_z_mm: out.corrected_z_mm.clone(),
                 mask: out.mask.clone(),
                 xi: Some((xi.xi, xi.interval)),
+                classes: crate::viz::FrameViz::classes_of(&out.regions),
             })
             .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
         }
@@ -220,13 +239,20 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             "pinned_pixels": out.pinned_pixels,
             "unresolved_pixels": out.unresolved_pixels,
             "fit_residual_mm": out.fit_residual_mm,
-            "regions": out.regions.iter().map(|r| json!({
-                "id": r.id,
-                "xi": r.xi.xi,
-                "xi_interval": r.xi.interval,
-                "pixels": r.pixels,
-                "opaque": r.opaque,
-            })).collect::<Vec<_>>(),
+            "regions": out.regions.iter().map(|r| {
+                let mut region = json!({
+                    "id": r.id,
+                    "xi": r.xi.xi,
+                    "xi_interval": r.xi.interval,
+                    "pixels": r.pixels,
+                    "opaque": r.opaque,
+                });
+                if let Some(c) = &r.class {
+                    region["material"] = json!(c.name);
+                    region["class_probability"] = json!(c.probability);
+                }
+                region
+            }).collect::<Vec<_>>(),
         });
         if let Some(truth) = rec.truth.get(&f.stamp_ns) {
             // Raw and recovered over the same pixels: segmented, with truth, recovered.
@@ -258,7 +284,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "background_choice": bg.how,
         "background_noise_mm": bgd.median_noise_mm,
         "lin_source": bgd.lin_source,
-        "warnings": rec.cut.iter().chain(&physics.warning).chain(&bgd.warnings).collect::<Vec<_>>(),
+        "warnings": rec.cut.iter().chain(&physics.warning).chain(&bgd.warnings).chain(&materials_warnings).collect::<Vec<_>>(),
         "read_stops": rec.read_stops,
         "physics": physics.json(),
         "sensor": {
@@ -287,7 +313,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "translucent_pixels": total_px,
         "materials": pipe.materials().filter_map(|m| {
             let e = m.estimate.as_ref()?;
-            Some(json!({
+            let mut object = json!({
                 "id": m.id,
                 "xi": e.xi,
                 "xi_interval": e.interval,
@@ -295,8 +321,18 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 "frames": m.frames(),
                 "pixels": m.pixels(),
                 "note": e.note,
-            }))
+            });
+            if let Some(c) = pipe.classify(m) {
+                object["class"] = json!({
+                    "material": c.name,
+                    "probability": c.probability,
+                    "posterior": c.posterior.iter().map(|(n, p)| json!({"class": n, "probability": p})).collect::<Vec<_>>(),
+                    "note": c.note,
+                });
+            }
+            Some(object)
         }).collect::<Vec<_>>(),
+        "materials_file": a.materials.as_ref().map(|p| p.display().to_string()),
         "per_frame": per_frame,
     });
     if let Some((profile, flat)) = pipe.eq12_comparison() {
@@ -434,11 +470,14 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         s.push_str("xi: not determined (no translucent pixels)\n");
     }
     let materials = r["materials"].as_array().map(|v| v.as_slice()).unwrap_or(&[]);
-    if materials.len() > 1 || materials.iter().any(|m| m["opaque"].as_bool() == Some(true)) {
+    if materials.len() > 1
+        || materials.iter().any(|m| m["opaque"].as_bool() == Some(true))
+        || r["materials_file"].is_string()
+    {
         for m in materials {
             let iv = |i: usize| m["xi_interval"][i].as_f64().unwrap_or(f64::NAN);
             s.push_str(&format!(
-                "  material {}: xi = {:.3} [{:.3}, {:.3}]{} over {} frame(s)\n",
+                "  material {}: xi = {:.3} [{:.3}, {:.3}]{} over {} frame(s)",
                 m["id"],
                 m["xi"].as_f64().unwrap_or(f64::NAN),
                 iv(0),
@@ -450,6 +489,19 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
                 },
                 m["frames"]
             ));
+            let c = &m["class"];
+            if let Some(name) = c["material"].as_str() {
+                s.push_str(&format!(
+                    "; class {name} (probability {:.2}){}",
+                    c["probability"].as_f64().unwrap_or(f64::NAN),
+                    c["note"]
+                        .as_str()
+                        .filter(|n| !n.is_empty())
+                        .map(|n| format!(": {n}"))
+                        .unwrap_or_default()
+                ));
+            }
+            s.push('\n');
         }
     }
     let e = &r["eq12"];
@@ -480,4 +532,32 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         s.push_str(&format!(" and {rrd}"));
     }
     s
+}
+
+/// Warnings about the materials file against this run: a material's ξ is that of the physics
+/// it was calibrated under.
+fn materials_physics_warnings(
+    config: &crate::pipeline::PipelineConfig,
+    physics: &super::common::PhysicsChoice,
+) -> Vec<String> {
+    let Some(catalog) = &config.materials else {
+        return vec![];
+    };
+    let ours = physics
+        .option
+        .clone()
+        .unwrap_or_else(|| super::common::describe_model(&physics.model));
+    catalog
+        .materials
+        .iter()
+        .filter_map(|m| {
+            let theirs = m.physics.as_deref()?;
+            (theirs != ours).then(|| {
+                format!(
+                    "material {:?} was calibrated under the physics {theirs:?}, this run uses {ours:?}: its xi is that model's",
+                    m.name
+                )
+            })
+        })
+        .collect()
 }

@@ -36,6 +36,11 @@ pub struct TranslucencyEstimate {
     pub region_pixels: u32,
     /// The data say this region is opaque: its depth is kept and it is not in the mask.
     pub opaque: bool,
+    /// With a materials file: the object's class (a known material's name, `opaque` or
+    /// `unknown`); empty without one.
+    pub material: String,
+    /// The posterior probability of that class (NaN without a materials file).
+    pub class_probability: f64,
 }
 
 impl RosMessage for TranslucencyEstimate {
@@ -69,6 +74,8 @@ mod tests {
             region_id: 2,
             region_pixels: 900,
             opaque: false,
+            material: "folder".into(),
+            class_probability: 0.93,
         };
         let back: TranslucencyEstimate = from_cdr(&to_cdr(&m).unwrap()).unwrap();
         assert_eq!(back, m);

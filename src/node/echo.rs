@@ -154,6 +154,8 @@ pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
                 region_id: 0,
                 region_pixels: 0,
                 opaque: false,
+                material: String::new(),
+                class_probability: f64::NAN,
             };
             let _ = p_out.publish(img);
             let _ = p_mask.publish(m_img);

@@ -27,6 +27,7 @@ pub mod segmentation;
 pub mod stats;
 pub mod surface;
 pub use camera::Intrinsics;
+pub mod catalog;
 pub mod materials;
 pub mod translucency;
 pub use translucency::{XiEstimate, XiMethod};

@@ -1035,6 +1035,104 @@ fn student_t975(dof: usize) -> f64 {
     }
 }
 
+/// What an object's pooled evidence says at every ξ of [`xi_grid`], for weighing hypotheses
+/// about it against each other (known materials, opaque, unknown: `catalog`): the
+/// one-material objective as a chi-square and the pooled albedo it implies.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AlbedoEvidence {
+    /// The ξ grid ([`xi_grid`]).
+    pub xi: Vec<f64>,
+    /// The one-material objective `Q` (the groups' scatter within poses and the poses'
+    /// misfit carried as in [`one_material`]), divided by the overdispersion left at its
+    /// minimum: about chi-square, so `exp(-Q / 2)` is a likelihood up to a constant. NaN
+    /// where the ξ is not admissible (more pixels pinned at a bound than at the best ξ).
+    pub q: Vec<f64>,
+    /// The pooled mean of the groups' median `ln rho_f` (the generalised least-squares mean
+    /// that `Q` is the scatter about), NaN where no group has one.
+    pub log_albedo: Vec<f64>,
+    /// Its standard error (with the same overdispersion and pose misfit).
+    pub log_albedo_se: Vec<f64>,
+    /// Poses among the frames.
+    pub poses: usize,
+}
+
+impl AlbedoEvidence {
+    /// The albedo the evidence implies at `xi` (linear between grid points), with the
+    /// standard error of its log: `None` where the grid has none there.
+    pub fn albedo_at(&self, xi: f64) -> Option<(f64, f64)> {
+        let (m, s) = (
+            interpolate(&self.xi, &self.log_albedo, xi)?,
+            interpolate(&self.xi, &self.log_albedo_se, xi)?,
+        );
+        Some((m.exp(), s))
+    }
+}
+
+/// `v` at `x` on `grid`, linear between its two neighbours (both finite), `None` outside.
+pub fn interpolate(grid: &[f64], v: &[f64], x: f64) -> Option<f64> {
+    let j = grid.iter().position(|&g| g >= x)?;
+    if grid[j] == x || j == 0 {
+        return (grid[j] == x && v[j].is_finite()).then_some(v[j]);
+    }
+    let (x0, x1, y0, y1) = (grid[j - 1], grid[j], v[j - 1], v[j]);
+    if !(y0.is_finite() && y1.is_finite()) {
+        return None;
+    }
+    Some(y0 + (y1 - y0) * (x - x0) / (x1 - x0))
+}
+
+/// The evidence of `profiles` at every ξ ([`AlbedoEvidence`]); `None` without a group to
+/// compare at any ξ.
+pub fn albedo_evidence(profiles: &[FrameProfile]) -> Option<AlbedoEvidence> {
+    let grid = xi_grid();
+    let ok = eligible(profiles);
+    let (pose, poses) = pose_labels(profiles);
+    let plain = one_material_objective(profiles, &pose, poses, (1.0, 0.0));
+    let plain: Vec<f64> = plain
+        .iter()
+        .zip(&ok)
+        .map(|(&(q, _), &e)| if e { q } else { f64::NAN })
+        .collect();
+    let (k0, _) = argmin(&plain)?;
+    let at_k0 = pose_sums(profiles, &pose, poses, k0);
+    let phi_within = within_pose_overdispersion(&at_k0);
+    let tau2 = pose_variance(&scaled(&at_k0, phi_within));
+    let (mut q, mut mean, mut var, mut groups) = (vec![], vec![], vec![], vec![]);
+    for (k, &admissible) in ok.iter().enumerate() {
+        let sums = scaled(&pose_sums(profiles, &pose, poses, k), phi_within);
+        let (mut a, mut b) = (0.0, 0.0);
+        for &(s, t, _, _) in &sums {
+            let ap = 1.0 / (1.0 + tau2 * s);
+            a += s * ap;
+            b += t * ap;
+        }
+        let g: usize = sums.iter().map(|s| s.3).sum();
+        q.push(if admissible {
+            objective_at(&sums, tau2)
+        } else {
+            f64::NAN
+        });
+        mean.push(if g > 0 { b / a } else { f64::NAN });
+        var.push(if g > 0 { 1.0 / a } else { f64::NAN });
+        groups.push(g);
+    }
+    let (kmin, qmin) = argmin(&q)?;
+    // The scatter left at the best ξ beyond what the groups' errors and the poses' misfit
+    // explain (one degree of freedom for the mean, one for ξ).
+    let phi = if groups[kmin] > 2 {
+        (qmin / (groups[kmin] as f64 - 2.0)).max(1.0)
+    } else {
+        1.0
+    };
+    Some(AlbedoEvidence {
+        xi: grid,
+        q: q.iter().map(|v| v / phi).collect(),
+        log_albedo: mean,
+        log_albedo_se: var.iter().map(|v| (v * phi).sqrt()).collect(),
+        poses,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -848,6 +848,7 @@ fn layer_region(id: u32, pixels: &[usize], results: &[PixelResult]) -> RegionOut
         xi: region_estimate(median, interval, pixels.len(), note),
         pixels: pixels.len(),
         opaque: false,
+        class: None,
     }
 }
 
@@ -871,6 +872,7 @@ fn opaque_region(id: u32, pixels: &[usize], results: &[PixelResult]) -> RegionOu
         ),
         pixels: pixels.len(),
         opaque: true,
+        class: None,
     }
 }
 

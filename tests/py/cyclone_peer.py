@@ -115,6 +115,8 @@ class TranslucencyEstimate(IdlStruct, typename="translucent_tof_msgs::msg::dds_:
     region_id: uint32
     region_pixels: uint32
     opaque: bool
+    material: str
+    class_probability: float64
 
 
 # rmw_cyclonedds: every request and reply starts with the client's guid and a sequence number.
@@ -290,7 +292,8 @@ def main():
         e = max(reversed(estimates), key=lambda e: e.frames_pooled)
         out["estimate"] = {"xi": e.xi, "xi_lower": e.xi_lower, "xi_upper": e.xi_upper, "method": e.method,
                            "translucent_pixels": e.translucent_pixels, "frames_pooled": e.frames_pooled,
-                           "opaque": e.opaque}
+                           "opaque": e.opaque, "material": e.material,
+                           "class_probability": None if e.class_probability != e.class_probability else e.class_probability}
     print(json.dumps(out))
 
 
