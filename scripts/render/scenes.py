@@ -464,7 +464,7 @@ def video(i, n_tries=400):
         model = "difftrans" if (use_dt and m == 0) else "mask"
         mats[f"m{m + 1}"] = mat(m + 1, f"sheet_{m + 1}", rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.7), model)
     mats["box"] = mat(n_mat + 1, "opaque_box", 0.0, rng.uniform(0.3, 0.8), "opaque")
-    n = int(rng.integers(20, 29))  # moving frames
+    n = int(rng.integers(20, 26))  # moving frames (at most 35 frames: a bag stays under ~4 MB)
     keys = [f"m{m + 1}" for m in range(n_mat)] + ["box"]
     rng.shuffle(keys)
     tracks, placed = [], []  # placed: per object, its n poses as objects
