@@ -3,8 +3,9 @@
 usage: results.py [--json OUT] [--check BASELINE] [--write-baseline OUT] [--markdown]
                   [--exe EXE] [--replay-arg ARG ...] [BAG...]
 
-With no BAG, every rendered scene in bags/rendered (but the white wall and the
-calibration sequence, which hold no scene to recover).
+With no BAG, every rendered scene in bags/rendered, the videos (video_*) among
+them (but the white wall, the calibration sequence and the per-material
+calibrations calib_*, which hold no scene to recover).
 
 Each BAG is replayed with the given replay arguments (none: the defaults a user
 gets); its sidecar `BAG.toml` names the materials (`[[materials]]`: id, xi,
@@ -344,9 +345,14 @@ def markdown(rows):
 
 
 def default_bags():
+    """Every rendered scene (the draws, the named scenes, the videos), but the
+    recordings that hold no scene to recover: the empty wall (calibrate-lin's),
+    the calibration sequence (the audit's) and the per-material calibrations
+    (calib_*: calibrate-xi's)."""
     d = os.path.join(REPO, "bags", "rendered")
-    skip = {"white_wall_lin.mcap", "calibration_sequence.mcap"}  # no object to recover / the audit's
-    return [os.path.join(d, f) for f in sorted(os.listdir(d)) if f.endswith(".mcap") and f not in skip]
+    skip = {"white_wall_lin.mcap", "calibration_sequence.mcap"}
+    return [os.path.join(d, f) for f in sorted(os.listdir(d))
+            if f.endswith(".mcap") and f not in skip and not f.startswith("calib_")]
 
 
 def main():

@@ -120,6 +120,8 @@ def toml_value(v):
 def obj_toml(prefix, obj, materials):
     mat = materials[obj["material"]]
     lines = [f"[[{prefix}]]", f'kind = "{obj["kind"]}"']
+    if "object" in obj:  # a moving object's name (videos): the same name in every frame it is in
+        lines.append(f"object = {toml_value(obj['object'])}")
     if "id" in mat:
         lines.append(f"material = {mat['id']}")
     else:
@@ -141,6 +143,7 @@ def write_bag(spec, out_dir, cache):
         geoms.append((spec["background"] + st["objects"], st["objects"], st["frames"]))
     total_secs = 0.0
     frame = 0
+    rate_hz = spec.get("frame_rate_hz", 10)  # stamps 1 s + floor(frame * 1e9 / rate) ns
     stage_rows = []
     os.makedirs(out_dir, exist_ok=True)
     tmp = os.path.join(cache, name + ".mcap.tmp")  # moved into out_dir when complete
@@ -160,7 +163,7 @@ def write_bag(spec, out_dir, cache):
                 rng = np.random.default_rng([spec["seed"], frame])
                 depth, ir = tc.tof_frame(a, b, s, rng)
                 ir = np.round(ir * 16.0) / 16.0  # 1/16 count: keeps the bags small
-                ns = 1_000_000_000 + frame * 100_000_000
+                ns = 1_000_000_000 + frame * 1_000_000_000 // rate_hz
                 hdr = {"stamp": {"sec": ns // 10**9, "nanosec": ns % 10**9}, "frame_id": FRAME_ID}
                 for topic, schema, msg in (
                         ("/tof/depth/image_raw", img_s, image_msg(hdr, "16UC1", depth.astype("<u2"))),
@@ -183,9 +186,13 @@ def write_bag(spec, out_dir, cache):
              f"spp_note = {toml_value(spec.get('spp_note', 'high sample count: one render per geometry'))}",
              f"render_seconds = {round(total_secs, 1)}",
              f"background_frames = {BACKGROUND_FRAMES}", f"frames = {frame}",
-             'frame_period_s = 0.1', 'first_stamp_s = 1.0',
+             f"frame_period_s = {toml_value(round(1.0 / rate_hz, 9))}", 'first_stamp_s = 1.0',
              "# the model physics this render matches (also the bag's translucent_tof.physics record)",
              f"physics = {toml_value(PHYSICS_PRESET)}",
+             *([f"frame_rate_hz = {rate_hz}",
+                "stamps_note = \"frame k is stamped 1 s + floor(k * 1e9 / frame_rate_hz) ns\""]
+               if rate_hz != 10 else []),
+             *[f"{k} = {toml_value(v)}" for k, v in spec.get("sidecar", {}).items()],
              "", "[sensor]", f"width = {tc.W}", f"height = {tc.H}", f"hfov_deg = {tc.HFOV_DEG}",
              f"vfov_deg = {tc.VFOV_DEG}", f"fx = {tc.FX!r}", f"fy = {tc.FY!r}", f"cx = {tc.CX!r}", f"cy = {tc.CY!r}",
              'pixel_centre = "pixel (u, v) centre ray ((u - cx)/fx, (v - cy)/fy, 1); cx = (W-1)/2, cy = (H-1)/2"',
@@ -209,6 +216,8 @@ def write_bag(spec, out_dir, cache):
         lines += ["", "[[materials]]", f"id = {m['id']}", f"name = {toml_value(m['name'])}",
                   f"xi = {toml_value(m['xi'])}", f"albedo = {toml_value(m['albedo'])}",
                   f"opaque = {toml_value(m['model'] == 'opaque')}", f"model = {toml_value(m['model'])}"]
+    for t in spec.get("tracks", []):  # a video's moving objects: material and path, per object
+        lines += ["", "[[tracks]]"] + [f"{k} = {toml_value(v)}" for k, v in t.items()]
     for i, (f0, f1, fg, secs) in enumerate(stage_rows):
         lines += ["", "[[stages]]", f"index = {i}", f"frames = {toml_value(list(range(f0, f1 + 1)))}",
                   f"render_seconds = {round(secs, 1)}"]

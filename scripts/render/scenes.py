@@ -323,6 +323,202 @@ def draw(i):
                             f"{', an opaque box' if with_box else ''}, {len(stages)} stages")
 
 
+# ------------------------------------------------- material calibration ---
+# Paper Sec. V-A: a material is calibrated once, as a camera is: a sheet of
+# only that material before a plain wall at several known distances. One
+# bag per translucent material of two_materials and opaque_and_translucent,
+# the same xi, albedo and BSDF model as in that scene. Every calib_* bag
+# stands before the same wall (the rig, one seed), so its render is shared.
+
+CALIB_SPP = 2048
+CALIB_RIG_SEED = 300
+CALIB_SHEET_MM = 400.0
+
+
+def calib_rig():
+    """The calibration wall: plain, fronto-parallel, drawn once."""
+    rng = np.random.default_rng(CALIB_RIG_SEED)
+    return bg_wall(rng.uniform(2800, 3400), rng.uniform(0.7, 1.0))
+
+
+def calibration(scene, key, seed, n_stages=4):
+    src = scene()
+    m = dict(src["materials"][key])
+    if m["model"] == "opaque":
+        raise ValueError(f"{src['name']}: {key} is opaque")
+    rng = np.random.default_rng(seed)
+    bg, bgm, bgd = calib_rig()
+    zw = bg[0]["center_mm"][2]
+    lo, hi = 800.0, zw - 600.0
+    tilted = int(rng.integers(n_stages))
+    stages = []
+    for k in range(n_stages):  # one distance in the middle 60 % of each of n bands of [lo, hi], nearest first
+        z = lo + (hi - lo) * (k + 0.5 + rng.uniform(-0.3, 0.3)) / n_stages
+        if k == tilted:
+            t = rng.uniform(20, 35) * rng.choice([-1, 1])
+            tx, ty = (0.0, t) if rng.uniform() < 0.5 else (t, 0.0)
+        else:
+            tx, ty = rng.uniform(-2, 2), rng.uniform(-2, 2)
+        o = rect([rng.uniform(-50, 50), rng.uniform(-50, 50), z], [CALIB_SHEET_MM, CALIB_SHEET_MM],
+                 tx=tx, ty=ty, tz=rng.uniform(-2, 2), material=key)
+        stages.append({"frames": 2, "objects": [o]})
+    t = stages[tilted]["objects"][0]
+    tilt = t["tilt_x_deg"] if abs(t["tilt_x_deg"]) > abs(t["tilt_y_deg"]) else t["tilt_y_deg"]
+    axis = "x" if abs(t["tilt_x_deg"]) > abs(t["tilt_y_deg"]) else "y"
+    zs = ", ".join(f"{st['objects'][0]['center_mm'][2]:.0f}" for st in stages)
+    return dict(name=f"calib_{src['name']}_{m['name']}", seed=seed, model=m["model"], spp=CALIB_SPP,
+                background=bg, background_materials=bgm, background_description=bgd, materials={key: m},
+                stages=stages,
+                sidecar={"calibrates_scene": src["name"], "calibrates_material": m["name"],
+                         "calibrates_material_id": m["id"]},
+                spp_note=f"calibration set: {CALIB_SPP} spp; Monte Carlo noise of the render on the sheet is at most "
+                         "about a fifth of one frame's sensor noise there (checked at 16384 spp)",
+                description=(f"per-material calibration (paper Sec. V-A) for {src['name']}, material {m['id']} "
+                             f"'{m['name']}' (xi {m['xi']:.4f}, rho {m['albedo']:.4f}, {m['model']}): only that "
+                             f"material, a {CALIB_SHEET_MM:.0f} x {CALIB_SHEET_MM:.0f} mm sheet before {bgd}, "
+                             f"at {n_stages} distances ({zs} mm), stage {tilted} tilted {tilt:.1f} deg about {axis}"))
+
+
+def calibration_specs():
+    return [calibration(two_materials, "m1", 301), calibration(two_materials, "m2", 302),
+            calibration(two_materials, "m3", 303), calibration(opaque_and_translucent, "sheet", 304)]
+
+
+# ---------------------------------------------------------------- videos ---
+# Continuous motion at the camera's rate: after the background frames every
+# frame is a new pose of every object (one render each). Each object moves
+# at a constant speed (20-50 mm per frame) along a straight or gently curved
+# path and turns a little per frame; paths are drawn, and redrawn until the
+# object stays in view, before the background and clear of the others.
+
+VIDEO_SPP = 4096
+VIDEO_RATE_HZ = 30
+
+
+def surface_points(obj, n=12):
+    """Points on an object's surface (mm), an n x n grid per face."""
+    c = np.asarray(obj["center_mm"], dtype=np.float64)
+    import tofcore as tc
+    r = tc.rotation(obj["tilt_x_deg"], obj["tilt_y_deg"], obj["tilt_z_deg"])
+    g = np.linspace(-0.5, 0.5, n)
+    uu, vv = (a.ravel() for a in np.meshgrid(g, g))
+    if obj["kind"] == "rect":
+        local = np.stack([uu * obj["size_mm"][0], vv * obj["size_mm"][1], 0 * uu], axis=-1)
+    else:
+        w = np.asarray(obj["size_mm"], dtype=np.float64)
+        faces = []
+        for ax in range(3):
+            for side in (-0.5, 0.5):
+                f = np.zeros((uu.size, 3))
+                a1, a2 = [i for i in range(3) if i != ax]
+                f[:, ax], f[:, a1], f[:, a2] = side * w[ax], uu * w[a1], vv * w[a2]
+                faces.append(f)
+        local = np.concatenate(faces)
+    return local @ r.T + c
+
+
+def apart(a, b, clearance=80.0):
+    pa, pb = surface_points(a), surface_points(b)
+    d2 = ((pa[:, None, :] - pb[None, :, :]) ** 2).sum(-1)
+    return bool(d2.min() > clearance ** 2)
+
+
+def path(rng, n, mid, speed, tilts0):
+    """n poses (centre, tilts) centred on `mid`: constant speed, direction
+    turning at a constant rate about the vertical, tilts at constant rates."""
+    az, el = rng.uniform(0, 2 * math.pi), math.radians(rng.uniform(-25, 25))
+    turn = math.radians(rng.uniform(-2.0, 2.0))  # deg per frame: straight to gently curved
+    rates = [rng.uniform(-1.5, 1.5), rng.uniform(-2.0, 2.0), rng.uniform(-1.0, 1.0)]  # tilt x, y, z per frame
+    pts = [np.zeros(3)]
+    for k in range(1, n):
+        a = az + turn * (k - 0.5)
+        pts.append(pts[-1] + speed * np.array([math.cos(a) * math.cos(el), math.sin(el), math.sin(a) * math.cos(el)]))
+    pts = np.array(pts)
+    pts += np.asarray(mid) - pts[(n - 1) // 2]
+    k0 = (n - 1) // 2
+    poses = [(pts[k], [t + r * (k - k0) for t, r in zip(tilts0, rates)]) for k in range(n)]
+    info = {"speed_mm_per_frame": round(float(speed), 2), "heading_deg": round(math.degrees(az), 2),
+            "elevation_deg": round(math.degrees(el), 2), "turn_deg_per_frame": round(math.degrees(turn), 3),
+            "tilt_rates_deg_per_frame": [round(float(r), 3) for r in rates]}
+    return poses, info
+
+
+def video(i, n_tries=400):
+    seed = 2000 + i
+    rng = np.random.default_rng(seed)
+    kind = ["wall", "boxes_on_wall", "corner", "table"][int(rng.integers(4))]
+    if kind == "wall":
+        bg, bgm, bgd = bg_wall(rng.uniform(2200, 3500), rng.uniform(0.3, 1.0), tilt_y=rng.uniform(-20, 20))
+    elif kind == "boxes_on_wall":
+        bg, bgm, bgd = bg_boxes_on_wall(rng, rng.uniform(2400, 3500))
+    elif kind == "corner":
+        bg, bgm, bgd = bg_corner(rng)
+    else:
+        bg, bgm, bgd = bg_table(rng)
+    bgz = bg_depth(bg)
+    zmax = float(np.nanmin(bgz[30:114, 35:141])) - 300
+    n_mat = int(rng.integers(2, 4))
+    use_dt = rng.uniform() < 0.2
+    mats = {}
+    for m in range(n_mat):
+        model = "difftrans" if (use_dt and m == 0) else "mask"
+        mats[f"m{m + 1}"] = mat(m + 1, f"sheet_{m + 1}", rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.7), model)
+    mats["box"] = mat(n_mat + 1, "opaque_box", 0.0, rng.uniform(0.3, 0.8), "opaque")
+    n = int(rng.integers(20, 26))  # moving frames (at most 35 frames: a bag stays under ~4 MB)
+    keys = [f"m{m + 1}" for m in range(n_mat)] + ["box"]
+    rng.shuffle(keys)
+    tracks, placed = [], []  # placed: per object, its n poses as objects
+    for j, k in enumerate(keys):
+        slot = -0.5 + 1.0 * j / (len(keys) - 1)
+        for attempt in range(n_tries):
+            zm = rng.uniform(900, zmax)
+            mid = [slot * TAN_H * zm + rng.uniform(-80, 80), rng.uniform(-0.25, 0.25) * TAN_V * zm, zm]
+            if k == "box":
+                size = [rng.uniform(150, 350), rng.uniform(150, 350), rng.uniform(150, 350)]
+                tilts0 = [rng.uniform(-5, 5), rng.uniform(-30, 30), 0.0]
+            else:
+                size = [rng.uniform(250, 400), rng.uniform(300, 400)]
+                if rng.uniform() < 0.5:
+                    t = rng.uniform(0, 40) * rng.choice([-1, 1])
+                    tilts0 = [rng.uniform(-5, 5), t, rng.uniform(-5, 5)] if rng.uniform() < 0.6 else \
+                        [t, rng.uniform(-5, 5), rng.uniform(-5, 5)]
+                else:
+                    tilts0 = [rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-5, 5)]
+            poses, info = path(rng, n, mid, rng.uniform(20, 50), tilts0)
+            make = box if k == "box" else rect
+            objs = [make(c, size, tx=t[0], ty=t[1], tz=t[2], material=k) for c, t in poses]
+            for o in objs:
+                o["object"] = mats[k]["name"]
+            if k != "box" and any(max(abs(o["tilt_x_deg"]), abs(o["tilt_y_deg"])) > 50 for o in objs):
+                continue
+            if not all(fits(o, bgz) for o in objs):
+                continue
+            if not all(apart(o, other[f]) for other in placed for f, o in enumerate(objs)):
+                continue
+            placed.append(objs)
+            m = mats[k]
+            tracks.append({"object": objs[0]["object"], "material": m["id"], "kind": objs[0]["kind"],
+                           "size_mm": [round(float(x), 1) for x in size], "attempts": attempt + 1, **info,
+                           "first_center_mm": [round(float(x), 1) for x in objs[0]["center_mm"]],
+                           "last_center_mm": [round(float(x), 1) for x in objs[-1]["center_mm"]]})
+            break
+        else:
+            raise RuntimeError(f"video_{i:02d}: no path for {k} in {n_tries} draws")
+    stages = [{"frames": 1, "objects": [p[f] for p in placed]} for f in range(n)]
+    model = "mixed" if use_dt else "mask"
+    return dict(name=f"video_{i:02d}", seed=seed, model=model, spp=VIDEO_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
+                tracks=tracks, frame_rate_hz=VIDEO_RATE_HZ,
+                sidecar={"moving_frames": n, "motion_note": (
+                    "every frame after the background frames is its own pose (one stage per frame, one render each); "
+                    "[[tracks]] gives each object's path: constant speed, heading turning at a constant rate about "
+                    "the vertical, tilts changing at constant rates, centred on the middle frame; "
+                    "stages.objects.object names the object")},
+                spp_note=f"videos: {VIDEO_SPP} spp per frame (every frame is its own render)",
+                description=f"video {i}: {kind} background, {n_mat} translucent sheet(s) and an opaque box, each "
+                            f"moving on its own smooth path at {VIDEO_RATE_HZ} Hz, {n} moving frames")
+
+
 def all_specs():
     return [
         white_wall_lin(),
@@ -336,4 +532,4 @@ def all_specs():
         opaque_and_translucent(),
         corner_background(),
         difftrans_sheet(),
-    ] + [draw(i) for i in range(20)]
+    ] + [draw(i) for i in range(20)] + calibration_specs() + [video(i) for i in range(3)]
