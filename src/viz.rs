@@ -71,17 +71,39 @@ pub struct FrameViz {
     pub mask: ImageBuf<bool>,
     /// ξ and its interval, when known.
     pub xi: Option<(f64, [f64; 2])>,
-    /// The classes of the frame's objects (with a materials file): object id, class name
-    /// (a known material's, `opaque` or `unknown`) and its probability.
-    pub classes: Vec<(u32, String, f64)>,
+    /// The frame's objects, each logged as an entity `objects/<id>` over time.
+    pub objects: Vec<ObjectViz>,
+}
+
+/// One object of a frame as logged: its ξ, interval and class.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ObjectViz {
+    /// The object's id (stable while it is followed).
+    pub id: u32,
+    /// Its ξ and interval.
+    pub xi: (f64, [f64; 2]),
+    /// Published opaque (readings kept).
+    pub opaque: bool,
+    /// Its pixels in this frame.
+    pub pixels: usize,
+    /// With a materials file: its class (a known material's name, `opaque` or `unknown`)
+    /// and the class's probability.
+    pub class: Option<(String, f64)>,
 }
 
 impl FrameViz {
-    /// The classes of a frame's regions, as [`FrameViz::classes`] holds them.
-    pub fn classes_of(regions: &[crate::pipeline::RegionOutput]) -> Vec<(u32, String, f64)> {
+    /// The objects of a frame's regions (those of an object), as [`FrameViz::objects`] holds them.
+    pub fn objects_of(regions: &[crate::pipeline::RegionOutput]) -> Vec<ObjectViz> {
         regions
             .iter()
-            .filter_map(|r| Some((r.id, r.class.as_ref()?.name.clone(), r.class.as_ref()?.probability)))
+            .filter(|r| r.id != 0)
+            .map(|r| ObjectViz {
+                id: r.id,
+                xi: (r.xi.xi, r.xi.interval),
+                opaque: r.opaque,
+                pixels: r.pixels,
+                class: r.class.as_ref().map(|c| (c.name.clone(), c.probability)),
+            })
             .collect()
     }
 }
@@ -292,14 +314,30 @@ mod backend {
         }
         let n = f.mask.data.iter().filter(|&&m| m).count();
         rec.log("translucency/pixels", &Scalars::new([n as f64])).map_err(err)?;
-        for (id, name, p) in &f.classes {
+        for o in &f.objects {
+            log_object(rec, o).map_err(err)?;
+        }
+        Ok(())
+    }
+
+    /// One object as the entity `objects/<id>`: ξ and its interval, pixels, opaque, class.
+    fn log_object(rec: &RecordingStream, o: &super::ObjectViz) -> Result<(), rerun::RecordingStreamError> {
+        let id = o.id;
+        let (xi, [lo, hi]) = o.xi;
+        rec.log(format!("objects/{id}/xi"), &Scalars::new([xi]))?;
+        rec.log(format!("objects/{id}/xi_lower"), &Scalars::new([lo]))?;
+        rec.log(format!("objects/{id}/xi_upper"), &Scalars::new([hi]))?;
+        rec.log(format!("objects/{id}/pixels"), &Scalars::new([o.pixels as f64]))?;
+        rec.log(
+            format!("objects/{id}/opaque"),
+            &Scalars::new([f64::from(u8::from(o.opaque))]),
+        )?;
+        if let Some((name, p)) = &o.class {
             rec.log(
                 format!("objects/{id}/class"),
                 &rerun::TextLog::new(format!("{name} (probability {p:.2})")),
-            )
-            .map_err(err)?;
-            rec.log(format!("objects/{id}/class_probability"), &Scalars::new([*p]))
-                .map_err(err)?;
+            )?;
+            rec.log(format!("objects/{id}/class_probability"), &Scalars::new([*p]))?;
         }
         Ok(())
     }

@@ -992,6 +992,36 @@ fn replay_rerun_writes_a_recording_rerun_verifies() {
         .count();
     assert!(recovered > 0, "{r}");
     assert_eq!(rows, recovered, "{}", text(&print.stdout));
+    // Each object is an entity over time: its xi has a row in every frame it is in.
+    let rows_of = |entity: &str| -> usize {
+        text(&print.stdout)
+            .lines()
+            .filter(|l| l.contains(&format!(" - {entity} - ")))
+            .filter_map(|l| l.split(" with ").nth(1)?.split(' ').next()?.parse::<usize>().ok())
+            .sum()
+    };
+    for m in r["materials"].as_array().unwrap() {
+        let id = m["id"].as_u64().unwrap();
+        let frames = r["per_frame"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|f| f["xi"].is_number())
+            .filter(|f| {
+                f["regions"]
+                    .as_array()
+                    .is_some_and(|rs| rs.iter().any(|g| g["id"] == id))
+            })
+            .count();
+        assert!(frames > 0, "object {id} in no frame: {r}");
+        for entity in ["xi", "xi_lower", "xi_upper"] {
+            assert_eq!(
+                rows_of(&format!("/objects/{id}/{entity}")),
+                frames,
+                "object {id} {entity}"
+            );
+        }
+    }
     let bad = run(
         dir.path(),
         &[

@@ -226,7 +226,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 recovered_z_mm: out.corrected_z_mm.clone(),
                 mask: out.mask.clone(),
                 xi: Some((xi.xi, xi.interval)),
-                classes: crate::viz::FrameViz::classes_of(&out.regions),
+                objects: crate::viz::FrameViz::objects_of(&out.regions),
             })
             .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
         }

@@ -99,7 +99,7 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
                 recovered_z_mm: out.frame.corrected_z_mm.clone(),
                 mask: out.frame.mask.clone(),
                 xi: Some((out.frame.xi.xi, out.frame.xi.interval)),
-                classes: vec![],
+                objects: crate::viz::FrameViz::objects_of(&out.frame.regions),
             })
             .map_err(|e| anyhow!("--rerun {}: {e}", r.display()))?;
         }

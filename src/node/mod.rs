@@ -1125,7 +1125,7 @@ fn worker(
                                     recovered_z_mm: o.frame.corrected_z_mm,
                                     mask: o.frame.mask,
                                     xi: Some((o.frame.xi.xi, o.frame.xi.interval)),
-                                    classes: FrameViz::classes_of(&o.frame.regions),
+                                    objects: FrameViz::objects_of(&o.frame.regions),
                                 });
                             }
                         }

@@ -34,7 +34,9 @@ const MIN_OVERLAP: f64 = 0.5;
 pub const MAX_MATERIALS: usize = 16;
 
 /// Reading noise moves a region's median distance by this much between frames even when the
-/// object stands still, mm (its changing outline adds half the region's interquartile range).
+/// object stands still, mm. Its changing outline adds a quarter of the region's interquartile range:
+/// a plane whose readings spread evenly, a quarter of it hidden or shown at one end, moves its
+/// median by that much.
 const DISTANCE_SLACK_MM: f64 = 20.0;
 
 /// Where an object's region was in one frame.
@@ -167,7 +169,7 @@ impl Material {
             .into_iter()
             .filter(|s| s.is_finite())
             .fold(0.0, f64::max);
-        let slack = DISTANCE_SLACK_MM + 0.5 * spread;
+        let slack = DISTANCE_SLACK_MM + 0.25 * spread;
         let moved = (region.distance_mm - last.distance_mm).abs();
         if !(moved > slack) {
             return Some(Motion::Still);
