@@ -20,6 +20,8 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import tofcore as tc  # noqa: E402
 import scenes  # noqa: E402
+import mcap.writer  # noqa: E402
+import zstandard  # noqa: E402
 from mcap.writer import CompressionType  # noqa: E402
 from mcap_ros2.writer import Writer  # noqa: E402
 
@@ -133,7 +135,31 @@ def obj_toml(prefix, obj, materials):
     return lines
 
 
+class ZstdAtLevel:
+    """Stands in for the zstandard module in mcap.writer (which compresses
+    each chunk with zstandard.compress at its default level 3) to compress at
+    another level: a spec's `zstd_level` (the videos: smaller bags, the same
+    messages)."""
+
+    def __init__(self, level):
+        self.compressor = zstandard.ZstdCompressor(level=level)
+
+    def compress(self, data):
+        return self.compressor.compress(data)
+
+
 def write_bag(spec, out_dir, cache):
+    level = spec.get("zstd_level")
+    saved = mcap.writer.zstandard
+    if level is not None:
+        mcap.writer.zstandard = ZstdAtLevel(level)
+    try:
+        _write_bag(spec, out_dir, cache)
+    finally:
+        mcap.writer.zstandard = saved
+
+
+def _write_bag(spec, out_dir, cache):
     name = spec["name"]
     mats = dict(spec["background_materials"])
     mats.update(spec["materials"])

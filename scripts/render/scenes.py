@@ -508,7 +508,7 @@ def video(i, n_tries=400):
     model = "mixed" if use_dt else "mask"
     return dict(name=f"video_{i:02d}", seed=seed, model=model, spp=VIDEO_SPP, background=bg,
                 background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
-                tracks=tracks, frame_rate_hz=VIDEO_RATE_HZ,
+                tracks=tracks, frame_rate_hz=VIDEO_RATE_HZ, zstd_level=19,
                 sidecar={"moving_frames": n, "motion_note": (
                     "every frame after the background frames is its own pose (one stage per frame, one render each); "
                     "[[tracks]] gives each object's path: constant speed, heading turning at a constant rate about "
