@@ -5,7 +5,8 @@ usage: results.py [--json OUT] [--check BASELINE] [--write-baseline OUT] [--mark
 
 With no BAG, every rendered scene in bags/rendered, the videos (video_*) among
 them (but the white wall, the calibration sequence and the per-material
-calibrations calib_*, which hold no scene to recover).
+calibrations calib_*, which hold no scene to recover, and the multi-frequency
+versions mf_*, which are scored when named).
 
 Each BAG is replayed with the given replay arguments (none: the defaults a user
 gets); its sidecar `BAG.toml` names the materials (`[[materials]]`: id, xi,
@@ -102,7 +103,14 @@ def evaluate(bag, replay_args, exe):
             return {"bag": os.path.basename(bag), "error": run.stderr.strip()}
         report = json.load(open(out_json))
         inp = read(bag, ["ground_truth/depth", "ground_truth/material", "depth/image_raw"])
-        res = read(out_bag, ["depth/corrected", "translucent_mask", "regions", "depth/corrected_sigma"])
+        res = read(out_bag, ["depth/corrected", "translucent_mask", "regions", "depth/corrected_sigma",
+                             "translucency_image"])
+    multi = report.get("path") == "multi_frequency"
+    # The multi-frequency path has no tracking: its regions (and their ids) are each frame's own.
+    frame_regions = {round(f["stamp"] * 1e9): {g["id"]: g for g in f.get("regions", [])}
+                     for f in report.get("per_frame", [])}
+    frame_votes = defaultdict(lambda: defaultdict(Counter))  # stamp -> material -> region id -> pixels
+    pixel_xi = defaultdict(list)  # material -> per frame the median of its pixels' xi (translucency_image)
     est = {m["id"]: m for m in report.get("materials", [])}
     frame_rms, frame_raw, covered, total = [], [], 0, 0
     every_rms, every_raw = [], []
@@ -125,6 +133,8 @@ def evaluate(bag, replay_args, exe):
         mask = image_values(res["translucent_mask"][stamp]) if stamp in res["translucent_mask"] else [0] * len(z)
         regions = image_values(res["regions"][stamp]) if stamp in res["regions"] else [0] * len(z)
         sigma = z_mm(res["depth/corrected_sigma"][stamp]) if stamp in res["depth/corrected_sigma"] else [math.nan] * len(z)
+        xi_img = image_values(res["translucency_image"][stamp]) if stamp in res["translucency_image"] else None
+        frame_xi = defaultdict(list)
         e2, r2, n = 0.0, 0.0, 0
         a2, ar2, an = 0.0, 0.0, 0
         for i, m in enumerate(mat):
@@ -133,6 +143,9 @@ def evaluate(bag, replay_args, exe):
                 continue
             if regions[i]:
                 region_votes[m][regions[i]] += 1
+                frame_votes[stamp][m][regions[i]] += 1
+            if xi_img is not None and math.isfinite(xi_img[i]):
+                frame_xi[m].append(xi_img[i])
             if info.get("opaque"):
                 opaque_total[m] += 1
                 opaque_flagged[m] += mask[i] > 0
@@ -159,6 +172,9 @@ def evaluate(bag, replay_args, exe):
                 ts = [t for t, k in zip(truth, mat) if k == m and math.isfinite(t)]
                 if ts:
                     stages[m].add(round(statistics.median(ts), -1))
+        for m, v in frame_xi.items():
+            if not materials[m].get("opaque"):
+                pixel_xi[m].append(statistics.median(v))
         if n:
             frame_rms.append(math.sqrt(e2 / n))
             frame_raw.append(math.sqrt(r2 / n))
@@ -178,10 +194,25 @@ def evaluate(bag, replay_args, exe):
         "materials": [],
         "opaque": [],
     }
+    if multi:
+        out["path"] = "multi_frequency"
     for mid, info in sorted(materials.items()):
         votes = region_votes.get(mid)
         rid = votes.most_common(1)[0][0] if votes else None
         e = est.get(rid) if rid is not None else None
+        per_frame = []
+        if multi:
+            # each frame: the region most of the object's pixels fell in, its xi and interval
+            e, rid = None, None
+            for stamp in sorted(frame_votes):
+                v = frame_votes[stamp].get(mid)
+                g = frame_regions.get(stamp, {}).get(v.most_common(1)[0][0]) if v else None
+                if g is None or not g.get("xi_interval"):
+                    continue
+                lo, hi = g["xi_interval"]
+                truth = 0.0 if info.get("opaque") else info["xi"]
+                per_frame.append({"xi": g["xi"], "xi_interval": [lo, hi], "inside": lo <= truth <= hi,
+                                  "width": hi - lo, "opaque_claimed": g.get("opaque", False)})
         if info.get("opaque"):
             if opaque_total[mid]:
                 errs, raws = sorted(opaque_err[mid]), sorted(opaque_raw_err[mid])
@@ -197,6 +228,8 @@ def evaluate(bag, replay_args, exe):
                     lo, hi = e["xi_interval"]
                     # Opaque is xi 0: the interval must hold it.
                     row.update({"xi": e["xi"], "xi_interval": [lo, hi], "inside": lo <= 0.0, "width": hi - lo})
+                if per_frame:
+                    row.update(frames_mf(per_frame))
                 out["opaque"].append(row)
             continue
         row = {"id": mid, "xi_true": info["xi"], "poses": len(stages[mid]), "region": rid}
@@ -204,8 +237,21 @@ def evaluate(bag, replay_args, exe):
             lo, hi = e["xi_interval"]
             row.update({"xi": e["xi"], "xi_interval": [lo, hi], "inside": lo <= info["xi"] <= hi, "width": hi - lo,
                         "opaque_claimed": e["opaque"]})
+        if per_frame:
+            row.update(frames_mf(per_frame))
+        if pixel_xi.get(mid):
+            row["xi_pixel_median"] = statistics.median(pixel_xi[mid])  # median over frames of each frame's median
+            row["xi_pixel_frame_medians"] = [min(pixel_xi[mid]), max(pixel_xi[mid])]
         out["materials"].append(row)
     return out
+
+
+def frames_mf(per_frame):
+    """A multi-frequency object's row: each frame's region (no tracking on that path) with its
+    interval, the median of their xi, and how many of the intervals hold the truth."""
+    return {"xi": statistics.median(f["xi"] for f in per_frame),
+            "frames_inside": [sum(f["inside"] for f in per_frame), len(per_frame)],
+            "per_frame": per_frame}
 
 
 def fmt(v, spec=".1f"):
@@ -227,7 +273,15 @@ def worse(now, before):
 
 
 def objects(rows):
-    return [o for r in rows for o in r.get("materials", []) + r.get("opaque", []) if "inside" in o]
+    """The objects whose interval is scored: on the multi-frequency path each frame's (no tracking)."""
+    out = []
+    for r in rows:
+        for o in r.get("materials", []) + r.get("opaque", []):
+            if "per_frame" in o:
+                out += o["per_frame"]
+            elif "inside" in o:
+                out.append(o)
+    return out
 
 
 def pooled_sigma(rows):
@@ -292,14 +346,18 @@ def print_row(r):
         print(f"{r['bag']}: replay failed: {r['error']}")
         return
     mats = "; ".join(
-        f"xi {m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.2f')}, "
-        f"{fmt((m.get('xi_interval') or [None, None])[1], '.2f')}]{'' if m.get('inside') else ' MISS'}"
+        (f"xi {m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} (median of frames), interval holds it in "
+         f"{m['frames_inside'][0]} of {m['frames_inside'][1]} frames, per-pixel median {fmt(m.get('xi_pixel_median'), '.3f')}"
+         if "frames_inside" in m else
+         f"xi {m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.2f')}, "
+         f"{fmt((m.get('xi_interval') or [None, None])[1], '.2f')}]{'' if m.get('inside') else ' MISS'}")
         for m in r["materials"]
     )
     opq = "; ".join(
         f"opaque {o['id']}: {100 * o['not_flagged']:.0f} % unflagged, median {fmt(o['median_error_mm'])} mm "
         f"(reading {fmt(o.get('median_raw_error_mm'))} mm)"
-        f"{'' if o.get('inside', True) else ' (interval excludes 0)'}"
+        + (f", interval holds 0 in {o['frames_inside'][0]} of {o['frames_inside'][1]} frames" if "frames_inside" in o
+           else f"{'' if o.get('inside', True) else ' (interval excludes 0)'}")
         for o in r["opaque"]
     )
     print(
@@ -316,7 +374,8 @@ def print_summary(rows):
     if obj:
         inside = sum(o["inside"] for o in obj)
         print(f"coverage: {inside} of {len(obj)} objects' true xi inside their interval "
-              f"({100 * inside / len(obj):.0f} %; opaque objects count when the interval holds 0); "
+              f"({100 * inside / len(obj):.0f} %; opaque objects count when the interval holds 0; "
+              f"on the multi-frequency path each frame's region counts); "
               f"median width {statistics.median(o['width'] for o in obj):.2f}")
     share, w = pooled_sigma(rows)
     if share is not None:
@@ -348,11 +407,12 @@ def default_bags():
     """Every rendered scene (the draws, the named scenes, the videos), but the
     recordings that hold no scene to recover: the empty wall (calibrate-lin's),
     the calibration sequence (the audit's) and the per-material calibrations
-    (calib_*: calibrate-xi's)."""
+    (calib_*: calibrate-xi's). The multi-frequency versions (mf_*) are not among
+    them: name them (`results.py bags/rendered/mf_*.mcap`)."""
     d = os.path.join(REPO, "bags", "rendered")
     skip = {"white_wall_lin.mcap", "calibration_sequence.mcap"}
     return [os.path.join(d, f) for f in sorted(os.listdir(d))
-            if f.endswith(".mcap") and f not in skip and not f.startswith("calib_")]
+            if f.endswith(".mcap") and f not in skip and not f.startswith(("calib_", "mf_"))]
 
 
 def main():

@@ -6,6 +6,10 @@ Per bag: the background frames against the background's geometric z-depth
 (noisy bag and, from the cached render, noise-free), the depth standard
 deviation at the image centre over the background frames, and per stage and
 material the mean raw error (reading - truth) on that material's pixels.
+Multi-frequency bags (mf_*) also: per frequency the background's phasor
+distance against the geometry (wrapped at that frequency's range) and the
+opaque objects', the phasors' spread, and whether the 30 MHz depth and IR
+are the single-frequency bag's. TTOF_RENDER_OUT: another bag directory.
 """
 
 import os
@@ -21,7 +25,7 @@ import render_set  # noqa: E402
 from mcap_ros2.reader import read_ros2_messages  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-OUT = os.path.normpath(os.path.join(HERE, "..", "..", "bags", "rendered"))
+OUT = os.path.normpath(os.environ.get("TTOF_RENDER_OUT", os.path.join(HERE, "..", "..", "bags", "rendered")))
 CACHE = os.environ.get("TTOF_RENDER_CACHE", "/work/render-cache")
 
 
@@ -34,8 +38,9 @@ def read_bag(path):
         if m.channel.topic == "/tof/depth/camera_info":
             f["k"] = list(msg.k)
             continue
-        dt = {"16UC1": "<u2", "32FC1": "<f4", "mono8": "u1"}[msg.encoding]
-        f[m.channel.topic] = np.frombuffer(bytes(msg.data), dtype=dt).reshape(msg.height, msg.width)
+        dt = {"16UC1": "<u2", "32FC1": "<f4", "32FC2": "<f4", "mono8": "u1"}[msg.encoding]
+        shape = (msg.height, msg.width, 2) if msg.encoding == "32FC2" else (msg.height, msg.width)
+        f[m.channel.topic] = np.frombuffer(bytes(msg.data), dtype=dt).reshape(shape)
     return [frames[t] for t in sorted(frames)]
 
 
@@ -49,6 +54,53 @@ def noise_free(objects, mats, spp):
     # unrounded z for mm-level checks
     d = np.mod(tc.R_MM / (2 * np.pi) * np.arctan2(z["b"], z["a"]), tc.R_MM)
     return d / np.linalg.norm(tc.pixel_rays(), axis=-1)
+
+
+def wrapped(d, r):
+    """d wrapped into [-r/2, r/2)."""
+    return np.mod(d + r / 2, r) - r / 2
+
+
+def check_phasors(name, side, spec, frames, bg_truth):
+    """Multi-frequency bags: each frequency's phasor against the geometry (the distance along the
+    ray, wrapped at that frequency's range), its noise against the stated model, and the 30 MHz
+    depth against the single-frequency bag's."""
+    mf = side["multi_frequency"]
+    norm = np.linalg.norm(tc.pixel_rays(), axis=-1)
+    for k, (f, r) in enumerate(zip(mf["modulation_frequencies_hz"], mf["unambiguous_range_mm"])):
+        ph = np.stack([fr[f"/tof/phasor_{k}/image_raw"] for fr in frames[:10]]).astype(np.float64)
+        m = ph.mean(axis=0)
+        d = np.mod(r / (2 * np.pi) * np.arctan2(m[..., 1], m[..., 0]), r)
+        e = wrapped(d - bg_truth * norm, r)
+        # the noise: per pixel std of A over the background frames against alpha (S + floor),
+        # S from the 30 MHz IR would be the amplitude, not the total light: compare at the centre
+        sd = ph[:, 70:74, 86:90, :].std(axis=0, ddof=1).mean()
+        print(f"  phasor_{k} {f / 1e6:g} MHz (R {r:.0f} mm): background (mean of 10 frames) distance - truth, wrapped: "
+              f"median {np.nanmedian(e):+.2f} mm, |.| 95th pct {np.nanpercentile(np.abs(e), 95):.2f} mm; "
+              f"amplitude centre {np.hypot(m[70:74, 86:90, 0], m[70:74, 86:90, 1]).mean():.1f} counts, "
+              f"A/B std over frames {sd:.1f} counts")
+        for si, st in enumerate(side.get("stages", [])):
+            fs = [frames[i] for i in st["frames"]]
+            gt = fs[0]["/tof/ground_truth/depth"].astype(np.float64) * 1000.0
+            gm = fs[0]["/tof/ground_truth/material"]
+            for mat in side["materials"]:
+                px = gm == mat["id"]
+                if not mat["opaque"] or not px.any():
+                    continue
+                p = np.stack([fr[f"/tof/phasor_{k}/image_raw"] for fr in fs]).astype(np.float64)[:, px]
+                dd = np.mod(r / (2 * np.pi) * np.arctan2(p[..., 1], p[..., 0]), r)
+                ee = wrapped(dd - gt[px] * norm[px], r)
+                print(f"    stage {si} opaque mat {mat['id']} {px.sum()} px: distance - truth median {np.median(ee):+.1f} mm")
+    single = side.get("single_frequency_version")
+    sp = os.path.join(OUT, f"{single}.mcap") if single else None
+    if sp and os.path.exists(sp):
+        other = read_bag(sp)
+        same = [np.array_equal(a["/tof/depth/image_raw"], b["/tof/depth/image_raw"])
+                and np.array_equal(a["/tof/ir/image_raw"], b["/tof/ir/image_raw"]) for a, b in zip(frames, other)]
+        diff = np.concatenate([(a["/tof/depth/image_raw"].astype(float) - b["/tof/depth/image_raw"]).ravel()
+                               for a, b in zip(frames, other)])
+        print(f"  30 MHz depth and IR identical to {single}'s in {sum(same)} of {len(frames)} frames "
+              f"(depth differs at {np.mean(diff != 0) * 100:.3f} % of pixels, max |.| {np.abs(diff).max():.0f} mm)")
 
 
 def check(name):
@@ -74,6 +126,8 @@ def check(name):
         e = nf - bg_truth
         print(f"  noise-free background: mean {np.nanmean(e):+.3f} mm, max |err| {np.nanmax(np.abs(e)):.3f} mm, "
               f"99th pct {np.nanpercentile(np.abs(e), 99):.3f} mm")
+    if "multi_frequency" in side:
+        check_phasors(name, side, spec, frames, bg_truth)
     for si, st in enumerate(side.get("stages", [])):
         fs = [frames[i] for i in st["frames"]]
         gt = fs[0]["/tof/ground_truth/depth"].astype(np.float64) * 1000.0

@@ -5,10 +5,13 @@ usage: render_set.py [--list] [--out DIR] [--cache DIR] [NAME ...]
 Each bag: 10 background-only frames, then its stages (a few frames of one
 geometry each). Each geometry is rendered once (cached by content in
 --cache) and its noisy frames are drawn from that render with per-frame
-seeds. Scene parameters are drawn from seeded ranges (scenes.py).
+seeds. Scene parameters are drawn from seeded ranges (scenes.py). A spec
+with `frequencies_hz` (the mf_* bags) also writes each frequency's phasor
+(`/tof/phasor_<k>/image_raw`, 32FC2) and the frequencies' metadata record.
 """
 
 import argparse
+import contextlib
 import hashlib
 import json
 import os
@@ -49,6 +52,10 @@ BACKGROUND_FRAMES = 10
 # replay, calibrate-xi and audit) and in its sidecar: IR the demodulated amplitude, light
 # through a layer both ways (L2 = Ib xi^2), every option written out.
 PHYSICS_RECORD = "translucent_tof.physics"
+# Multi-frequency bags (issue 35): the frequencies of phasor_<k>/image_raw in this record
+# (src/bag/phasors.rs METADATA_NAME / FREQUENCIES_KEY), Hz, comma-separated, in the order of k.
+MF_RECORD = "translucent_tof"
+MF_KEY = "modulation_frequencies_hz"
 PHYSICS_PRESET = "physical"
 PHYSICS_TOML = (
     "# The model physics this render matches (scripts/render/render_set.py).\n"
@@ -71,29 +78,63 @@ def geometry_key(objects, materials, spp):
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
-def rendered(objects, materials, spp, cache):
-    """(A, B, S, render_seconds, cached?) of one geometry. The render's seed
-    comes from the geometry's content, so a geometry shared by several bags
-    (e.g. the white wall at 2000 mm) is rendered once."""
+def rendered(objects, materials, spp, cache, freqs_hz=()):
+    """(A, B, S, render_seconds, cached?, phasors) of one geometry. The
+    render's seed comes from the geometry's content, so a geometry shared by
+    several bags (e.g. the white wall at 2000 mm) is rendered once. With
+    `freqs_hz` the same transient is also correlated at those frequencies
+    (`phasors` = (A_k, B_k) arrays (K, H, W), else None), cached apart under
+    the same seed: its 30 MHz A, B are those of the single-frequency render."""
     key = geometry_key(objects, materials, spp)
     seed = int(key[:7], 16)
-    path = os.path.join(cache, key + ".npz")
+    freqs = [float(f) for f in freqs_hz]
+    if freqs:
+        tag = hashlib.sha256(json.dumps(freqs).encode()).hexdigest()[:8]
+        path = os.path.join(cache, f"{key}_mf_{tag}.npz")
+    else:
+        path = os.path.join(cache, key + ".npz")
     if os.path.exists(path):
         z = np.load(path)
-        return z["a"], z["b"], z["s"], float(z["seconds"]), True
+        ph = (z["pa"], z["pb"]) if freqs else None
+        return z["a"], z["b"], z["s"], float(z["seconds"]), True, ph
     t0 = time.time()
-    a, b, s = tc.render_transient_ab(objects, materials, spp, seed, chunk_spp=2048,
-                                     log=lambda m: print(m, flush=True))
+    (pa, pb), s = tc.render_transient_phasors(objects, materials, spp, seed, [tc.F_MOD] + freqs,
+                                             chunk_spp=2048, log=lambda m: print(m, flush=True))
     secs = time.time() - t0
-    np.savez(path + ".tmp.npz", a=a, b=b, s=s, seconds=secs)
+    a, b = pa[0], pb[0]
+    extra = {"pa": pa[1:], "pb": pb[1:], "freqs_hz": np.array(freqs)} if freqs else {}
+    np.savez(path + ".tmp.npz", a=a, b=b, s=s, seconds=secs, **extra)
     os.replace(path + ".tmp.npz", path)
-    return a, b, s, secs, False
+    return a, b, s, secs, False, ((pa[1:], pb[1:]) if freqs else None)
+
+
+@contextlib.contextmanager
+def _zstd_level(level):
+    """The mcap writer compresses each chunk with zstandard.compress (level 3); this swaps in
+    a compressor at `level` while a bag is written."""
+    import mcap.writer as mw
+    real = mw.zstandard
+
+    class Shim:
+        @staticmethod
+        def compress(data):
+            return real.ZstdCompressor(level=level).compress(data)
+    mw.zstandard = Shim
+    try:
+        yield
+    finally:
+        mw.zstandard = real
+
+
+@contextlib.contextmanager
+def _nothing():
+    yield
 
 
 def image_msg(hdr, encoding, arr):
     arr = np.ascontiguousarray(arr)
     return {"header": hdr, "height": tc.H, "width": tc.W, "encoding": encoding, "is_bigendian": 0,
-            "step": tc.W * arr.dtype.itemsize, "data": arr.tobytes()}
+            "step": arr.nbytes // tc.H, "data": arr.tobytes()}
 
 
 def info_msg(hdr):
@@ -164,6 +205,7 @@ def _write_bag(spec, out_dir, cache):
     mats = dict(spec["background_materials"])
     mats.update(spec["materials"])
     ids = {k: m["id"] for k, m in spec["materials"].items()}
+    freqs = [float(f) for f in spec.get("frequencies_hz", [])]
     geoms = [(spec["background"], [], BACKGROUND_FRAMES)]
     for st in spec["stages"]:
         geoms.append((spec["background"] + st["objects"], st["objects"], st["frames"]))
@@ -173,14 +215,18 @@ def _write_bag(spec, out_dir, cache):
     stage_rows = []
     os.makedirs(out_dir, exist_ok=True)
     tmp = os.path.join(cache, name + ".mcap.tmp")  # moved into out_dir when complete
-    with open(tmp, "wb") as out:
+    with open(tmp, "wb") as out, (_zstd_level(19) if freqs else _nothing()):
+        # multi-frequency bags: zstd level 19 (the phasor images are noisy floats; level 3,
+        # the writer's default, would put a 16-frame bag above 5 MB); the content is the same
         w = Writer(out, compression=CompressionType.ZSTD)
         w.add_metadata(PHYSICS_RECORD, {"physics_toml": PHYSICS_TOML})  # first: a bag cut short keeps it
+        if freqs:  # the phasor topics' frequencies, in the order of k (docs/interfaces.md)
+            w.add_metadata(MF_RECORD, {MF_KEY: ",".join(str(int(round(f))) for f in freqs)})
         img_s = w.register_msgdef("sensor_msgs/msg/Image", IMAGE)
         info_s = w.register_msgdef("sensor_msgs/msg/CameraInfo", CAMERA_INFO)
         for gi, (objects, fg, nframes) in enumerate(geoms):
             print(f"{name}: geometry {gi}/{len(geoms) - 1} ({len(objects)} objects, {nframes} frames)", flush=True)
-            a, b, s, secs, cached = rendered(objects, mats, spec["spp"], cache)
+            a, b, s, secs, cached, ph = rendered(objects, mats, spec["spp"], cache, freqs)
             print(f"  {'cached' if cached else 'rendered'} {secs:.1f} s", flush=True)
             total_secs += secs
             gt_depth, gt_mat = tc.ground_truth(fg, ids)
@@ -198,6 +244,13 @@ def _write_bag(spec, out_dir, cache):
                         ("/tof/ground_truth/depth", img_s, image_msg(hdr, "32FC1", gt_depth.astype("<f4"))),
                         ("/tof/ground_truth/material", img_s, image_msg(hdr, "mono8", gt_mat))):
                     w.write_message(topic, schema, msg, log_time=ns, publish_time=ns, sequence=frame)
+                for k in range(len(freqs)):
+                    # each frequency's noise from its own stream: depth and IR above are
+                    # drawn exactly as in the single-frequency bag of the same render
+                    prng = np.random.default_rng([spec["seed"], frame, 1 + k])
+                    p = tc.phasor_frame(ph[0][k], ph[1][k], s, prng)
+                    w.write_message(f"/tof/phasor_{k}/image_raw", img_s, image_msg(hdr, "32FC2", p.astype("<f4")),
+                                    log_time=ns, publish_time=ns, sequence=frame)
                 frame += 1
             if gi > 0:
                 stage_rows.append((first, frame - 1, fg, secs))
@@ -234,7 +287,28 @@ def _write_bag(spec, out_dir, cache):
              f"alpha = {tc.NOISE_ALPHA!r}", f"floor_counts = {tc.NOISE_FLOOR!r}",
              f"reference_depth_std_mm = {tc.REF_DEPTH_STD_MM} # white wall, 2000 mm, image centre",
              f"min_amplitude_counts = {tc.MIN_AMPLITUDE} # below: depth 0 (invalid)",
-             "", "[background]", f"description = {toml_value(spec['background_description'])}"]
+             ]
+    if freqs:
+        lines += ["", "[multi_frequency]",
+                  f"modulation_frequencies_hz = {toml_value(freqs)}",
+                  f"topics = {toml_value([f'/tof/phasor_{k}/image_raw' for k in range(len(freqs))])}",
+                  f"unambiguous_range_mm = {toml_value([round(tc.C_LIGHT / (2 * f) * 1000.0, 4) for f in freqs])}",
+                  f"record = {toml_value(f'MCAP metadata {MF_RECORD}, key {MF_KEY}: the frequencies in Hz in the order of k')}",
+                  'encoding = "32FC2: per pixel (in-phase A, quadrature B) in counts (ir_gain), rounded to step_counts"',
+                  'correlation = "from the same transient as the 30 MHz depth and IR: per frequency f_k, R_k = c/(2 f_k), '
+                  'A_k = sum L cos(2 pi (p/2)/R_k), B_k = sum L sin(...), each divided by its bin sinc(pi w / 2R_k); '
+                  'a return at distance d (along the ray) has phase 2 pi d / R_k (wraps at R_k), as the 30 MHz depth"',
+                  f"step_counts = {tc.PHASOR_STEP_COUNTS!r}",
+                  "depth_and_ir_note = \"depth and IR are the 30 MHz readings drawn exactly as a single-frequency bag's "
+                  "(seed [seed, frame]); the phasors do not change them\"",
+                  "", "[multi_frequency.noise]",
+                  'model = "per frequency k: A_k, B_k (counts) += N(0, alpha * (S + floor)) each, the [noise] model with the same alpha, '
+                  'floor and S (total collected light, the same at every frequency); independent per frequency and of the '
+                  '30 MHz reading: per-frame seed [seed, frame, 1 + k]"',
+                  f"alpha = {tc.NOISE_ALPHA!r}", f"floor_counts = {tc.NOISE_FLOOR!r}",
+                  "reference_note = \"the same A, B noise at every frequency: the reference wall's depth std is "
+                  "10 mm * 30 MHz / f_k (15, 6, 3 mm at 20, 50, 100 MHz)\""]
+    lines += ["", "[background]", f"description = {toml_value(spec['background_description'])}"]
     for o in spec["background"]:
         lines += [""] + obj_toml("background.objects", o, mats)
     for key in sorted(spec["materials"], key=lambda k: spec["materials"][k]["id"]):

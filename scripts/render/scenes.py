@@ -519,6 +519,29 @@ def video(i, n_tries=400):
                             f"moving on its own smooth path at {VIDEO_RATE_HZ} Hz, {n} moving frames")
 
 
+# ------------------------------------------------ multi-frequency versions ---
+MF_FREQS_HZ = [20e6, 50e6, 100e6]
+# draws whose scenes hold several translucent materials and an opaque box (draw_03: three mask
+# sheets and a box, draw_06: two and a box, draw_11: three and a box)
+MF_DRAWS = [3, 6, 11]
+
+
+def multi_frequency(spec):
+    """The same scene (seed, geometry, spp, so the same render and the same 30 MHz depth and IR)
+    with the phasors at MF_FREQS_HZ written beside them (issue 35)."""
+    out = dict(spec)
+    out["name"] = "mf_" + spec["name"]
+    out["frequencies_hz"] = list(MF_FREQS_HZ)
+    out["description"] = (spec["description"] + "; multi-frequency: phasors at "
+                          + ", ".join(f"{f / 1e6:g}" for f in MF_FREQS_HZ) + " MHz beside the 30 MHz depth and IR")
+    out["sidecar"] = dict(spec.get("sidecar", {}), single_frequency_version=spec["name"])
+    return out
+
+
+def mf_specs():
+    return [multi_frequency(s) for s in [two_materials(), opaque_and_translucent()] + [draw(i) for i in MF_DRAWS]]
+
+
 def all_specs():
     return [
         white_wall_lin(),
@@ -532,4 +555,4 @@ def all_specs():
         opaque_and_translucent(),
         corner_background(),
         difftrans_sheet(),
-    ] + [draw(i) for i in range(20)] + calibration_specs() + [video(i) for i in range(3)]
+    ] + [draw(i) for i in range(20)] + calibration_specs() + [video(i) for i in range(3)] + mf_specs()

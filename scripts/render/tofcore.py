@@ -64,6 +64,11 @@ _sigma_ref = REF_DEPTH_STD_MM * 2 * math.pi / R_MM * IR_REF_COUNTS
 NOISE_ALPHA = _sigma_ref ** 2 / (IR_REF_COUNTS + NOISE_FLOOR)
 MIN_AMPLITUDE = 60.0  # counts (~5 sigma of the noise floor); below: depth 0 (invalid)
 
+# Multi-frequency versions (issue 35, scenes.MF_FREQS_HZ): each frequency's
+# phasor from the same transient, beside the 30 MHz depth and IR (phasor_frame).
+PHASOR_STEP_COUNTS = 2.0  # phasor images are rounded to this (keeps the bags small; its std 0.58
+# counts is < 5 % of the noise's at the floor, 12.5 counts)
+
 
 def pixel_rays():
     """Unnormalised centre rays (x, y, 1), shape (H, W, 3)."""
@@ -239,34 +244,53 @@ def render_transient_ab(objects, materials, spp, seed, chunk_spp=1024, log=print
     """Renders the scene and correlates its transient with the modulation.
     Returns float64 arrays (H, W): A, B (radiance units) and S = the total
     light collected (sum of the transient over all bins)."""
+    (a, b), s = render_transient_phasors(objects, materials, spp, seed, [F_MOD], chunk_spp, log)
+    return a[0], b[0], s
+
+
+def correlation_weights(freqs_hz):
+    """(BINS, 2K) weights: per frequency f_k (unambiguous range R_k = c/2f_k)
+    the columns cos and sin of 2 pi (p/2)/R_k at each bin's centre p (path,
+    mm), divided by the bin's sinc(pi w / 2R_k) (a return spread uniformly
+    over a bin of width w correlates to that fraction of its centre value;
+    dividing it out makes a bin stand for the path lengths inside it). Each
+    frequency's phase wraps on its own (cos/sin are periodic in R_k)."""
+    centres_mm = (START_M + (np.arange(BINS) + 0.5) * BIN_M) * 1000.0
+    cols = []
+    for f in freqs_hz:
+        r_mm = C_LIGHT / (2 * f) * 1000.0
+        phase = 2 * math.pi * (centres_mm / 2.0) / r_mm
+        half = math.pi * (BIN_M * 1000.0) / (2 * r_mm)
+        sinc = math.sin(half) / half
+        cols += [np.cos(phase) / sinc, np.sin(phase) / sinc]
+    return np.stack(cols, axis=1)
+
+
+def render_transient_phasors(objects, materials, spp, seed, freqs_hz, chunk_spp=1024, log=print):
+    """Renders the scene once and correlates its transient at every frequency
+    of `freqs_hz`. Returns ((A, B), S): A and B float64 arrays (K, H, W), the
+    in-phase and quadrature correlations (radiance units) at each frequency,
+    and S (H, W) the total light collected (sum of the transient over all
+    bins). The render's samples do not depend on the frequencies: the same
+    seed gives the same A, B at 30 MHz whatever else is asked for."""
     scene = build_scene(objects, materials)
     integ = scene.integrator()
-    # bin centres (path length, mm) -> phase of a distance p/2
-    centres_mm = (START_M + (np.arange(BINS) + 0.5) * BIN_M) * 1000.0
-    phase = 2 * math.pi * (centres_mm / 2.0) / R_MM
-    # a return spread uniformly over a bin of width w (path) correlates to
-    # sinc(pi w / (2 R)) of its centre value; divide it out so a bin stands
-    # for the path lengths inside it, not only its centre
-    half = math.pi * (BIN_M * 1000.0) / (2 * R_MM)
-    sinc = math.sin(half) / half
-    cos_t, sin_t = np.cos(phase) / sinc, np.sin(phase) / sinc
-    acc_a = np.zeros((H, W))
-    acc_b = np.zeros((H, W))
-    acc_s = np.zeros((H, W))
+    k_f = len(freqs_hz)
+    wts = np.concatenate([correlation_weights(freqs_hz), np.ones((BINS, 1))], axis=1)
+    acc = np.zeros((H * W, 2 * k_f + 1))
     done = 0
     k = 0
     while done < spp:
         n = min(chunk_spp, spp - done)
         _, transient = integ.render(scene, seed=(seed * 1009 + k) % 2**32, spp=n)
-        t = np.asarray(transient).reshape(H, W, BINS)
-        acc_a += n * (t @ cos_t)
-        acc_b += n * (t @ sin_t)
-        acc_s += n * t.sum(axis=-1, dtype=np.float64)
+        t = np.asarray(transient).reshape(H * W, BINS)
+        acc += n * (t @ wts)
         del t, transient
         done += n
         k += 1
         log(f"    {done}/{spp} spp")
-    return acc_a / spp, acc_b / spp, acc_s / spp
+    acc = (acc / spp).T.reshape(2 * k_f + 1, H, W)
+    return (acc[0:2 * k_f:2], acc[1:2 * k_f:2]), acc[2 * k_f]
 
 
 # ----------------------------------------------------- CW-ToF readings ---
@@ -286,6 +310,22 @@ def tof_frame(a, b, s, rng):
     depth = np.round(z)
     depth[(amp < MIN_AMPLITUDE) | ~np.isfinite(depth)] = 0
     return depth.astype(np.uint16), amp.astype(np.float32)
+
+
+def phasor_frame(a, b, s, rng):
+    """One noisy phasor (in-phase, quadrature) at one frequency from its
+    rendered correlations a, b and the total light s (H, W each), in counts,
+    with the same noise model as tof_frame's A and B: N(0, alpha (S + floor))
+    each, S = total collected light in counts (the same at every frequency:
+    the buckets collect the same light). Returns float32 (H, W, 2), rounded to
+    PHASOR_STEP_COUNTS (well below the noise: its floor's std is ~12.5 counts)."""
+    ac, bc, sc = a * IR_GAIN, b * IR_GAIN, s * IR_GAIN
+    sigma = np.sqrt(NOISE_ALPHA * (np.maximum(sc, 0.0) + NOISE_FLOOR))
+    if rng is not None:
+        ac = ac + rng.standard_normal(ac.shape) * sigma
+        bc = bc + rng.standard_normal(bc.shape) * sigma
+    out = np.stack([ac, bc], axis=-1)
+    return (np.round(out / PHASOR_STEP_COUNTS) * PHASOR_STEP_COUNTS).astype(np.float32)
 
 
 # --------------------------------------------------------- ground truth ---
