@@ -46,6 +46,18 @@ pub fn sigma_about(v: &[f64], med: f64) -> f64 {
     1.4826 * median_select(&mut dev)
 }
 
+/// Two-sided 97.5 % quantile of Student's t.
+pub fn student_t975(dof: usize) -> f64 {
+    const T: [f64; 10] = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228];
+    match dof {
+        0 => f64::INFINITY,
+        1..=10 => T[dof - 1],
+        11..=20 => 2.086 + (2.228 - 2.086) * (20 - dof) as f64 / 10.0,
+        21..=30 => 2.042 + (2.086 - 2.042) * (30 - dof) as f64 / 10.0,
+        _ => 1.96 + 0.08 * 30.0 / dof as f64,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

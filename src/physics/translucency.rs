@@ -20,7 +20,7 @@ use super::inversion::{
     albedo_cos_clamped, foreground_distances, predicted_reading, InversionBounds, PixelObservation,
 };
 use super::model::ForwardModel;
-use super::stats::median_and_sigma;
+use super::stats::{median_and_sigma, student_t975};
 use super::surface::local_planes_adaptive;
 
 /// How ξ was chosen.
@@ -1021,18 +1021,6 @@ fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2]
 /// minimum can sit between grid points outside a coarse crossing).
 fn cover(iv: [f64; 2], xi: f64) -> [f64; 2] {
     [iv[0].min(xi), iv[1].max(xi)]
-}
-
-/// Two-sided 97.5 % quantile of Student's t.
-fn student_t975(dof: usize) -> f64 {
-    const T: [f64; 10] = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228];
-    match dof {
-        0 => f64::INFINITY,
-        1..=10 => T[dof - 1],
-        11..=20 => 2.086 + (2.228 - 2.086) * (20 - dof) as f64 / 10.0,
-        21..=30 => 2.042 + (2.086 - 2.042) * (30 - dof) as f64 / 10.0,
-        _ => 1.96 + 0.08 * 30.0 / dof as f64,
-    }
 }
 
 /// What an object's pooled evidence says at every ξ of [`xi_grid`], for weighing hypotheses

@@ -37,7 +37,7 @@ use crate::physics::multifreq::{
     ScanSettings,
 };
 use crate::physics::segmentation::{label_regions, remove_small_regions, wrapped_difference};
-use crate::physics::stats::{median_select, sigma_about};
+use crate::physics::stats::{median_select, sigma_about, student_t975};
 use crate::physics::{ForwardModel, ImageBuf, Intrinsics, XiEstimate, XiMethod};
 
 /// Most modulation frequencies the path takes.
@@ -805,7 +805,7 @@ fn regions(labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> Vec<
         .map(|(r, px)| {
             let id = r as u32 + 1;
             if id <= layers {
-                layer_region(id, px, results)
+                layer_region(id, px, labels.width, results)
             } else {
                 opaque_region(id, px, results)
             }
@@ -829,19 +829,33 @@ fn region_estimate(xi: f64, interval: [f64; 2], pixels: usize, note: String) -> 
 /// A layer region: the median of its pixels' ξ, and an interval (about 95 %)
 /// of `1.96` standard errors of a median (`1.2533 s / sqrt(n)`), `s` the
 /// larger of the pixels' robust spread and their stated σ (overdispersion
-/// widens it, never narrows it).
-fn layer_region(id: u32, pixels: &[usize], results: &[PixelResult]) -> RegionOutput {
+/// widens it, never narrows it), or, where wider, Student's t times the
+/// scatter of the medians of the region's square blocks of [`BLOCK_PX`]
+/// pixels over the square root of their number: what the model leaves out
+/// (light between the layer and a near wall, a mixed edge) is shared by
+/// neighbouring pixels and does not average out over them.
+fn layer_region(id: u32, pixels: &[usize], width: usize, results: &[PixelResult]) -> RegionOutput {
     let mut xi: Vec<f64> = pixels.iter().map(|&i| results[i].xi).collect();
     let mut stated: Vec<f64> = pixels.iter().map(|&i| results[i].xi_sigma).collect();
     let median = median_select(&mut xi);
     let spread = sigma_about(&xi, median);
     let stated = median_select(&mut stated);
     let s = spread.max(stated);
-    let half = 1.96 * 1.2533 * s / (pixels.len() as f64).sqrt();
+    let pixel_half = 1.96 * 1.2533 * s / (pixels.len() as f64).sqrt();
+    let blocks = block_medians(pixels, width, results);
+    let block_half = if blocks.len() >= 3 {
+        let m = blocks.iter().sum::<f64>() / blocks.len() as f64;
+        let sd = (blocks.iter().map(|b| (b - m).powi(2)).sum::<f64>() / (blocks.len() - 1) as f64).sqrt();
+        student_t975(blocks.len() - 1) * sd / (blocks.len() as f64).sqrt()
+    } else {
+        0.0
+    };
+    let half = pixel_half.max(block_half);
     let interval = [(median - half).max(0.0), (median + half).min(1.0)];
     let note = format!(
-        "median of {} pixels' xi, each from its own phasors; spread {spread:.4}, stated sigma {stated:.4} per pixel",
-        pixels.len()
+        "median of {} pixels' xi, each from its own phasors; spread {spread:.4}, stated sigma {stated:.4} per pixel; {} blocks, half width {block_half:.4} from their scatter",
+        pixels.len(),
+        blocks.len()
     );
     RegionOutput {
         id,
@@ -850,6 +864,26 @@ fn layer_region(id: u32, pixels: &[usize], results: &[PixelResult]) -> RegionOut
         opaque: false,
         class: None,
     }
+}
+
+/// Side of the square blocks whose medians measure a region's shared error, pixels.
+const BLOCK_PX: usize = 8;
+
+/// The median ξ of each [`BLOCK_PX`]-square block holding at least a quarter of its pixels.
+fn block_medians(pixels: &[usize], width: usize, results: &[PixelResult]) -> Vec<f64> {
+    let width = width.max(1);
+    let mut by_block: std::collections::BTreeMap<(usize, usize), Vec<f64>> = Default::default();
+    for &i in pixels {
+        by_block
+            .entry(((i / width) / BLOCK_PX, (i % width) / BLOCK_PX))
+            .or_default()
+            .push(results[i].xi);
+    }
+    by_block
+        .into_values()
+        .filter(|v| v.len() * 4 >= BLOCK_PX * BLOCK_PX)
+        .map(|mut v| median_select(&mut v))
+        .collect()
 }
 
 /// A changed region one return explains at every pixel: ξ 0, bounded above by
