@@ -38,6 +38,7 @@ use crate::physics::multifreq::{
 };
 use crate::physics::segmentation::{label_regions, remove_small_regions, wrapped_difference};
 use crate::physics::stats::{median_select, sigma_about, student_t975};
+use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::{ForwardModel, ImageBuf, Intrinsics, XiEstimate, XiMethod};
 
 /// Most modulation frequencies the path takes.
@@ -152,6 +153,11 @@ pub struct MultiFrequencyConfig {
     pub opacity_threshold: f64,
     /// Pieces of the mask (and of the changed opaque pixels) smaller than this are dropped.
     pub min_region_pixels: usize,
+    /// Radius (pixels) of the smooth-surface prior on each layer region (0: per pixel only),
+    /// as on the single-frequency path.
+    pub prior_radius_px: usize,
+    /// The prior's windows are shared by square blocks of this many pixels a side.
+    pub prior_stride_px: usize,
 }
 
 impl MultiFrequencyConfig {
@@ -164,6 +170,8 @@ impl MultiFrequencyConfig {
             change_sigmas: 3.09,
             opacity_threshold: CHI_SQUARE_1_999,
             min_region_pixels: 12,
+            prior_radius_px: 4,
+            prior_stride_px: 3,
         }
     }
 }
@@ -681,7 +689,8 @@ impl MultiFrequencyStage {
         let (mask, opaque) = self.masks(results);
         let (labels, layers) = self.labels(results, &mask, &opaque);
         let regions = regions(&labels, layers, results);
-        let filled = self.fill(depth, &mask, results);
+        let layer_mm = self.surface_prior(&labels, layers, results);
+        let filled = self.fill(depth, &mask, results, &layer_mm);
         let xi = frame_estimate(&regions, layers as usize);
         MultiFrequencyOutput {
             frame: FrameOutput {
@@ -756,9 +765,50 @@ impl MultiFrequencyStage {
         (labels, layers)
     }
 
+    /// Each pixel's layer distance along its ray, mm: the pixel's own, or, with the prior,
+    /// the local surface fitted over its region's pixels (robust planes in windows of
+    /// `prior_radius_px`, one region at a time so that no window mixes two objects), where
+    /// one fits.
+    fn surface_prior(&self, labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> Vec<f64> {
+        let mut out: Vec<f64> = results.iter().map(|r| r.distance_mm).collect();
+        if self.config.prior_radius_px == 0 {
+            return out;
+        }
+        let windows = Windows {
+            radius: self.config.prior_radius_px,
+            min_points: 12,
+            stride: self.config.prior_stride_px.max(1),
+        };
+        let (w, h) = (labels.width, labels.height);
+        let nan = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
+        for region in 1..=layers {
+            let mask = ImageBuf {
+                width: w,
+                height: h,
+                data: labels.data.iter().map(|&l| l == region).collect(),
+            };
+            let mut points = ImageBuf::filled(w, h, nan);
+            for (i, &m) in mask.data.iter().enumerate() {
+                if m && results[i].distance_mm.is_finite() {
+                    points.data[i] = self.rays.data[i] * results[i].distance_mm;
+                }
+            }
+            let surfaces = LocalSurfaces::new(&points, &self.rays, &mask, &windows);
+            for i in (0..mask.len()).filter(|&i| mask.data[i]) {
+                if let Some(t) = surfaces
+                    .ray_distance(i, &self.rays)
+                    .filter(|t| t.is_finite() && *t > 0.0)
+                {
+                    out[i] = t;
+                }
+            }
+        }
+        out
+    }
+
     /// The corrected depth (the layer's in the mask, the reading elsewhere),
     /// its σ and the ξ image.
-    fn fill(&self, depth: &DepthFrame, mask: &ImageBuf<bool>, results: &[PixelResult]) -> Filled {
+    fn fill(&self, depth: &DepthFrame, mask: &ImageBuf<bool>, results: &[PixelResult], layer_mm: &[f64]) -> Filled {
         let (w, h) = (mask.width, mask.height);
         let mut f = Filled {
             corrected_z_mm: depth.z_mm.clone(),
@@ -770,7 +820,7 @@ impl MultiFrequencyStage {
         let mut xis = vec![];
         for i in (0..mask.len()).filter(|&i| mask.data[i]) {
             let (r, s) = (&results[i], self.scale.data[i]);
-            f.corrected_z_mm.data[i] = (r.distance_mm / s) as f32;
+            f.corrected_z_mm.data[i] = (layer_mm[i] / s) as f32;
             f.sigma_mm.data[i] = (r.distance_sigma_mm / s) as f32;
             f.translucency.data[i] = r.xi as f32;
             xis.push(r.xi);
