@@ -758,18 +758,7 @@ impl Pipeline {
             } else {
                 region_observations(obs, k as u32 + 1).map(std::borrow::Cow::Owned)
             };
-            region.profile = observations.and_then(|observations| {
-                let sample = FrameSample::from_image(&observations, &self.rays, None, budget);
-                (sample.pixel_count() >= settings.min_group_pixels).then(|| {
-                    translucency::frame_profile(
-                        &self.config.model,
-                        &self.bounds,
-                        &sample,
-                        &settings,
-                        translucency::ProfileUse::Estimation,
-                    )
-                })
-            });
+            region.profile = observations.and_then(|observations| self.region_profile(&observations, budget));
         }
         let ids = self
             .materials
@@ -870,16 +859,22 @@ impl Pipeline {
     /// it (the same sample, bounds and groups), without pooling it: what a calibration
     /// measures the implied albedo of. `None` when the frame has no region with enough pixels.
     pub fn largest_region_profile(&self, obs: &Observed) -> Option<FrameProfile> {
-        let settings = self.config.xi_settings;
         let (k, _) = obs.regions.iter().enumerate().max_by_key(|(_, r)| r.pixels)?;
         let observations = region_observations(obs, k as u32 + 1)?;
-        let sample = FrameSample::from_image(&observations, &self.rays, None, settings.max_pixels_per_frame);
+        self.region_profile(&observations, self.config.xi_settings.max_pixels_per_frame)
+    }
+
+    /// A region's evidence about ξ from a lattice of at most `budget` of its pixels; `None`
+    /// when the lattice holds fewer than a group's pixels.
+    fn region_profile(&self, observations: &SparseImage<PixelObservation>, budget: usize) -> Option<FrameProfile> {
+        let settings = &self.config.xi_settings;
+        let sample = FrameSample::from_image(observations, &self.rays, None, budget);
         (sample.pixel_count() >= settings.min_group_pixels).then(|| {
             translucency::frame_profile(
                 &self.config.model,
                 &self.bounds,
                 &sample,
-                &settings,
+                settings,
                 translucency::ProfileUse::Estimation,
             )
         })
