@@ -1361,7 +1361,7 @@ const SURFACE_PARAMETERS: f64 = 6.0;
 /// index, `width` wide): the roots' scatter about the surface within `radius` (at least their
 /// reading noise, `noise`), averaged down by the window's count. A pixel with no root near
 /// gets `unknown_mm`.
-fn surface_standard_error(
+pub(crate) fn surface_standard_error(
     roots: &[f64],
     surface: &[f64],
     noise: &[f64],

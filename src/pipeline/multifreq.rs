@@ -689,8 +689,8 @@ impl MultiFrequencyStage {
         let (mask, opaque) = self.masks(results);
         let (labels, layers) = self.labels(results, &mask, &opaque);
         let regions = regions(&labels, layers, results);
-        let layer_mm = self.surface_prior(&labels, layers, results);
-        let filled = self.fill(depth, &mask, results, &layer_mm);
+        let layer = self.surface_prior(&labels, layers, results);
+        let filled = self.fill(depth, &mask, results, &layer);
         let xi = frame_estimate(&regions, layers as usize);
         MultiFrequencyOutput {
             frame: FrameOutput {
@@ -769,10 +769,15 @@ impl MultiFrequencyStage {
     /// the local surface fitted over its region's pixels (robust planes in windows of
     /// `prior_radius_px`, one region at a time so that no window mixes two objects), where
     /// one fits.
-    fn surface_prior(&self, labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> Vec<f64> {
-        let mut out: Vec<f64> = results.iter().map(|r| r.distance_mm).collect();
-        if self.config.prior_radius_px == 0 {
-            return out;
+    fn surface_prior(&self, labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> Layer {
+        let roots: Vec<f64> = results.iter().map(|r| r.distance_mm).collect();
+        let noise: Vec<f64> = results.iter().map(|r| r.distance_sigma_mm).collect();
+        let mut out = roots.clone();
+        if self.config.prior_radius_px == 0 || layers == 0 {
+            return Layer {
+                distance_mm: out,
+                sigma_mm: noise,
+            };
         }
         let windows = Windows {
             radius: self.config.prior_radius_px,
@@ -803,12 +808,33 @@ impl MultiFrequencyStage {
                 }
             }
         }
-        out
+        // Each pixel's σ: the roots' scatter about the surface near it, averaged down by the
+        // window (as on the single-frequency path); the pixel's own where no surface fits.
+        let surface: Vec<f64> = (0..out.len())
+            .map(|i| {
+                if labels.data[i] > 0 && labels.data[i] <= layers {
+                    out[i]
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        let windowed =
+            crate::pipeline::surface_standard_error(&roots, &surface, &noise, w, self.config.prior_radius_px, f64::NAN);
+        let sigma_mm = windowed
+            .iter()
+            .zip(&noise)
+            .map(|(&s, &n)| if s.is_finite() { s } else { n })
+            .collect();
+        Layer {
+            distance_mm: out,
+            sigma_mm,
+        }
     }
 
     /// The corrected depth (the layer's in the mask, the reading elsewhere),
     /// its σ and the ξ image.
-    fn fill(&self, depth: &DepthFrame, mask: &ImageBuf<bool>, results: &[PixelResult], layer_mm: &[f64]) -> Filled {
+    fn fill(&self, depth: &DepthFrame, mask: &ImageBuf<bool>, results: &[PixelResult], layer: &Layer) -> Filled {
         let (w, h) = (mask.width, mask.height);
         let mut f = Filled {
             corrected_z_mm: depth.z_mm.clone(),
@@ -820,8 +846,8 @@ impl MultiFrequencyStage {
         let mut xis = vec![];
         for i in (0..mask.len()).filter(|&i| mask.data[i]) {
             let (r, s) = (&results[i], self.scale.data[i]);
-            f.corrected_z_mm.data[i] = (layer_mm[i] / s) as f32;
-            f.sigma_mm.data[i] = (r.distance_sigma_mm / s) as f32;
+            f.corrected_z_mm.data[i] = (layer.distance_mm[i] / s) as f32;
+            f.sigma_mm.data[i] = (layer.sigma_mm[i] / s) as f32;
             f.translucency.data[i] = r.xi as f32;
             xis.push(r.xi);
         }
@@ -829,6 +855,13 @@ impl MultiFrequencyStage {
         f.xi_median = median_select(&mut xis);
         f
     }
+}
+
+/// Each pixel's layer distance along its ray and its σ, mm (what [`MultiFrequencyStage::fill`]
+/// publishes in the mask).
+struct Layer {
+    distance_mm: Vec<f64>,
+    sigma_mm: Vec<f64>,
 }
 
 /// What [`MultiFrequencyStage::fill`] makes.
