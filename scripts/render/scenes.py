@@ -269,26 +269,40 @@ def fits(obj, bgz, margin=200.0):
     return bool(zz.min() > 500 and np.all(bgz[px] - zz > margin))
 
 
-def draw(i):
-    seed = 1000 + i
-    rng = np.random.default_rng(seed)
+def drawn_background(rng, wall_from_mm, boxes_from_mm):
+    """A background of a drawn kind (wall, boxes on a wall, corner, table) and the
+    farthest an object may stand before it: `(kind, bg, bgm, bgd, bgz, zmax)`."""
     kind = ["wall", "boxes_on_wall", "corner", "table"][int(rng.integers(4))]
     if kind == "wall":
-        bg, bgm, bgd = bg_wall(rng.uniform(1800, 3500), rng.uniform(0.3, 1.0), tilt_y=rng.uniform(-20, 20))
+        bg, bgm, bgd = bg_wall(rng.uniform(wall_from_mm, 3500), rng.uniform(0.3, 1.0), tilt_y=rng.uniform(-20, 20))
     elif kind == "boxes_on_wall":
-        bg, bgm, bgd = bg_boxes_on_wall(rng, rng.uniform(2200, 3500))
+        bg, bgm, bgd = bg_boxes_on_wall(rng, rng.uniform(boxes_from_mm, 3500))
     elif kind == "corner":
         bg, bgm, bgd = bg_corner(rng)
     else:
         bg, bgm, bgd = bg_table(rng)
     bgz = bg_depth(bg)
     zmax = float(np.nanmin(bgz[30:114, 35:141])) - 300
-    n_mat = int(rng.integers(1, 4))
+    return kind, bg, bgm, bgd, bgz, zmax
+
+
+def drawn_sheets(rng, n_mat):
+    """`n_mat` sheet materials (xi 0.3-0.95, albedo 0.3-0.7), the first a diffuse
+    transmitter one time in five: `{"m1": ..., ...}`."""
     use_dt = rng.uniform() < 0.2
     mats = {}
     for m in range(n_mat):
         model = "difftrans" if (use_dt and m == 0) else "mask"
         mats[f"m{m + 1}"] = mat(m + 1, f"sheet_{m + 1}", rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.7), model)
+    return mats
+
+
+def draw(i):
+    seed = 1000 + i
+    rng = np.random.default_rng(seed)
+    kind, bg, bgm, bgd, bgz, zmax = drawn_background(rng, 1800, 2200)
+    n_mat = int(rng.integers(1, 4))
+    mats = drawn_sheets(rng, n_mat)
     with_box = rng.uniform() < 0.4
     if with_box:
         mats["box"] = mat(n_mat + 1, "opaque_box", 0.0, rng.uniform(0.3, 0.8), "opaque")
@@ -314,7 +328,7 @@ def draw(i):
                     objs.append(o)
                     break
         stages.append({"frames": int(rng.integers(1, 3)), "objects": objs})
-    model = "mixed" if use_dt else "mask"
+    model = "mixed" if any(m["model"] == "difftrans" for m in mats.values()) else "mask"
     return dict(name=f"draw_{i:02d}", seed=seed, model=model, spp=COVERAGE_SPP, background=bg,
                 background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
                 spp_note=f"coverage set: {COVERAGE_SPP} spp (fewer than the named bags' {HIGH_SPP}) to keep render time manageable; "
@@ -446,23 +460,9 @@ def path(rng, n, mid, speed, tilts0):
 def video(i, n_tries=400):
     seed = 2000 + i
     rng = np.random.default_rng(seed)
-    kind = ["wall", "boxes_on_wall", "corner", "table"][int(rng.integers(4))]
-    if kind == "wall":
-        bg, bgm, bgd = bg_wall(rng.uniform(2200, 3500), rng.uniform(0.3, 1.0), tilt_y=rng.uniform(-20, 20))
-    elif kind == "boxes_on_wall":
-        bg, bgm, bgd = bg_boxes_on_wall(rng, rng.uniform(2400, 3500))
-    elif kind == "corner":
-        bg, bgm, bgd = bg_corner(rng)
-    else:
-        bg, bgm, bgd = bg_table(rng)
-    bgz = bg_depth(bg)
-    zmax = float(np.nanmin(bgz[30:114, 35:141])) - 300
+    kind, bg, bgm, bgd, bgz, zmax = drawn_background(rng, 2200, 2400)
     n_mat = int(rng.integers(2, 4))
-    use_dt = rng.uniform() < 0.2
-    mats = {}
-    for m in range(n_mat):
-        model = "difftrans" if (use_dt and m == 0) else "mask"
-        mats[f"m{m + 1}"] = mat(m + 1, f"sheet_{m + 1}", rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.7), model)
+    mats = drawn_sheets(rng, n_mat)
     mats["box"] = mat(n_mat + 1, "opaque_box", 0.0, rng.uniform(0.3, 0.8), "opaque")
     n = int(rng.integers(20, 26))  # moving frames (at most 35 frames: a bag stays under ~4 MB)
     keys = [f"m{m + 1}" for m in range(n_mat)] + ["box"]
@@ -505,7 +505,7 @@ def video(i, n_tries=400):
         else:
             raise RuntimeError(f"video_{i:02d}: no path for {k} in {n_tries} draws")
     stages = [{"frames": 1, "objects": [p[f] for p in placed]} for f in range(n)]
-    model = "mixed" if use_dt else "mask"
+    model = "mixed" if any(m["model"] == "difftrans" for m in mats.values()) else "mask"
     return dict(name=f"video_{i:02d}", seed=seed, model=model, spp=VIDEO_SPP, background=bg,
                 background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
                 tracks=tracks, frame_rate_hz=VIDEO_RATE_HZ, zstd_level=19,
