@@ -11,6 +11,8 @@
 //! Each works on per-frame [`FrameProfile`]s computed once on a fixed ξ grid,
 //! so pooling a new frame costs one frame's work.
 
+use std::borrow::Borrow;
+
 use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -559,9 +561,9 @@ fn group_stat(mut v: Vec<f64>, min_count: usize) -> GroupStat {
 ///
 /// ξ = 0 (opaque, no layer to invert) is always eligible, and does not set the best
 /// share: it is evaluated without the albedo bound (see [`frame_profile`]).
-fn eligible(profiles: &[FrameProfile]) -> Vec<bool> {
+fn eligible<P: Borrow<FrameProfile>>(profiles: &[P]) -> Vec<bool> {
     let frac = pooled_pinned_fraction(profiles);
-    let total: usize = profiles.iter().map(|p| p.pixels).sum();
+    let total: usize = profiles.iter().map(|p| p.borrow().pixels).sum();
     let best = frac.iter().skip(1).copied().fold(f64::INFINITY, f64::min);
     let tol = 0.05f64.max(3.0 * (best * (1.0 - best) / total.max(1) as f64).sqrt());
     frac.iter()
@@ -571,13 +573,13 @@ fn eligible(profiles: &[FrameProfile]) -> Vec<bool> {
 }
 
 /// Per ξ of the grid: the share of the pooled pixels pinned at a bound or without a root.
-fn pooled_pinned_fraction(profiles: &[FrameProfile]) -> Vec<f64> {
-    let total: usize = profiles.iter().map(|p| p.pixels).sum();
+fn pooled_pinned_fraction<P: Borrow<FrameProfile>>(profiles: &[P]) -> Vec<f64> {
+    let total: usize = profiles.iter().map(|p| p.borrow().pixels).sum();
     (0..xi_grid().len())
         .map(|k| {
             profiles
                 .iter()
-                .map(|p| p.pinned_fraction[k] * p.pixels as f64)
+                .map(|p| p.borrow().pinned_fraction[k] * p.borrow().pixels as f64)
                 .sum::<f64>()
                 / total.max(1) as f64
         })
@@ -588,11 +590,11 @@ fn pooled_pinned_fraction(profiles: &[FrameProfile]) -> Vec<f64> {
 /// `S = sum w`, `T = sum w m`, `U = sum w m^2` over the groups, `w = 1 / se^2`.
 type PoseSums = (f64, f64, f64, usize);
 
-fn pose_sums(profiles: &[FrameProfile], pose: &[usize], poses: usize, k: usize) -> Vec<PoseSums> {
+fn pose_sums<P: Borrow<FrameProfile>>(profiles: &[P], pose: &[usize], poses: usize, k: usize) -> Vec<PoseSums> {
     let mut sums = vec![(0.0, 0.0, 0.0, 0); poses];
     for (p, &j) in profiles.iter().zip(pose) {
         let Some(s) = sums.get_mut(j) else { continue };
-        for g in p.groups[k].iter().filter(|g| g.median.is_finite()) {
+        for g in p.borrow().groups[k].iter().filter(|g| g.median.is_finite()) {
             let w = 1.0 / (g.std_error * g.std_error);
             *s = (s.0 + w, s.1 + w * g.median, s.2 + w * g.median * g.median, s.3 + 1);
         }
@@ -658,8 +660,8 @@ fn pose_variance(sums: &[PoseSums]) -> f64 {
 
 /// The one-material objective at each ξ of the grid, the groups' variances scaled by `phi`
 /// and the poses' offsets of variance `tau2`. Returns `(Q, groups)` per ξ.
-fn one_material_objective(
-    profiles: &[FrameProfile],
+fn one_material_objective<P: Borrow<FrameProfile>>(
+    profiles: &[P],
     pose: &[usize],
     poses: usize,
     (phi, tau2): (f64, f64),
@@ -681,7 +683,12 @@ fn one_material_objective(
 /// is what picks that ξ), and what the model cannot explain between two distances along a
 /// tilted object it does not explain better between two poses (objects.md, "Intervals that
 /// hold": overdispersion from the object's own residuals).
-fn misfit_scales(profiles: &[FrameProfile], pose: &[usize], poses: usize, ok: &[bool]) -> Option<(f64, f64, f64)> {
+fn misfit_scales<P: Borrow<FrameProfile>>(
+    profiles: &[P],
+    pose: &[usize],
+    poses: usize,
+    ok: &[bool],
+) -> Option<(f64, f64, f64)> {
     let plain: Vec<f64> = one_material_objective(profiles, pose, poses, (1.0, 0.0))
         .iter()
         .zip(ok)
@@ -711,11 +718,11 @@ fn group_variance(sums: &[PoseSums]) -> f64 {
 /// the scene shows a pose every 5 % of distance it travels, as one moved in steps does at
 /// each step. Returns each frame's pose (`usize::MAX` without a distance) and the number of
 /// poses.
-fn pose_labels(profiles: &[FrameProfile]) -> (Vec<usize>, usize) {
+fn pose_labels<P: Borrow<FrameProfile>>(profiles: &[P]) -> (Vec<usize>, usize) {
     let mut order: Vec<(f64, usize)> = profiles
         .iter()
         .enumerate()
-        .map(|(i, p)| (p.median_distance_mm, i))
+        .map(|(i, p)| (p.borrow().median_distance_mm, i))
         .filter(|(d, _)| d.is_finite())
         .collect();
     order.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -822,12 +829,14 @@ pub const SAME_MATERIAL_LEVEL: f64 = 13.82;
 /// [`SAME_MATERIAL_LEVEL`] unless some ξ makes both albedos agree (then the data cannot tell).
 /// `None` when the evidence holds too few groups to say.
 pub fn same_material_statistic(object: &[FrameProfile], frame: &FrameProfile) -> Option<f64> {
-    let joint: Vec<FrameProfile> = object.iter().chain(std::iter::once(frame)).cloned().collect();
+    // The evidence by reference: an object pools up to `max_frames_pooled` frames, and this
+    // runs for every region that may continue it, every frame.
+    let joint: Vec<&FrameProfile> = object.iter().chain(std::iter::once(frame)).collect();
     let ok = eligible(&joint);
     let (pose, poses) = pose_labels(&joint);
     let (phi, tau2, _) = misfit_scales(&joint, &pose, poses, &ok)?;
     let scales = (phi, tau2);
-    let least = |profiles: &[FrameProfile], pose: &[usize], poses: usize| -> Option<f64> {
+    let least = |profiles: &[&FrameProfile], pose: &[usize], poses: usize| -> Option<f64> {
         let q: Vec<f64> = one_material_objective(profiles, pose, poses, scales)
             .iter()
             .zip(&ok)
@@ -837,8 +846,8 @@ pub fn same_material_statistic(object: &[FrameProfile], frame: &FrameProfile) ->
     };
     let n = object.len();
     let q_joint = least(&joint, &pose, poses)?;
-    let q_object = least(object, &pose[..n], poses).unwrap_or(0.0);
-    let q_frame = least(std::slice::from_ref(frame), &pose[n..], poses).unwrap_or(0.0);
+    let q_object = least(&joint[..n], &pose[..n], poses).unwrap_or(0.0);
+    let q_frame = least(&joint[n..], &pose[n..], poses).unwrap_or(0.0);
     Some((q_joint - q_object - q_frame).max(0.0))
 }
 
