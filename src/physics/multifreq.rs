@@ -31,7 +31,7 @@
 use nalgebra::Matrix3;
 
 use super::model::{ForwardModel, LayerScene, Measurement, Return, MAX_BOUNCES};
-use super::sensor::{Buckets, Sensor, SPEED_OF_LIGHT_MM_PER_S};
+use super::sensor::{Buckets, Sensor, Waveform, SPEED_OF_LIGHT_MM_PER_S};
 
 /// A complex phasor at one frequency: in-phase `a = Q1 - Q2` and quadrature
 /// `b = Q3 - Q4` (the bucket differences of Eq. 5).
@@ -209,7 +209,7 @@ pub struct ScanSettings {
     pub min_separation_mm: f64,
     /// Coarse grid cells per shortest unambiguous range `min R_k`.
     pub cells_per_range: f64,
-    /// Width to which the best coarse cells are refined (golden section), mm.
+    /// Width to which the best coarse cells are refined (Brent's search), mm.
     pub tolerance_mm: f64,
 }
 
@@ -218,8 +218,8 @@ impl Default for ScanSettings {
         Self {
             min_distance_mm: 100.0,
             min_separation_mm: 1.0,
-            cells_per_range: 64.0,
-            tolerance_mm: 1e-3,
+            cells_per_range: 16.0,
+            tolerance_mm: 0.05,
         }
     }
 }
@@ -424,24 +424,32 @@ impl MultiFrequencyInversion {
     /// chi^2 = sum_k |M_k - a u_k(d1) - ξ² B_k|^2 / sigma_k^2
     /// ```
     ///
-    /// `d1` on a grid over `[d_min, db - separation]` refined by golden
-    /// section around the two best cells; `(a, ξ²)` in closed form at each
+    /// `d1` on a grid over `[d_min, db - separation]` refined by Brent's
+    /// search around the two best cells; `(a, ξ²)` in closed form at each
     /// `d1`. The pixel is opaque (ξ = 0, `d1` the single return's distance,
     /// searched up to `db`) when dropping the background term raises `chi^2`
     /// by at most [`CHI_SQUARE_1_95`].
     pub fn invert(&self, px: &PixelPhasors) -> Result<MultiFrequencyEstimate, MultiFrequencyError> {
         let p = self.pixel(px)?;
-        let (d1, _) = self.minimise(p.lo, p.hi, |d| self.gram(&p, d).two_returns(&p.fixed).chi_square);
-        let layer = self.gram(&p, d1).two_returns(&p.fixed);
-        let (d0, single_chi_square) = self.minimise(p.lo, px.background_distance_mm, |d| {
-            let g = self.gram(&p, d);
-            g.chi_square(&p.fixed, g.return_at(0.0), 0.0)
+        let db = px.background_distance_mm;
+        let two = |g: Gram| g.two_returns(&p.fixed).chi_square;
+        let one = |g: Gram| g.chi_square(&p.fixed, g.return_at(0.0), 0.0);
+        // One scan serves both: the layer's objective up to `db - separation`, the single
+        // return's up to `db`.
+        let (cells, h) = self.grid(p.lo, db);
+        let (mut layer_minima, mut single_minima) = (GridMinima::default(), GridMinima::default());
+        self.scan_grams(&p, p.lo, h, cells, |d, g| {
+            layer_minima.push(d, if d <= p.hi { two(g) } else { f64::INFINITY });
+            single_minima.push(d, one(g));
         });
+        let (d1, _) = self.refine(layer_minima.lowest(), p.lo, p.hi, h, |d| two(self.gram(&p, d)));
+        let layer = self.gram(&p, d1).two_returns(&p.fixed);
+        let (d0, single_chi_square) = self.refine(single_minima.lowest(), p.lo, db, h, |d| one(self.gram(&p, d)));
         let opacity_statistic = (single_chi_square - layer.chi_square).max(0.0);
         if opacity_statistic <= CHI_SQUARE_1_95 {
             return Ok(self.opaque_estimate(&p, d0, single_chi_square, opacity_statistic));
         }
-        let [var_d, _, var_t] = self.variances(&p, d1, layer.a);
+        let [var_d, _, var_t] = Self::variances(&self.fisher(&p, d1, layer.a));
         let xi = layer.t.sqrt();
         Ok(MultiFrequencyEstimate {
             foreground_distance_mm: d1,
@@ -535,8 +543,9 @@ impl MultiFrequencyInversion {
     /// The estimate of a pixel that one return explains.
     fn opaque_estimate(&self, p: &Pixel, d0: f64, chi_square: f64, statistic: f64) -> MultiFrequencyEstimate {
         let a0 = self.gram(p, d0).return_at(0.0);
-        let [var_d, _] = self.opaque_variances(p, d0, a0);
-        let [_, _, var_t] = self.variances(p, d0, a0);
+        let fisher = self.fisher(p, d0, a0);
+        let [var_d, _] = Self::opaque_variances(&fisher);
+        let [_, _, var_t] = Self::variances(&fisher);
         MultiFrequencyEstimate {
             foreground_distance_mm: d0,
             first_return: a0,
@@ -621,14 +630,28 @@ impl MultiFrequencyInversion {
         sensor.buckets(1.0, d1 + self.delay_mm)
     }
 
-    /// `d u_k / d d1`, by central differences (exact enough for every waveform).
-    fn unit_return_slope(&self, sensor: &Sensor, d1: f64) -> Phasor {
+    /// `u_k(d1)` and `d u_k / d d1`: for the sinusoid the unit return turned by a quarter
+    /// and scaled by `2 pi / R_k`, for other waveforms by central differences (exact enough
+    /// for every waveform).
+    fn unit_return_and_slope(&self, sensor: &Sensor, d1: f64) -> (Phasor, Phasor) {
+        let u = self.unit_return(sensor, d1);
+        if sensor.waveform == Waveform::Sinusoid {
+            let omega = sensor.phase(1.0);
+            return (
+                u,
+                Phasor {
+                    a: -omega * u.b,
+                    b: omega * u.a,
+                },
+            );
+        }
         const H: f64 = 0.01;
         let (p, m) = (self.unit_return(sensor, d1 + H), self.unit_return(sensor, d1 - H));
-        Phasor {
+        let slope = Phasor {
             a: (p.a - m.a) / (2.0 * H),
             b: (p.b - m.b) / (2.0 * H),
-        }
+        };
+        (u, slope)
     }
 
     fn gram(&self, p: &Pixel, d1: f64) -> Gram {
@@ -662,13 +685,13 @@ impl MultiFrequencyInversion {
         let px = p.px;
         for ((s, b), sigma) in self.sensors.iter().zip(px.background).zip(px.noise_sigma) {
             let w = 1.0 / (sigma * sigma);
-            let du = self.unit_return_slope(s, d1);
+            let (u, du) = self.unit_return_and_slope(s, d1);
             let cols = [
                 Phasor {
                     a: a * du.a,
                     b: a * du.b,
                 },
-                self.unit_return(s, d1),
+                u,
                 *b,
             ];
             for i in 0..3 {
@@ -682,8 +705,7 @@ impl MultiFrequencyInversion {
 
     /// The variances of `(d1, a, ξ²)`: the diagonal of `F^-1`; infinite where
     /// `F` is singular (fewer observations than unknowns, or no layer return).
-    fn variances(&self, p: &Pixel, d1: f64, a: f64) -> [f64; 3] {
-        let f = self.fisher(p, d1, a);
+    fn variances(f: &Matrix3<f64>) -> [f64; 3] {
         let scale = f[(0, 0)] * f[(1, 1)] * f[(2, 2)];
         let inverse = (scale > 0.0 && f.determinant() > 1e-10 * scale)
             .then(|| f.try_inverse())
@@ -695,8 +717,7 @@ impl MultiFrequencyInversion {
     }
 
     /// The variances of `(d, a)` for one return alone: the top-left 2 x 2 of `F`.
-    fn opaque_variances(&self, p: &Pixel, d: f64, a: f64) -> [f64; 2] {
-        let f = self.fisher(p, d, a);
+    fn opaque_variances(f: &Matrix3<f64>) -> [f64; 2] {
         let (fdd, fda, faa) = (f[(0, 0)], f[(0, 1)], f[(1, 1)]);
         let det = fdd * faa - fda * fda;
         if !(fdd * faa > 0.0 && det > 1e-10 * fdd * faa) {
@@ -705,28 +726,79 @@ impl MultiFrequencyInversion {
         [faa / det, fdd / det]
     }
 
-    /// The minimum of `f` over `[lo, hi]`: a grid of cells no wider than the
-    /// coarse step, then golden section over the two cells either side of
-    /// each of the two lowest local minima of the grid.
-    fn minimise(&self, lo: f64, hi: f64, f: impl Fn(f64) -> f64) -> (f64, f64) {
+    /// The grid of a scan over `[lo, hi]`: `cells` cells no wider than the coarse step, of
+    /// width `h`; its points are `lo + j h`, `j = 0..=cells`.
+    fn grid(&self, lo: f64, hi: f64) -> (usize, f64) {
         let cells = ((hi - lo) / self.coarse_step_mm).ceil().max(1.0);
-        let h = (hi - lo) / cells;
-        let n = cells as usize;
-        let mut lowest = [(lo, f64::INFINITY); 2];
-        let (mut prev, mut cur) = (f64::INFINITY, f(lo));
-        for i in 0..=n {
-            let x = lo + i as f64 * h;
-            let next = if i < n { f(x + h) } else { f64::INFINITY };
-            if cur <= prev && cur <= next {
-                keep_lowest(&mut lowest, (x, cur));
+        (cells as usize, (hi - lo) / cells)
+    }
+
+    /// The Gram products at every point `lo + j h` of a grid, `j = 0..=cells`, in order. For
+    /// the sinusoid each frequency's unit return is turned by one fixed rotation per step
+    /// (no trigonometry inside the scan); other waveforms are evaluated at each point.
+    fn scan_grams(&self, p: &Pixel, lo: f64, h: f64, cells: usize, mut visit: impl FnMut(f64, Gram)) {
+        let k = self.sensors.len();
+        let sinusoid = k <= ROTATED_FREQUENCIES && self.sensors.iter().all(|s| s.waveform == Waveform::Sinusoid);
+        if !sinusoid {
+            for j in 0..=cells {
+                let d = lo + j as f64 * h;
+                visit(d, self.gram(p, d));
             }
-            (prev, cur) = (cur, next);
+            return;
         }
+        let mut unit = [Phasor::default(); ROTATED_FREQUENCIES];
+        let mut turn = [Phasor::default(); ROTATED_FREQUENCIES];
+        for ((u, t), s) in unit.iter_mut().zip(turn.iter_mut()).zip(&self.sensors) {
+            *u = self.unit_return(s, lo);
+            let (sin, cos) = s.phase(h).sin_cos();
+            *t = Phasor { a: cos, b: sin };
+        }
+        let px = p.px;
+        for j in 0..=cells {
+            let mut g = Gram {
+                uu: 0.0,
+                ub: 0.0,
+                um: 0.0,
+            };
+            for (((u, b), m), sigma) in unit[..k].iter().zip(px.background).zip(px.measured).zip(px.noise_sigma) {
+                let w = 1.0 / (sigma * sigma);
+                g.uu += w * dot(*u, *u);
+                g.ub += w * dot(*u, *b);
+                g.um += w * dot(*u, *m);
+            }
+            visit(lo + j as f64 * h, g);
+            for (u, t) in unit[..k].iter_mut().zip(&turn[..k]) {
+                *u = Phasor {
+                    a: u.a * t.a - u.b * t.b,
+                    b: u.a * t.b + u.b * t.a,
+                };
+            }
+        }
+    }
+
+    /// The minimum of `f` over `[lo, hi]`: a grid of cells no wider than the
+    /// coarse step, then each of the grid's two lowest local minima refined
+    /// ([`Self::refine`]).
+    fn minimise(&self, lo: f64, hi: f64, f: impl Fn(f64) -> f64) -> (f64, f64) {
+        let (cells, h) = self.grid(lo, hi);
+        let mut minima = GridMinima::default();
+        for j in 0..=cells {
+            let x = lo + j as f64 * h;
+            minima.push(x, f(x));
+        }
+        self.refine(minima.lowest(), lo, hi, h, f)
+    }
+
+    /// The lowest of the grid minima `lowest` (cells of width `h`), each refined by Brent's
+    /// search over the cells either side of it within `[lo, hi]`, seeded with the grid's
+    /// three points.
+    fn refine(&self, lowest: [GridPoint; 2], lo: f64, hi: f64, h: f64, f: impl Fn(f64) -> f64) -> (f64, f64) {
         let tol = self.settings.tolerance_mm;
         let mut best = (lo, f64::INFINITY);
-        for (x, fx) in lowest.into_iter().filter(|m| m.1.is_finite()) {
-            let refined = golden_section((x - h).max(lo), (x + h).min(hi), tol, &f);
-            let candidate = if refined.1 <= fx { refined } else { (x, fx) };
+        for m in lowest.into_iter().filter(|m| m.value.is_finite()) {
+            let bracket = ((m.x - h).max(lo), (m.x + h).min(hi));
+            let refined = brent_minimum(bracket, m.seed(h), tol, &f);
+            let candidate = if refined.1 <= m.value { refined } else { (m.x, m.value) };
             if candidate.1 < best.1 {
                 best = candidate;
             }
@@ -735,44 +807,163 @@ impl MultiFrequencyInversion {
     }
 }
 
-/// Keeps the two lowest `(x, f(x))` in `lowest`, lowest first.
-fn keep_lowest(lowest: &mut [(f64, f64); 2], m: (f64, f64)) {
-    if m.1 < lowest[0].1 {
-        lowest[1] = lowest[0];
-        lowest[0] = m;
-    } else if m.1 < lowest[1].1 {
-        lowest[1] = m;
+/// Frequencies up to which a scan turns the unit returns in place (more are evaluated).
+const ROTATED_FREQUENCIES: usize = 8;
+
+/// A local minimum of a grid: its point, value and its neighbours' values (infinite past
+/// an end).
+#[derive(Debug, Clone, Copy)]
+struct GridPoint {
+    x: f64,
+    value: f64,
+    left: f64,
+    right: f64,
+}
+
+impl GridPoint {
+    const NONE: Self = Self {
+        x: 0.0,
+        value: f64::INFINITY,
+        left: f64::INFINITY,
+        right: f64::INFINITY,
+    };
+
+    /// The three points known about the minimum, best first, for [`brent_minimum`].
+    fn seed(&self, h: f64) -> [(f64, f64); 3] {
+        let (l, r) = ((self.x - h, self.left), (self.x + h, self.right));
+        let (near, far) = if self.left <= self.right { (l, r) } else { (r, l) };
+        [(self.x, self.value), near, far]
     }
 }
 
-/// Golden-section search for the minimum of a unimodal `f` on `[lo, hi]`,
-/// to a bracket no wider than `tol`.
-fn golden_section(mut lo: f64, mut hi: f64, tol: f64, f: &impl Fn(f64) -> f64) -> (f64, f64) {
-    const INV_PHI: f64 = 0.618_033_988_749_894_9;
-    let (mut x1, mut x2) = (hi - INV_PHI * (hi - lo), lo + INV_PHI * (hi - lo));
-    let (mut f1, mut f2) = (f(x1), f(x2));
-    while hi - lo > tol {
-        if f1 <= f2 {
-            (hi, x2, f2) = (x2, x1, f1);
-            x1 = hi - INV_PHI * (hi - lo);
-            f1 = f(x1);
-        } else {
-            (lo, x1, f1) = (x1, x2, f2);
-            x2 = lo + INV_PHI * (hi - lo);
-            f2 = f(x2);
+/// The two lowest local minima of a function sampled along a grid, fed point by point in
+/// order (the ends count when no neighbour is lower).
+#[derive(Debug, Clone, Copy)]
+struct GridMinima {
+    before: f64,
+    last: Option<(f64, f64)>,
+    lowest: [GridPoint; 2],
+}
+
+impl Default for GridMinima {
+    fn default() -> Self {
+        Self {
+            before: f64::INFINITY,
+            last: None,
+            lowest: [GridPoint::NONE; 2],
         }
     }
-    if f1 <= f2 {
-        (x1, f1)
-    } else {
-        (x2, f2)
+}
+
+impl GridMinima {
+    /// The next grid point `(x, f(x))`.
+    fn push(&mut self, x: f64, fx: f64) {
+        if let Some((xl, fl)) = self.last {
+            if fl <= self.before && fl <= fx {
+                self.keep(GridPoint {
+                    x: xl,
+                    value: fl,
+                    left: self.before,
+                    right: fx,
+                });
+            }
+            self.before = fl;
+        }
+        self.last = Some((x, fx));
     }
+
+    /// Keeps the two lowest, lowest first.
+    fn keep(&mut self, m: GridPoint) {
+        if m.value < self.lowest[0].value {
+            self.lowest[1] = self.lowest[0];
+            self.lowest[0] = m;
+        } else if m.value < self.lowest[1].value {
+            self.lowest[1] = m;
+        }
+    }
+
+    /// The two lowest local minima, lowest first (the last point taken with nothing after it).
+    fn lowest(mut self) -> [GridPoint; 2] {
+        self.push(f64::NAN, f64::INFINITY);
+        self.lowest
+    }
+}
+
+/// Brent's search for the minimum of `f` on `[lo, hi]` (golden section with parabolic
+/// steps where the parabola through the last three points is trustworthy), to a bracket
+/// about `tol` wide: a smooth minimum takes a handful of evaluations where golden section
+/// alone takes one per factor 1.618 of narrowing.
+fn brent_minimum((mut lo, mut hi): (f64, f64), seed: [(f64, f64); 3], tol: f64, f: &impl Fn(f64) -> f64) -> (f64, f64) {
+    const GOLDEN: f64 = 0.381_966_011_250_105_1; // (3 - sqrt 5) / 2
+    const MAX_STEPS: usize = 100;
+    let step_min = 0.25 * tol;
+    // The best point and the second and third best so far: the seed's, which a first
+    // parabolic step may use.
+    let [(mut x, mut fx), (mut w, mut fw), (mut v, mut fv)] = seed;
+    // This step and the one before the last (a parabolic step must halve it).
+    let (mut step, mut older) = (hi - lo, hi - lo);
+    for _ in 0..MAX_STEPS {
+        let mid = 0.5 * (lo + hi);
+        if (x - mid).abs() <= 2.0 * step_min - 0.5 * (hi - lo) {
+            break;
+        }
+        let last = older;
+        older = step;
+        let parabolic = (last.abs() > step_min)
+            .then(|| parabola_step(x, fx, w, fw, v, fv))
+            .flatten()
+            .filter(|&p| p.abs() < 0.5 * last.abs() && x + p > lo && x + p < hi);
+        step = match parabolic {
+            Some(p) if x + p - lo < 2.0 * step_min || hi - (x + p) < 2.0 * step_min => step_min.copysign(mid - x),
+            Some(p) => p,
+            None => {
+                older = if x >= mid { lo - x } else { hi - x };
+                GOLDEN * older
+            }
+        };
+        let u = x + if step.abs() >= step_min {
+            step
+        } else {
+            step_min.copysign(step)
+        };
+        let fu = f(u);
+        if fu <= fx {
+            if u >= x {
+                lo = x;
+            } else {
+                hi = x;
+            }
+            ((v, fv), (w, fw), (x, fx)) = ((w, fw), (x, fx), (u, fu));
+        } else {
+            if u < x {
+                lo = u;
+            } else {
+                hi = u;
+            }
+            if fu <= fw || w == x {
+                ((v, fv), (w, fw)) = ((w, fw), (u, fu));
+            } else if fu <= fv || v == x || v == w {
+                (v, fv) = (u, fu);
+            }
+        }
+    }
+    (x, fx)
+}
+
+/// The step from `x` to the vertex of the parabola through `(x, fx)`, `(w, fw)`, `(v, fv)`;
+/// `None` where the three points do not bend upwards.
+fn parabola_step(x: f64, fx: f64, w: f64, fw: f64, v: f64, fv: f64) -> Option<f64> {
+    let r = (x - w) * (fx - fv);
+    let q = (x - v) * (fx - fw);
+    let p = (x - v) * q - (x - w) * r;
+    let q = 2.0 * (q - r);
+    let (p, q) = if q > 0.0 { (-p, q) } else { (p, -q) };
+    (q > 0.0 && p.is_finite()).then(|| p / q)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::physics::sensor::Waveform;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use rand_distr::StandardNormal;
@@ -955,6 +1146,49 @@ mod tests {
             "noise-free layers: worst |d1 error| {:.2e} mm, worst |xi error| {:.2e}",
             worst.0, worst.1
         );
+    }
+
+    #[test]
+    fn the_scan_turns_unit_returns_as_they_are_evaluated() {
+        let (mf, inv) = model(Waveform::Sinusoid, &THREE);
+        let o = Observed::new(&mf, &scene(800.0, 3300.0, 0.65), NOISE_FREE);
+        let px = o.phasors();
+        let p = inv.pixel(&px).expect("a valid pixel");
+        let (cells, h) = inv.grid(p.lo, px.background_distance_mm);
+        let mut seen = 0;
+        inv.scan_grams(&p, p.lo, h, cells, |d, g| {
+            let direct = inv.gram(&p, d);
+            for (turned, evaluated) in [(g.uu, direct.uu), (g.ub, direct.ub), (g.um, direct.um)] {
+                assert!(
+                    (turned - evaluated).abs() <= 1e-9 * direct.uu.abs().max(direct.um.abs()),
+                    "{d}: {g:?} against {direct:?}"
+                );
+            }
+            seen += 1;
+        });
+        assert_eq!(seen, cells + 1);
+    }
+
+    #[test]
+    fn brents_search_finds_a_smooth_minimum_in_fewer_steps_than_golden_section() {
+        use std::cell::Cell;
+        let calls = Cell::new(0);
+        let f = |x: f64| {
+            calls.set(calls.get() + 1);
+            1.0 - (std::f64::consts::TAU * (x - 1234.567) / 1499.0).cos()
+        };
+        let (lo, hi, tol) = (1150.0, 1340.0, 0.05);
+        let seed = [(1245.0, f(1245.0)), (1150.0, f(1150.0)), (1340.0, f(1340.0))];
+        calls.set(0);
+        let (x, fx) = brent_minimum((lo, hi), seed, tol, &f);
+        assert!((x - 1234.567).abs() < tol, "{x}");
+        assert!(fx <= 1e-6, "{fx}");
+        let golden_steps = ((hi - lo) / tol).ln() / (1.0 / 0.618_033_988_749_894_9_f64).ln();
+        assert!((calls.get() as f64) < golden_steps, "{} evaluations", calls.get());
+        // Neighbours past the ends of a grid (infinite) leave it to golden steps.
+        let seed = [(1150.0, f(1150.0)), (1055.0, f64::INFINITY), (1245.0, f(1245.0))];
+        let (x, _) = brent_minimum((1150.0, 1245.0), seed, tol, &f);
+        assert!((x - 1234.567).abs() < tol, "{x}");
     }
 
     #[test]
