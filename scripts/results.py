@@ -97,7 +97,8 @@ def evaluate(bag, replay_args, exe):
     materials = {m["id"]: m for m in side.get("materials", [])}
     with tempfile.TemporaryDirectory() as tmp:
         out_bag, out_json = os.path.join(tmp, "out.mcap"), os.path.join(tmp, "report.json")
-        cmd = [exe, "replay", bag, "--out", out_bag, "--json", out_json, *replay_args]
+        # a scene may need options of its own (a moving camera's bag: --no-latch)
+        cmd = [exe, "replay", bag, "--out", out_bag, "--json", out_json, *replay_args, *side.get("replay_args", [])]
         run = subprocess.run(cmd, capture_output=True, text=True)
         if run.returncode != 0:
             return {"bag": os.path.basename(bag), "error": run.stderr.strip()}
@@ -106,6 +107,8 @@ def evaluate(bag, replay_args, exe):
         res = read(out_bag, ["depth/corrected", "translucent_mask", "regions", "depth/corrected_sigma",
                              "translucency_image"])
     multi = report.get("path") == "multi_frequency"
+    # With no background latched (a moving camera's --no-latch) the path measures no xi.
+    xi_measured = not multi or report.get("multi_frequency", {}).get("latched", True)
     # The multi-frequency path has no tracking: its regions (and their ids) are each frame's own.
     frame_regions = {round(f["stamp"] * 1e9): {g["id"]: g for g in f.get("regions", [])}
                      for f in report.get("per_frame", [])}
@@ -204,11 +207,11 @@ def evaluate(bag, replay_args, exe):
         if multi:
             # each frame: the region most of the object's pixels fell in, its xi and interval
             e, rid = None, None
-            for stamp in sorted(frame_votes):
+            for stamp in sorted(frame_votes) if xi_measured else []:
                 v = frame_votes[stamp].get(mid)
                 g = frame_regions.get(stamp, {}).get(v.most_common(1)[0][0]) if v else None
-                if g is None or not g.get("xi_interval"):
-                    continue
+                if g is None or not g.get("xi_interval") or g.get("xi") is None:
+                    continue  # no region, or xi not measured (no background latched)
                 lo, hi = g["xi_interval"]
                 truth = 0.0 if info.get("opaque") else info["xi"]
                 per_frame.append({"xi": g["xi"], "xi_interval": [lo, hi], "inside": lo <= truth <= hi,
@@ -233,6 +236,8 @@ def evaluate(bag, replay_args, exe):
                 out["opaque"].append(row)
             continue
         row = {"id": mid, "xi_true": info["xi"], "poses": len(stages[mid]), "region": rid}
+        if not xi_measured:
+            row["xi_not_measured"] = True
         if e:
             lo, hi = e["xi_interval"]
             row.update({"xi": e["xi"], "xi_interval": [lo, hi], "inside": lo <= info["xi"] <= hi, "width": hi - lo,
@@ -349,6 +354,7 @@ def print_row(r):
         (f"xi {m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} (median of frames), interval holds it in "
          f"{m['frames_inside'][0]} of {m['frames_inside'][1]} frames, per-pixel median {fmt(m.get('xi_pixel_median'), '.3f')}"
          if "frames_inside" in m else
+         f"xi {m['xi_true']:.2f}: not measured (no background latched)" if m.get("xi_not_measured") else
          f"xi {m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.2f')}, "
          f"{fmt((m.get('xi_interval') or [None, None])[1], '.2f')}]{'' if m.get('inside') else ' MISS'}")
         for m in r["materials"]

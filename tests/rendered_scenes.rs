@@ -164,6 +164,44 @@ fn the_audits_loop_closes_on_a_rendered_calibration_sequence() {
     assert!(left_out.is_empty(), "{d}");
 }
 
+/// A camera carried past a tilted sheet and an opaque box before boxes on a wall
+/// (`bags/rendered/mf_moving_camera`: 8 frames, phasors at 20, 50 and 100 MHz, no frame of the
+/// background alone): `replay --no-latch` (the bag's sidecar asks for it) corrects every frame
+/// from two free returns per pixel. Limits from issue 35's for the multi-frequency path: every
+/// sheet pixel's mean per-frame RMS at most 20 mm, the box at least 95 % unflagged with its
+/// reading kept; ξ is reported as not measured, not guessed.
+#[test]
+fn a_moving_camera_is_corrected_with_no_latch() {
+    let python = std::env::var("TTOF_PYTHON").unwrap_or_else(|_| {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join(".venv/bin/python")
+            .display()
+            .to_string()
+    });
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().expect("temp dir");
+    let json = dir.path().join("rows.json");
+    let out = Command::new(&python)
+        .arg(root.join("scripts/results.py"))
+        .args(["--exe", exe(), "--json"])
+        .arg(&json)
+        .arg(rendered("mf_moving_camera.mcap"))
+        .output()
+        .unwrap_or_else(|e| panic!("running {python} scripts/results.py: {e} (scripts/setup-python.sh makes .venv)"));
+    println!("{}", String::from_utf8_lossy(&out.stdout));
+    let rows: Value = serde_json::from_str(&std::fs::read_to_string(&json).expect("rows")).expect("json");
+    let row = &rows[0];
+    assert!(row.get("error").is_none(), "{row}");
+    let (every, raw) = (num(row, "all_pixels_rms_mm"), num(row, "all_pixels_rms_raw_mm"));
+    assert!(every <= 20.0 && every < raw, "every sheet pixel {every:.1} mm (raw {raw:.1})");
+    assert!(num(row, "recovered_share") >= 0.9, "{row}");
+    let sheet = &row["materials"][0];
+    assert_eq!(sheet["xi_not_measured"], Value::Bool(true), "{sheet}");
+    let boxed = &row["opaque"][0];
+    assert!(num(boxed, "not_flagged") >= 0.95, "{boxed}");
+    assert!(num(boxed, "median_error_mm") <= num(boxed, "median_raw_error_mm") + 1.0, "{boxed}");
+}
+
 /// The whole rendered set against its committed baseline (`bags/rendered/baseline.json`,
 /// written by `scripts/results --write-baseline`): fails on a scene worse than raw, an opaque
 /// object flagged or moved, a paper setup above the paper's figure, interval coverage or σ

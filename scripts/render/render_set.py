@@ -206,9 +206,11 @@ def _write_bag(spec, out_dir, cache):
     mats.update(spec["materials"])
     ids = {k: m["id"] for k, m in spec["materials"].items()}
     freqs = [float(f) for f in spec.get("frequencies_hz", [])]
-    geoms = [(spec["background"], [], BACKGROUND_FRAMES)]
-    for st in spec["stages"]:
-        geoms.append((spec["background"] + st["objects"], st["objects"], st["frames"]))
+    n_background = spec.get("background_frames", BACKGROUND_FRAMES)  # 0: nothing to latch
+    geoms = [(spec["background"], [], n_background, None)] if n_background else []
+    for st in spec["stages"]:  # a stage may see the background from elsewhere (a moving camera)
+        geoms.append((st.get("background", spec["background"]) + st["objects"], st["objects"], st["frames"],
+                      st.get("camera_mm")))
     total_secs = 0.0
     frame = 0
     rate_hz = spec.get("frame_rate_hz", 10)  # stamps 1 s + floor(frame * 1e9 / rate) ns
@@ -224,7 +226,7 @@ def _write_bag(spec, out_dir, cache):
             w.add_metadata(MF_RECORD, {MF_KEY: ",".join(str(int(round(f))) for f in freqs)})
         img_s = w.register_msgdef("sensor_msgs/msg/Image", IMAGE)
         info_s = w.register_msgdef("sensor_msgs/msg/CameraInfo", CAMERA_INFO)
-        for gi, (objects, fg, nframes) in enumerate(geoms):
+        for gi, (objects, fg, nframes, camera) in enumerate(geoms):
             print(f"{name}: geometry {gi}/{len(geoms) - 1} ({len(objects)} objects, {nframes} frames)", flush=True)
             a, b, s, secs, cached, ph = rendered(objects, mats, spec["spp"], cache, freqs)
             print(f"  {'cached' if cached else 'rendered'} {secs:.1f} s", flush=True)
@@ -252,8 +254,8 @@ def _write_bag(spec, out_dir, cache):
                     w.write_message(f"/tof/phasor_{k}/image_raw", img_s, image_msg(hdr, "32FC2", p.astype("<f4")),
                                     log_time=ns, publish_time=ns, sequence=frame)
                 frame += 1
-            if gi > 0:
-                stage_rows.append((first, frame - 1, fg, secs))
+            if gi > 0 or not n_background:
+                stage_rows.append((first, frame - 1, fg, secs, camera))
         w.finish()
     os.replace(tmp, os.path.join(out_dir, name + ".mcap"))
 
@@ -264,7 +266,7 @@ def _write_bag(spec, out_dir, cache):
              f"spp = {spec['spp']}",
              f"spp_note = {toml_value(spec.get('spp_note', 'high sample count: one render per geometry'))}",
              f"render_seconds = {round(total_secs, 1)}",
-             f"background_frames = {BACKGROUND_FRAMES}", f"frames = {frame}",
+             f"background_frames = {n_background}", f"frames = {frame}",
              f"frame_period_s = {toml_value(round(1.0 / rate_hz, 9))}", 'first_stamp_s = 1.0',
              "# the model physics this render matches (also the bag's translucent_tof.physics record)",
              f"physics = {toml_value(PHYSICS_PRESET)}",
@@ -318,9 +320,11 @@ def _write_bag(spec, out_dir, cache):
                   f"opaque = {toml_value(m['model'] == 'opaque')}", f"model = {toml_value(m['model'])}"]
     for t in spec.get("tracks", []):  # a video's moving objects: material and path, per object
         lines += ["", "[[tracks]]"] + [f"{k} = {toml_value(v)}" for k, v in t.items()]
-    for i, (f0, f1, fg, secs) in enumerate(stage_rows):
+    for i, (f0, f1, fg, secs, camera) in enumerate(stage_rows):
         lines += ["", "[[stages]]", f"index = {i}", f"frames = {toml_value(list(range(f0, f1 + 1)))}",
                   f"render_seconds = {round(secs, 1)}"]
+        if camera is not None:
+            lines += [f"camera_mm = {toml_value(camera)}"]
         for o in fg:
             lines += [""] + obj_toml("stages.objects", o, mats)
     with open(os.path.join(out_dir, name + ".toml"), "w") as f:

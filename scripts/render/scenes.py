@@ -542,6 +542,50 @@ def mf_specs():
     return [multi_frequency(s) for s in [two_materials(), opaque_and_translucent()] + [draw(i) for i in MF_DRAWS]]
 
 
+# ------------------------------------------------ a moving camera (no latch) ---
+
+def translated(o, offset):
+    """Object `o` as seen from a camera moved by `offset` (mm, optical frame): its centre shifted
+    by -offset (the camera translates; it does not turn)."""
+    out = dict(o)
+    out["center_mm"] = [float(c - d) for c, d in zip(o["center_mm"], offset)]
+    return out
+
+
+def mf_moving_camera(seed=3100, n=8):
+    """Issue 35: a camera carried by a robot (translating sideways and forward, 10 Hz) past a
+    tilted sheet and an opaque box before boxes on a wall, phasors at MF_FREQS_HZ. No background
+    is ever seen alone from a still camera, so nothing can be latched: each frame's objects,
+    background included, are those seen from where the camera is then (the toml's stage objects
+    are in that frame's camera coordinates)."""
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(2800, 3300)
+    bg, bgm, bgd = bg_boxes_on_wall(rng, z, n_boxes=2)
+    bgz = bg_depth(bg)
+    zmax = float(np.nanmin(bgz[30:114, 35:141])) - 300
+    mats = {"m1": mat(1, "sheet_1", rng.uniform(0.5, 0.9), rng.uniform(0.3, 0.7), "mask"),
+            "box": mat(2, "opaque_box", 0.0, rng.uniform(0.3, 0.8), "opaque")}
+    step = np.array([rng.uniform(20, 35), 0.0, rng.uniform(10, 25)])  # mm a frame
+    for attempt in range(200):
+        sh = sheet(rng, rng.uniform(1100, min(1600, zmax)), -0.3, "m1", True, min_tilt=15, max_tilt=35)
+        bx = opaque_box(rng, rng.uniform(1200, min(1900, zmax)), 0.35, "box")
+        views = [[translated(o, step * f) for o in (sh, bx)] for f in range(n)]
+        if all(fits(o, bgz) for v in views for o in v):
+            break
+    stages = [{"frames": 1, "objects": v, "background": [translated(o, step * f) for o in bg],
+               "camera_mm": [round(float(c), 1) for c in step * f]} for f, v in enumerate(views)]
+    return dict(name="mf_moving_camera", seed=seed, model="mask", spp=COVERAGE_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials=mats, stages=stages,
+                frequencies_hz=list(MF_FREQS_HZ), background_frames=0,
+                sidecar={"replay_args": ["--no-latch"],
+                         "camera_motion": f"the camera translates by {step.round(1).tolist()} mm a frame "
+                                          "(x right, z forward), no rotation; stage k's objects are in its camera's coordinates"},
+                spp_note=f"{COVERAGE_SPP} spp per frame (every frame is its own render)",
+                description=f"a moving camera (no background latch): a tilted sheet and an opaque box before "
+                            f"boxes on a wall, {n} frames, phasors at "
+                            + ", ".join(f"{f / 1e6:g}" for f in MF_FREQS_HZ) + " MHz")
+
+
 def all_specs():
     return [
         white_wall_lin(),
@@ -555,4 +599,4 @@ def all_specs():
         opaque_and_translucent(),
         corner_background(),
         difftrans_sheet(),
-    ] + [draw(i) for i in range(20)] + calibration_specs() + [video(i) for i in range(3)] + mf_specs()
+    ] + [draw(i) for i in range(20)] + calibration_specs() + [video(i) for i in range(3)] + mf_specs() + [mf_moving_camera()]

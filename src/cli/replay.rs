@@ -52,6 +52,11 @@ pub struct ReplayArgs {
     /// Ignore phasor topics: recover from the depth and IR alone, as for a single-frequency camera.
     #[arg(long)]
     pub single_frequency: bool,
+    /// Latch no background (a moving camera): every frame's layers from two free returns per
+    /// pixel at three or more modulation frequencies (multi-frequency bags only); xi is not
+    /// measured.
+    #[arg(long, conflicts_with = "single_frequency")]
+    pub no_latch: bool,
     /// Known materials (a materials file from `calibrate-xi -o`): each object is classified
     /// among them, opaque and unknown, and a known material's xi recovers it.
     #[arg(long, value_name = "FILE")]
@@ -163,6 +168,12 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let materials_warnings = materials_physics_warnings(&config, &physics);
     if rec.multi_frequency.is_some() {
         return super::replay_multifreq::run(&a, config, rec);
+    }
+    if a.no_latch {
+        bail!(
+            "--no-latch: the bag {} has no phasor_<k>/image_raw topics; with one modulation frequency a layer needs the background latched",
+            a.bag.display()
+        );
     }
     if !a.modulation_frequencies_hz.is_empty() {
         bail!(

@@ -65,15 +65,26 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
     let mut settings = MultiFrequencyConfig::new(f.clone(), config.model.clone());
     settings.min_region_pixels = config.min_region_pixels;
     let mut stage = MultiFrequencyStage::new(settings, rec.intrinsics).context("the modulation frequencies")?;
-    let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
-    let latch: Vec<(&PhasorFrame, &DepthFrame)> = mf.frames.iter().zip(&rec.frames).take(bg.count).collect();
+    if a.no_latch && f.len() < 3 {
+        bail!(
+            "--no-latch: {} modulation frequencies; two free returns need at least three (six numbers for four unknowns)",
+            f.len()
+        );
+    }
     let depth_range = config.model.sensor.unambiguous_range_mm();
-    let pb = a.output.progress(1, "latching the phasor background");
-    let background = stage
-        .latch(&latch, depth_range)
-        .context("latching the phasor background")?
-        .clone();
-    pb.finish_and_clear();
+    let (bg_count, bg_how, background) = if a.no_latch {
+        (0, "none: --no-latch".to_string(), None)
+    } else {
+        let bg = rec.background_frames(a.pipeline.background_frames, &config)?;
+        let latch: Vec<(&PhasorFrame, &DepthFrame)> = mf.frames.iter().zip(&rec.frames).take(bg.count).collect();
+        let pb = a.output.progress(1, "latching the phasor background");
+        let background = stage
+            .latch(&latch, depth_range)
+            .context("latching the phasor background")?
+            .clone();
+        pb.finish_and_clear();
+        (bg.count, bg.how, Some(background))
+    };
     let out_path = out_path(&a.bag, a.out.as_deref());
     super::common::create_parent(&out_path)?;
     let mut writer = BagWriter::create(&out_path).with_context(|| format!("creating {}", out_path.display()))?;
@@ -81,19 +92,22 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
         super::common::create_parent(r)?;
     }
     let viz = open_rerun(a)?;
-    let objects = bg.count..rec.frames.len();
+    let objects = bg_count..rec.frames.len();
     let pb = a.output.progress(objects.len() as u64, "recovering");
     let (mut per_frame, mut errors, mut total_px, mut last) = (vec![], Errors::default(), 0, None);
     for j in objects {
         let (p, f) = (&mf.frames[j], &rec.frames[j]);
-        let out = stage
-            .process(p, f)
-            .with_context(|| format!("frame at stamp {} ns", f.stamp_ns))?;
+        let out = if a.no_latch {
+            stage.process_unlatched(p, f)
+        } else {
+            stage.process(p, f)
+        }
+        .with_context(|| format!("frame at stamp {} ns", f.stamp_ns))?;
         write_outputs(&mut writer, &rec.headers[j], (&stage, &rec), &out, f)?;
         if let (Some(v), Some(r)) = (&viz, &a.rerun) {
             v.log(&crate::viz::FrameViz {
                 stamp_ns: f.stamp_ns,
-                frame: (j - bg.count) as u64,
+                frame: (j - bg_count) as u64,
                 rays: stage.shared_rays(),
                 raw_z_mm: f.z_mm.clone(),
                 recovered_z_mm: out.frame.corrected_z_mm.clone(),
@@ -116,8 +130,8 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
         "rerun": a.rerun.as_ref().map(|r| r.display().to_string()),
         "path": "multi_frequency",
         "frames": rec.frames.len(),
-        "background_frames": bg.count,
-        "background_choice": bg.how,
+        "background_frames": bg_count,
+        "background_choice": bg_how,
         "warnings": rec.read_stops,
         "read_stops": rec.read_stops,
         "multi_frequency": {
@@ -125,10 +139,12 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
             "common_unambiguous_range_mm": stage.common_unambiguous_range_mm(),
             "topics": mf.topics,
             "unpaired": mf.unpaired,
-            "background_valid_pixels": background.valid_pixels,
-            "background_compared_with_depth": background.compared_pixels,
-            "background_aliased_pixels": background.aliased_pixels,
+            "latched": background.is_some(),
+            "background_valid_pixels": background.as_ref().map(|b| b.valid_pixels),
+            "background_compared_with_depth": background.as_ref().map(|b| b.compared_pixels),
+            "background_aliased_pixels": background.as_ref().map(|b| b.aliased_pixels),
             "opacity_threshold": stage.config.opacity_threshold,
+            "two_return_threshold": stage.config.two_return_threshold,
         },
         "sensor": {
             "modulation_frequency_hz": config.model.sensor.modulation_frequency_hz,

@@ -28,7 +28,7 @@
 //! diffuse transmission (physics.md §7) are model error, not noise; the
 //! latched `B_k` is taken as exact (averaged over frames, its noise is small).
 
-use nalgebra::Matrix3;
+use nalgebra::{Matrix3, Matrix4};
 
 use super::model::{ForwardModel, LayerScene, Measurement, Return, MAX_BOUNCES};
 use super::sensor::{Buckets, Sensor, Waveform, SPEED_OF_LIGHT_MM_PER_S};
@@ -274,6 +274,116 @@ pub struct SingleReturn {
     pub chi_square: f64,
 }
 
+/// Two returns fitted to one pixel with no background ([`MultiFrequencyInversion::two_free_returns`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TwoReturns {
+    /// The near return's distance (the layer's, or the one surface's), mm.
+    pub near_distance_mm: f64,
+    /// Its strength `a1 >= 0`, counts.
+    pub near_strength: f64,
+    /// The far return's distance (what the layer lets through), mm.
+    pub far_distance_mm: f64,
+    /// Its strength `a2 >= 0` (0: one return explains the pixel), counts.
+    pub far_strength: f64,
+    /// `chi^2 = sum_k |M_k - a1 u_k(d1) - a2 u_k(d2)|^2 / sigma_k^2`.
+    pub chi_square: f64,
+    /// The standard deviation of the near distance, mm (infinite where not determined).
+    pub near_distance_sigma_mm: f64,
+}
+
+/// Rounds of Brent's search on each distance in turn after the grid of pairs.
+const FREE_REFINE_ROUNDS: usize = 2;
+
+/// Gauss-Newton steps after them.
+const FREE_NEWTON_STEPS: usize = 8;
+
+/// The grid's lowest local minima of pairs that are refined.
+const FREE_STARTS: usize = 6;
+
+/// A pixel's fixed products for fits of two free returns: `w_k = 1 / sigma_k^2`, `<M, M>`.
+struct FreeFit<'a> {
+    measured: &'a [Phasor],
+    weights: [f64; ROTATED_FREQUENCIES],
+    mm: f64,
+}
+
+/// The strengths and `chi^2` of two returns at fixed distances.
+#[derive(Debug, Clone, Copy)]
+struct PairFit {
+    near: f64,
+    far: f64,
+    chi_square: f64,
+}
+
+impl<'a> FreeFit<'a> {
+    fn new(inv: &MultiFrequencyInversion, measured: &'a [Phasor], noise_sigma: &[f64]) -> Self {
+        let mut weights = [0.0; ROTATED_FREQUENCIES];
+        let mut mm = 0.0;
+        for ((w, s), m) in weights
+            .iter_mut()
+            .zip(noise_sigma)
+            .zip(measured)
+            .take(inv.sensors.len())
+        {
+            *w = 1.0 / (s * s);
+            mm += *w * dot(*m, *m);
+        }
+        Self { measured, weights, mm }
+    }
+
+    /// Non-negative least squares of the two strengths given their unit returns, in closed
+    /// form: the normal equations where both come out >= 0, else the better single one.
+    fn pair(&self, u1: &[Phasor], u2: &[Phasor]) -> PairFit {
+        let (mut g11, mut g22, mut g12, mut p1, mut p2) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for (((a, b), m), w) in u1.iter().zip(u2).zip(self.measured).zip(&self.weights) {
+            g11 += w * dot(*a, *a);
+            g22 += w * dot(*b, *b);
+            g12 += w * dot(*a, *b);
+            p1 += w * dot(*a, *m);
+            p2 += w * dot(*b, *m);
+        }
+        let det = g11 * g22 - g12 * g12;
+        if det > 1e-12 * g11 * g22 {
+            let (a1, a2) = ((p1 * g22 - p2 * g12) / det, (p2 * g11 - p1 * g12) / det);
+            if a1 >= 0.0 && a2 >= 0.0 {
+                return PairFit {
+                    near: a1,
+                    far: a2,
+                    chi_square: (self.mm - a1 * p1 - a2 * p2).max(0.0),
+                };
+            }
+        }
+        let one = |p: f64, g: f64| if g > 0.0 { p.max(0.0) / g } else { 0.0 };
+        let (a1, a2) = (one(p1, g11), one(p2, g22));
+        let (c1, c2) = (self.mm - a1 * p1, self.mm - a2 * p2);
+        if c1 <= c2 {
+            PairFit {
+                near: a1,
+                far: 0.0,
+                chi_square: c1.max(0.0),
+            }
+        } else {
+            PairFit {
+                near: 0.0,
+                far: a2,
+                chi_square: c2.max(0.0),
+            }
+        }
+    }
+
+    /// [`Self::pair`] at two distances.
+    fn pair_at(&self, inv: &MultiFrequencyInversion, d1: f64, d2: f64) -> PairFit {
+        let k = inv.sensors.len().min(ROTATED_FREQUENCIES);
+        let mut u1 = [Phasor::default(); ROTATED_FREQUENCIES];
+        let mut u2 = [Phasor::default(); ROTATED_FREQUENCIES];
+        for ((a, b), s) in u1.iter_mut().zip(u2.iter_mut()).zip(&inv.sensors) {
+            *a = inv.unit_return(s, d1);
+            *b = inv.unit_return(s, d2);
+        }
+        self.pair(&u1[..k], &u2[..k])
+    }
+}
+
 /// The best layer at one fixed ξ: a point of the profile over ξ.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TranslucencyFit {
@@ -493,11 +603,203 @@ impl MultiFrequencyInversion {
         self.common_range_mm
     }
 
-    /// The one opaque return that best explains `measured` (a latched
-    /// background's phasors, say): its distance over `[d_min, d_min + R)`
-    /// with `R` the common unambiguous range (a surface farther than that
-    /// aliases into it), its strength in closed form at each distance.
-    pub fn single_return(&self, measured: &[Phasor], noise_sigma: &[f64]) -> Result<SingleReturn, MultiFrequencyError> {
+    /// Two returns fitted to a pixel's phasors with no background latched (physics.md §7,
+    /// objects.md: three frequencies, no background): `M_k = a1 u_k(d1) + a2 u_k(d2)` with
+    /// `d_min <= d1 < d2 <= max_distance_mm` (within the common unambiguous range) and
+    /// `a1, a2 >= 0`. Both distances on a grid of the coarse step (pairs at least one cell
+    /// apart), the strengths by non-negative least squares in closed form at each pair; the
+    /// best pair refined by Brent's search on each distance in turn. The near return is the
+    /// layer (or the one surface, where the far one comes out empty).
+    pub fn two_free_returns(
+        &self,
+        measured: &[Phasor],
+        noise_sigma: &[f64],
+        max_distance_mm: f64,
+    ) -> Result<TwoReturns, MultiFrequencyError> {
+        self.check_measured(measured, noise_sigma)?;
+        if self.sensors.len() > ROTATED_FREQUENCIES {
+            return Err(MultiFrequencyError::InvalidSettings(
+                "two free returns are fitted at up to 8 frequencies",
+            ));
+        }
+        let lo = self.settings.min_distance_mm;
+        let hi = max_distance_mm.min(lo + self.common_range_mm);
+        if !(hi - lo > 2.0 * self.coarse_step_mm) {
+            return Err(MultiFrequencyError::BackgroundTooNear {
+                background_distance_mm: max_distance_mm,
+                min_distance_mm: lo,
+            });
+        }
+        let fit = FreeFit::new(self, measured, noise_sigma);
+        let (cells, h) = self.grid(lo, hi);
+        let units: Vec<Phasor> = (0..=cells)
+            .flat_map(|j| self.sensors.iter().map(move |s| (s, lo + j as f64 * h)))
+            .map(|(s, d)| self.unit_return(s, d))
+            .collect();
+        let k = self.sensors.len();
+        let at = |j: usize| &units[j * k..(j + 1) * k];
+        // chi^2 of every pair, then each of the lowest local minima refined.
+        let n = cells + 1;
+        let mut chi = vec![f64::INFINITY; n * n];
+        for j1 in 0..cells {
+            for j2 in j1 + 1..n {
+                chi[j1 * n + j2] = fit.pair(at(j1), at(j2)).chi_square;
+            }
+        }
+        let mut starts: Vec<(f64, usize, usize)> = vec![];
+        for j1 in 0..cells {
+            for j2 in j1 + 1..n {
+                let c = chi[j1 * n + j2];
+                let lower = |a: usize, b: usize| chi[a * n + b] < c;
+                let neighbours = (j1.saturating_sub(1)..=(j1 + 1).min(cells))
+                    .flat_map(|a| (j2.saturating_sub(1)..=(j2 + 1).min(cells)).map(move |b| (a, b)));
+                if !neighbours.into_iter().any(|(a, b)| (a, b) != (j1, j2) && lower(a, b)) {
+                    starts.push((c, j1, j2));
+                }
+            }
+        }
+        starts.sort_by(|a, b| a.0.total_cmp(&b.0));
+        starts.truncate(FREE_STARTS);
+        let sep = self.settings.min_separation_mm.max(0.5 * self.settings.tolerance_mm);
+        let chi_at = |d1: f64, d2: f64| fit.pair_at(self, d1, d2).chi_square;
+        let mut best = (f64::INFINITY, lo, hi);
+        for &(_, j1, j2) in &starts {
+            let (mut d1, mut d2) = (lo + j1 as f64 * h, lo + j2 as f64 * h);
+            for _ in 0..FREE_REFINE_ROUNDS {
+                let near = ((d1 - h).max(lo), (d1 + h).min(d2 - sep));
+                if near.1 > near.0 {
+                    d1 = self.refine_alone(near, d1, |d| chi_at(d, d2)).0;
+                }
+                let far = ((d2 - h).max(d1 + sep), (d2 + h).min(hi));
+                if far.1 > far.0 {
+                    d2 = self.refine_alone(far, d2, |d| chi_at(d1, d)).0;
+                }
+            }
+            (d1, d2) = self.free_gauss_newton(&fit, noise_sigma, (d1, d2), (lo, hi, sep));
+            let c = chi_at(d1, d2);
+            if c < best.0 {
+                best = (c, d1, d2);
+            }
+        }
+        let (_, d1, d2) = best;
+        let pair = fit.pair_at(self, d1, d2);
+        let sigma = self.free_distance_sigma(noise_sigma, (d1, pair.near), (d2, pair.far));
+        Ok(TwoReturns {
+            near_distance_mm: d1,
+            near_strength: pair.near,
+            far_distance_mm: d2,
+            far_strength: pair.far,
+            chi_square: pair.chi_square,
+            near_distance_sigma_mm: sigma,
+        })
+    }
+
+    /// The minimum of `f` on `bracket` near `x`, Brent's search seeded with `x` and the
+    /// bracket's ends.
+    fn refine_alone(&self, bracket: (f64, f64), x: f64, f: impl Fn(f64) -> f64) -> (f64, f64) {
+        let (fx, fl, fh) = (f(x), f(bracket.0), f(bracket.1));
+        let (l, r) = ((bracket.0, fl), (bracket.1, fh));
+        let (near, far) = if fl <= fh { (l, r) } else { (r, l) };
+        let mut best = [(x, fx), near, far];
+        best.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let found = brent_minimum(bracket, best, self.settings.tolerance_mm, &f);
+        if found.1 <= best[0].1 {
+            found
+        } else {
+            best[0]
+        }
+    }
+
+    /// The Fisher information of two free returns' `(d1, a1, d2, a2)` (columns `a1 u'(d1)`,
+    /// `u(d1)`, `a2 u'(d2)`, `u(d2)`, weighted by `1 / sigma_k^2`), and those columns.
+    fn free_fisher(
+        &self,
+        noise_sigma: &[f64],
+        near: (f64, f64),
+        far: (f64, f64),
+    ) -> (Matrix4<f64>, [[Phasor; 4]; ROTATED_FREQUENCIES]) {
+        let mut f = Matrix4::<f64>::zeros();
+        let mut columns = [[Phasor::default(); 4]; ROTATED_FREQUENCIES];
+        for ((s, sigma), cols) in self.sensors.iter().zip(noise_sigma).zip(columns.iter_mut()) {
+            let w = 1.0 / (sigma * sigma);
+            let (u1, du1) = self.unit_return_and_slope(s, near.0);
+            let (u2, du2) = self.unit_return_and_slope(s, far.0);
+            let scaled = |p: Phasor, c: f64| Phasor { a: c * p.a, b: c * p.b };
+            *cols = [scaled(du1, near.1), u1, scaled(du2, far.1), u2];
+            for i in 0..4 {
+                for j in 0..4 {
+                    f[(i, j)] += w * dot(cols[i], cols[j]);
+                }
+            }
+        }
+        (f, columns)
+    }
+
+    /// The inverse of a Fisher information, `None` where it is singular.
+    fn free_covariance(f: &Matrix4<f64>) -> Option<Matrix4<f64>> {
+        let scale: f64 = (0..4).map(|i| f[(i, i)]).product();
+        (scale > 0.0 && f.determinant() > 1e-12 * scale)
+            .then(|| f.try_inverse())
+            .flatten()
+    }
+
+    /// Gauss-Newton steps on two free returns from `(d1, d2)` (the strengths in closed form
+    /// at each step's distances), each step halved until `chi^2` falls, the distances kept
+    /// in `[lo, hi]` and `sep` apart.
+    fn free_gauss_newton(
+        &self,
+        fit: &FreeFit,
+        noise_sigma: &[f64],
+        (mut d1, mut d2): (f64, f64),
+        (lo, hi, sep): (f64, f64, f64),
+    ) -> (f64, f64) {
+        let mut pair = fit.pair_at(self, d1, d2);
+        for _ in 0..FREE_NEWTON_STEPS {
+            let (f, cols) = self.free_fisher(noise_sigma, (d1, pair.near), (d2, pair.far));
+            let Some(c) = Self::free_covariance(&f) else { break };
+            let mut g = nalgebra::Vector4::<f64>::zeros();
+            for (((s, m), sigma), col) in self.sensors.iter().zip(fit.measured).zip(noise_sigma).zip(&cols) {
+                let (u1, u2) = (self.unit_return(s, d1), self.unit_return(s, d2));
+                let r = Phasor {
+                    a: m.a - pair.near * u1.a - pair.far * u2.a,
+                    b: m.b - pair.near * u1.b - pair.far * u2.b,
+                };
+                let w = 1.0 / (sigma * sigma);
+                for i in 0..4 {
+                    g[i] += w * dot(col[i], r);
+                }
+            }
+            let step = c * g;
+            let mut t = 1.0;
+            let mut moved = false;
+            for _ in 0..6 {
+                let n1 = (d1 + t * step[0]).clamp(lo, hi - sep);
+                let n2 = (d2 + t * step[2]).clamp(n1 + sep, hi);
+                let trial = fit.pair_at(self, n1, n2);
+                if trial.chi_square < pair.chi_square {
+                    (d1, d2, pair, moved) = (n1, n2, trial, true);
+                    break;
+                }
+                t *= 0.5;
+            }
+            if !moved || (t * step[0]).abs().max((t * step[2]).abs()) < self.settings.tolerance_mm {
+                break;
+            }
+        }
+        (d1, d2)
+    }
+
+    /// The standard deviation of the near distance of two free returns, from the inverse of
+    /// their Fisher information; infinite where it is singular.
+    fn free_distance_sigma(&self, noise_sigma: &[f64], near: (f64, f64), far: (f64, f64)) -> f64 {
+        match Self::free_covariance(&self.free_fisher(noise_sigma, near, far).0) {
+            Some(c) if c[(0, 0)] > 0.0 => c[(0, 0)].sqrt(),
+            _ => f64::INFINITY,
+        }
+    }
+
+    /// Checks a pixel's phasors and noise against the frequencies.
+    fn check_measured(&self, measured: &[Phasor], noise_sigma: &[f64]) -> Result<(), MultiFrequencyError> {
         let k = self.sensors.len();
         for (what, got) in [
             ("measured phasors", measured.len()),
@@ -513,6 +815,15 @@ impl MultiFrequencyInversion {
         if let Some(&s) = noise_sigma.iter().find(|s| !(s.is_finite() && **s > 0.0)) {
             return Err(MultiFrequencyError::NonPositiveNoise(s));
         }
+        Ok(())
+    }
+
+    /// The one opaque return that best explains `measured` (a latched
+    /// background's phasors, say): its distance over `[d_min, d_min + R)`
+    /// with `R` the common unambiguous range (a surface farther than that
+    /// aliases into it), its strength in closed form at each distance.
+    pub fn single_return(&self, measured: &[Phasor], noise_sigma: &[f64]) -> Result<SingleReturn, MultiFrequencyError> {
+        self.check_measured(measured, noise_sigma)?;
         let weights = || noise_sigma.iter().map(|s| 1.0 / (s * s));
         let mm: f64 = measured.iter().zip(weights()).map(|(m, w)| w * dot(*m, *m)).sum();
         // (<u, M>, <u, u>) at d, weighted.
@@ -1189,6 +1500,65 @@ mod tests {
         let seed = [(1150.0, f(1150.0)), (1055.0, f64::INFINITY), (1245.0, f(1245.0))];
         let (x, _) = brent_minimum((1150.0, 1245.0), seed, tol, &f);
         assert!((x - 1234.567).abs() < tol, "{x}");
+    }
+
+    #[test]
+    fn two_free_returns_find_the_layer_with_no_background_latched() {
+        let (mf, inv) = model(Waveform::Sinusoid, &THREE);
+        for &(df, db) in &[(500.0, 2000.0), (1200.0, 3300.0), (2600.0, 3300.0)] {
+            for xi in [0.4, 0.75, 0.9] {
+                let o = Observed::new(&mf, &scene(df, db, xi), NOISE_FREE);
+                let fit = inv.two_free_returns(&o.measured, &o.sigma, 5000.0).expect("a fit");
+                assert!(
+                    (fit.near_distance_mm - df).abs() < 0.5 && (fit.far_distance_mm - db).abs() < 0.5,
+                    "{df} {db} {xi}: {fit:?}"
+                );
+                // The far return is the background dimmed by xi squared (the physical default).
+                let behind = [ForwardModel::opaque_return(db, X_BACKGROUND, LIN)];
+                let alone: f64 = mf
+                    .measure(&behind)
+                    .map(|m| m.buckets.a.hypot(m.buckets.b))
+                    .next()
+                    .unwrap_or(0.0);
+                assert!(
+                    (fit.far_strength / alone - xi * xi).abs() < 0.01,
+                    "{df} {db} {xi}: {fit:?}"
+                );
+                assert!(fit.near_distance_sigma_mm.is_finite());
+            }
+        }
+        // One surface: the far return comes out empty or at the same place, and a single
+        // return explains it as well.
+        let o = Observed::new(&mf, &scene(1500.0, 3000.0, 0.0), NOISE_FREE);
+        let fit = inv.two_free_returns(&o.measured, &o.sigma, 5000.0).expect("a fit");
+        let one = inv.single_return(&o.measured, &o.sigma).expect("a fit");
+        assert!((one.distance_mm - 1500.0).abs() < 0.5, "{one:?}");
+        assert!(one.chi_square - fit.chi_square < 1.0, "{one:?} against {fit:?}");
+    }
+
+    #[test]
+    fn noisy_layers_are_told_from_one_return_without_a_background() {
+        let (mf, inv) = model(Waveform::Sinusoid, &THREE);
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let level = 13.82; // chi-square, two more parameters, 99.9 %
+        let (mut layers, mut surfaces, mut worst) = (0, 0, 0.0f64);
+        for trial in 0..40 {
+            let xi = if trial % 2 == 0 { 0.75 } else { 0.0 };
+            let mut o = Observed::new(&mf, &scene(1000.0 + 20.0 * trial as f64, 3000.0, xi), NOISE);
+            o.add_noise(&mut rng);
+            let two = inv.two_free_returns(&o.measured, &o.sigma, 5000.0).expect("a fit");
+            let one = inv.single_return(&o.measured, &o.sigma).expect("a fit");
+            let layer = one.chi_square - two.chi_square > level;
+            if xi > 0.0 {
+                layers += usize::from(layer);
+                worst = worst.max((two.near_distance_mm - (1000.0 + 20.0 * trial as f64)).abs());
+            } else {
+                surfaces += usize::from(!layer);
+            }
+        }
+        assert_eq!(layers, 20, "every xi 0.75 layer told from one return");
+        assert!(surfaces >= 19, "{surfaces} of 20 surfaces kept as one return");
+        assert!(worst < 30.0, "worst layer distance error {worst} mm");
     }
 
     #[test]

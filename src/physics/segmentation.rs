@@ -101,6 +101,32 @@ fn valid(d: f64) -> bool {
     (d > 0.0) & (d < f64::INFINITY)
 }
 
+/// The mask opened by a 3 x 3 square: what an erosion (a pixel whose eight neighbours are
+/// all set) leaves, grown back by one pixel within the mask. Lines and rims under three
+/// pixels wide (the mixed pixels along an opaque edge) go; a region's interior and its own
+/// rim stay.
+pub fn open_mask(mask: &ImageBuf<bool>) -> ImageBuf<bool> {
+    let (w, h) = (mask.width, mask.height);
+    let at = |x: isize, y: isize| {
+        x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h && mask.data[y as usize * w + x as usize]
+    };
+    let square =
+        |x: usize, y: usize| (-1..=1).flat_map(move |dy| (-1..=1).map(move |dx| (x as isize + dx, y as isize + dy)));
+    let core: Vec<bool> = (0..w * h)
+        .map(|i| square(i % w, i / w).all(|(x, y)| at(x, y)))
+        .collect();
+    let core_at = |x: isize, y: isize| {
+        x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h && core[y as usize * w + x as usize]
+    };
+    ImageBuf {
+        width: w,
+        height: h,
+        data: (0..w * h)
+            .map(|i| mask.data[i] && square(i % w, i / w).any(|(x, y)| core_at(x, y)))
+            .collect(),
+    }
+}
+
 /// Removes 4-connected regions smaller than `min_pixels` (isolated noise
 /// crossing the threshold); returns the cleaned mask and the region count kept.
 pub fn remove_small_regions(mask: &ImageBuf<bool>, min_pixels: usize) -> (ImageBuf<bool>, usize) {
@@ -330,6 +356,28 @@ fn renumber(mut labels: ImageBuf<u32>, sizes: &[usize]) -> (ImageBuf<u32>, Vec<u
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn opening_drops_thin_lines_and_keeps_a_region_with_its_rim() {
+        let (w, h) = (20, 12);
+        let mut m = ImageBuf::filled(w, h, false);
+        for y in 2..8 {
+            for x in 2..9 {
+                m.data[y * w + x] = true; // a 7 x 6 block
+            }
+        }
+        for x in 11..19 {
+            m.data[5 * w + x] = true; // a line one pixel wide
+            m.data[6 * w + x] = true; // ... two
+        }
+        let opened = open_mask(&m);
+        for y in 0..h {
+            for x in 0..w {
+                let block = (2..9).contains(&x) && (2..8).contains(&y);
+                assert_eq!(opened.data[y * w + x], block, "({x}, {y})");
+            }
+        }
+    }
+
     use super::*;
 
     #[test]

@@ -11,6 +11,16 @@ pub fn median_sorted(v: &[f64]) -> f64 {
     }
 }
 
+/// The `q` quantile (`0 <= q <= 1`) of values in any order: the value at rank
+/// `round(q (n - 1))`, by selection; reorders `v`. NaN for no values.
+pub fn quantile_select(v: &mut [f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let rank = ((q.clamp(0.0, 1.0) * (v.len() - 1) as f64).round() as usize).min(v.len() - 1);
+    *v.select_nth_unstable_by(rank, f64::total_cmp).1
+}
+
 /// Median of values in any order (the mean of the middle two for an even
 /// count), by selection; reorders `v`. The same value as [`median_sorted`] of
 /// the sorted values. NaN for no values.

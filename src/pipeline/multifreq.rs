@@ -34,10 +34,10 @@ use thiserror::Error;
 use super::{DepthFrame, FrameOutput, RegionOutput};
 use crate::physics::multifreq::{
     MultiFrequencyError, MultiFrequencyEstimate, MultiFrequencyInversion, MultiFrequencyModel, Phasor, PixelPhasors,
-    ScanSettings,
+    ScanSettings, SingleReturn,
 };
-use crate::physics::segmentation::{label_regions, remove_small_regions, wrapped_difference};
-use crate::physics::stats::{median_select, sigma_about, student_t975};
+use crate::physics::segmentation::{label_regions, open_mask, remove_small_regions, wrapped_difference};
+use crate::physics::stats::{median_select, quantile_select, sigma_about, student_t975};
 use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::{ForwardModel, ImageBuf, Intrinsics, XiEstimate, XiMethod};
 
@@ -47,6 +47,10 @@ pub const MAX_FREQUENCIES: usize = 8;
 /// The 99.9 % quantile of chi-square with one degree of freedom: the default
 /// level at which a changed pixel is a layer rather than an opaque surface.
 pub const CHI_SQUARE_1_999: f64 = 10.827_566_170_662_733;
+
+/// The 99.9 % quantile of chi-square with two degrees of freedom (`-2 ln 0.001`): the
+/// default level at which two free returns make a pixel a layer with no background latched.
+pub const CHI_SQUARE_2_999: f64 = 13.815_510_557_964_274;
 
 /// A background pixel whose phasors and depth image disagree by more than
 /// this (mm, wrapped at the depth image's range) is aliased.
@@ -151,6 +155,10 @@ pub struct MultiFrequencyConfig {
     /// A changed pixel is a layer when dropping the background term raises its
     /// `chi^2` by more than this ([`CHI_SQUARE_1_999`]).
     pub opacity_threshold: f64,
+    /// With no background latched, a pixel is a layer when two free returns lower its
+    /// `chi^2` by more than this below one return's (chi-square with 2 degrees of freedom
+    /// at 99.9 %: the far return's distance and strength).
+    pub two_return_threshold: f64,
     /// Pieces of the mask (and of the changed opaque pixels) smaller than this are dropped.
     pub min_region_pixels: usize,
     /// Radius (pixels) of the smooth-surface prior on each layer region (0: per pixel only),
@@ -169,6 +177,7 @@ impl MultiFrequencyConfig {
             scan: ScanSettings::default(),
             change_sigmas: 3.09,
             opacity_threshold: CHI_SQUARE_1_999,
+            two_return_threshold: CHI_SQUARE_2_999,
             min_region_pixels: 12,
             prior_radius_px: 4,
             prior_stride_px: 3,
@@ -458,6 +467,15 @@ pub enum PixelClass {
     Failed,
 }
 
+/// A pixel with no background latched: its phasors, their noise's shape (the square root
+/// of its light) and one return fitted with that noise.
+#[derive(Debug, Clone, Copy)]
+struct UnlatchedPixel {
+    measured: [Phasor; MAX_FREQUENCIES],
+    shape: f64,
+    single: SingleReturn,
+}
+
 /// One pixel's result.
 #[derive(Debug, Clone, Copy)]
 struct PixelResult {
@@ -598,7 +616,97 @@ impl MultiFrequencyStage {
             .with_min_len(MIN_TASK_PIXELS)
             .map(|i| self.pixel(frame, i))
             .collect();
-        Ok(self.assemble(depth, frame.stamp_ns, &results))
+        Ok(self.assemble(depth, frame.stamp_ns, &results, true))
+    }
+
+    /// A frame with no background latched (a moving camera): every pixel's phasors fitted by
+    /// one return and by two free returns (physics.md §7; objects.md: three frequencies, no
+    /// background); a layer where two explain them better by more than
+    /// [`MultiFrequencyConfig::two_return_threshold`], its near return the layer's distance;
+    /// every other pixel keeps its reading. The noise is each pixel's light times one scale
+    /// for the frame, the scale from the median of the one-return fits' `chi^2` (most pixels
+    /// of a scene are one surface). ξ needs the background's own return, which nothing here
+    /// measures: the ξ image is NaN and each layer region's interval is `[0, 1]`.
+    pub fn process_unlatched(
+        &self,
+        frame: &PhasorFrame,
+        depth: &DepthFrame,
+    ) -> Result<MultiFrequencyOutput, MultiFrequencyStageError> {
+        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+        let k = self.config.frequencies_hz.len();
+        check_frame(frame, k, w, h)?;
+        check_size("depth image", depth.z_mm.width, depth.z_mm.height, w, h)?;
+        let pixels: Vec<Option<UnlatchedPixel>> = (0..w * h)
+            .into_par_iter()
+            .with_min_len(MIN_TASK_PIXELS)
+            .map(|i| self.unlatched_pixel(frame, i))
+            .collect();
+        let mut chi: Vec<f64> = pixels.iter().flatten().map(|p| p.single.chi_square).collect();
+        let mut far: Vec<f64> = pixels.iter().flatten().map(|p| p.single.distance_mm).collect();
+        let dof = (2 * k - 2) as f64;
+        let scale2 = (median_select(&mut chi) / (dof * (1.0 - 2.0 / (9.0 * dof)).powi(3))).max(f64::MIN_POSITIVE);
+        let max_distance = 1.2 * quantile_select(&mut far, 0.99) + 300.0;
+        let results: Vec<PixelResult> = pixels
+            .par_iter()
+            .with_min_len(MIN_TASK_PIXELS)
+            .map(|p| match p {
+                None => PixelResult::only(PixelClass::Unusable),
+                Some(p) => self.unlatched_result(p, scale2, max_distance),
+            })
+            .collect();
+        Ok(self.assemble(depth, frame.stamp_ns, &results, false))
+    }
+
+    /// Pixel `i`'s phasors, the shape of their noise and one return fitted to them.
+    fn unlatched_pixel(&self, frame: &PhasorFrame, i: usize) -> Option<UnlatchedPixel> {
+        let k = self.config.frequencies_hz.len();
+        let mut measured = [Phasor::default(); MAX_FREQUENCIES];
+        for (m, p) in measured.iter_mut().zip(&frame.phasors) {
+            let [a, b] = p.data.get(i)?.map(f64::from);
+            *m = Phasor { a, b };
+        }
+        let peak = measured[..k].iter().map(|m| m.a.hypot(m.b)).fold(0.0, f64::max);
+        if !(peak.is_finite() && peak > 0.0) {
+            return None;
+        }
+        // Shot noise: a component's variance grows with the light collected.
+        let shape = [peak.sqrt(); MAX_FREQUENCIES];
+        let single = self.inversion.single_return(&measured[..k], &shape[..k]).ok()?;
+        Some(UnlatchedPixel {
+            measured,
+            shape: peak.sqrt(),
+            single,
+        })
+    }
+
+    /// A layer where two free returns beat one beyond the threshold, else the reading kept.
+    fn unlatched_result(&self, p: &UnlatchedPixel, scale2: f64, max_distance: f64) -> PixelResult {
+        let k = self.config.frequencies_hz.len();
+        if p.single.chi_square / scale2 <= self.config.two_return_threshold {
+            // Two returns cannot lower chi^2 below 0: one explains the pixel within the level.
+            return PixelResult::only(PixelClass::Background);
+        }
+        let sigma = [p.shape * scale2.sqrt(); MAX_FREQUENCIES];
+        let Ok(two) = self.inversion.two_free_returns(
+            &p.measured[..k],
+            &sigma[..k],
+            max_distance.max(p.single.distance_mm + 300.0),
+        ) else {
+            return PixelResult::only(PixelClass::Failed);
+        };
+        let statistic = (p.single.chi_square - two.chi_square * scale2) / scale2;
+        let layer = statistic > self.config.two_return_threshold && two.near_strength > 0.0 && two.far_strength > 0.0;
+        if !layer {
+            return PixelResult::only(PixelClass::Background);
+        }
+        PixelResult {
+            class: PixelClass::Layer,
+            distance_mm: two.near_distance_mm,
+            distance_sigma_mm: two.near_distance_sigma_mm,
+            xi: f64::NAN,
+            xi_sigma: f64::NAN,
+            xi_squared_sigma: f64::NAN,
+        }
     }
 
     /// The inversion this path runs per pixel.
@@ -684,9 +792,15 @@ impl MultiFrequencyStage {
     }
 
     /// The frame's mask, regions and outputs from its pixels' results.
-    fn assemble(&self, depth: &DepthFrame, stamp_ns: u64, results: &[PixelResult]) -> MultiFrequencyOutput {
+    fn assemble(
+        &self,
+        depth: &DepthFrame,
+        stamp_ns: u64,
+        results: &[PixelResult],
+        latched: bool,
+    ) -> MultiFrequencyOutput {
         let count = |c: PixelClass| results.iter().filter(|r| r.class == c).count();
-        let (mask, opaque) = self.masks(results);
+        let (mask, opaque) = self.masks(results, !latched);
         let (labels, layers) = self.labels(results, &mask, &opaque);
         let regions = regions(&labels, layers, results);
         let layer = self.surface_prior(&labels, layers, results);
@@ -717,16 +831,22 @@ impl MultiFrequencyStage {
         }
     }
 
-    /// The mask (layer pixels in pieces of at least `min_region_pixels`) and the
-    /// changed opaque pixels (the layers' small pieces among them), likewise cleaned.
-    fn masks(&self, results: &[PixelResult]) -> (ImageBuf<bool>, ImageBuf<bool>) {
+    /// The mask (layer pixels in pieces of at least `min_region_pixels`; with `open`, first
+    /// opened by a 3 x 3 square so that the mixed pixels along an opaque edge, two returns
+    /// but no layer, drop out) and the changed opaque pixels (what the mask dropped among
+    /// them), likewise cleaned. Only the unlatched path opens: with a background latched an
+    /// edge's mix fits a layer whose ξ² is the share of background it sees, and thin
+    /// parts of real layers (slivers between sheets) would go with it: on the rendered
+    /// `mf_two_materials` opening took 5 % of the sheets' pixels back to their readings.
+    fn masks(&self, results: &[PixelResult], open: bool) -> (ImageBuf<bool>, ImageBuf<bool>) {
         let min = self.config.min_region_pixels;
         let class_mask = |keep: &dyn Fn(&PixelResult) -> bool| ImageBuf {
             width: self.intrinsics.width,
             height: self.intrinsics.height,
             data: results.iter().map(keep).collect(),
         };
-        let (mask, _) = remove_small_regions(&class_mask(&|r| r.class == PixelClass::Layer), min);
+        let layers = class_mask(&|r| r.class == PixelClass::Layer);
+        let (mask, _) = remove_small_regions(&if open { open_mask(&layers) } else { layers }, min);
         let mut opaque = class_mask(&|r| matches!(r.class, PixelClass::Opaque | PixelClass::Layer));
         for (o, &m) in opaque.data.iter_mut().zip(&mask.data) {
             *o &= !m;
@@ -918,6 +1038,19 @@ fn region_estimate(xi: f64, interval: [f64; 2], pixels: usize, note: String) -> 
 /// (light between the layer and a near wall, a mixed edge) is shared by
 /// neighbouring pixels and does not average out over them.
 fn layer_region(id: u32, pixels: &[usize], width: usize, results: &[PixelResult]) -> RegionOutput {
+    if pixels.iter().all(|&i| results[i].xi.is_nan()) {
+        let note = format!(
+            "{} pixels, each two returns; no background latched, so xi (the far return against the background's own) is not measured",
+            pixels.len()
+        );
+        return RegionOutput {
+            id,
+            xi: region_estimate(f64::NAN, [0.0, 1.0], pixels.len(), note),
+            pixels: pixels.len(),
+            opaque: false,
+            class: None,
+        };
+    }
     let mut xi: Vec<f64> = pixels.iter().map(|&i| results[i].xi).collect();
     let mut stated: Vec<f64> = pixels.iter().map(|&i| results[i].xi_sigma).collect();
     let median = median_select(&mut xi);
@@ -1108,6 +1241,41 @@ albedo = 0.7
         assert!(box_px > 50 && box_masked * 20 <= box_px, "{box_masked}/{box_px}");
         assert!(o.regions.iter().any(|r| r.opaque) && o.regions.iter().any(|r| !r.opaque));
         assert_eq!(o.xi.method, XiMethod::MultiFrequency);
+    }
+
+    #[test]
+    fn with_no_latch_the_layer_comes_from_two_free_returns_and_the_box_is_kept() {
+        let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
+        let all = frames(&scene);
+        let s = stage(&scene); // nothing latched
+        let (p, d, truth) = &all[6];
+        assert!(matches!(s.process(p, d), Err(MultiFrequencyStageError::NoBackground)));
+        let out = s.process_unlatched(p, d).expect("frame");
+        let o = &out.frame;
+        let (mut sheet, mut in_mask, mut box_px, mut box_masked, mut err2) = (0, 0, 0, 0, 0.0);
+        for i in 0..truth.len() {
+            let t = truth.data[i];
+            if t < 1150.0 {
+                sheet += 1;
+                if o.mask.data[i] {
+                    in_mask += 1;
+                    err2 += f64::from(o.corrected_z_mm.data[i] - t).powi(2);
+                }
+            } else if t.is_finite() {
+                box_px += 1;
+                box_masked += usize::from(o.mask.data[i]);
+                assert!(o.corrected_z_mm.data[i] == d.z_mm.data[i] || o.mask.data[i]);
+            }
+            // xi is not measured without the background's own return.
+            assert!(out.translucency.data[i].is_nan());
+        }
+        let rms = (err2 / in_mask.max(1) as f64).sqrt();
+        assert!(in_mask * 100 >= sheet * 90 && rms < 15.0, "{in_mask}/{sheet}, {rms} mm");
+        assert!(box_px > 50 && box_masked * 20 <= box_px, "{box_masked}/{box_px}");
+        assert!(o
+            .regions
+            .iter()
+            .all(|r| r.opaque || (r.xi.xi.is_nan() && r.xi.interval == [0.0, 1.0])));
     }
 
     #[test]
