@@ -722,6 +722,95 @@ fn the_node_takes_the_multi_frequency_path_over_dds() {
 }
 
 /// The DDS test's checks against the truth: the sheet's depth and ξ, the box out of the mask.
+/// `no_latch:=true` (a moving camera's node): no latch is called; every object frame comes
+/// back corrected from two free returns per pixel, the sheet in the mask, the box not, and
+/// the translucency image NaN (ξ is not measured without the background's own return).
+#[test]
+fn the_node_corrects_every_frame_with_no_latch_over_dds() {
+    if !isolated("the_node_corrects_every_frame_with_no_latch_over_dds") {
+        return;
+    }
+    let (text, drawn) = sheet_and_box(43, "[20e6, 50e6, 100e6]", 2000.0);
+    let mut scene = Scene::from_toml(&text, "s.toml").expect("scene");
+    scene.background.frames = 2;
+    let k = scene_intrinsics(&scene);
+    let frames = published(&scene);
+    let objects = &frames[2..];
+    let node = Node::start(&[
+        "modulation_frequencies_hz:=[20000000.0, 50000000.0, 100000000.0]",
+        "no_latch:=true",
+    ]);
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let checks = rt.block_on(async {
+        let ctx = translucent_tof::node::context(0, false).expect("DDS context");
+        let mut peer = Peer::new(
+            &ctx,
+            "mf_driver",
+            "/tof",
+            "/tof/translucent_tof",
+            ros2_client::ServiceMapping::Enhanced,
+        )
+        .expect("peer");
+        peer.wait_for_node(Duration::from_secs(30))
+            .await
+            .expect("the node on DDS");
+        let ctx2 = translucent_tof::node::context(0, false).expect("DDS context");
+        let mut phasors = PhasorPeer::new(&ctx2, 3);
+        phasors.wait_for_node().await;
+        let info = camera_info(&Header::new(0, "tof_optical_frame"), &k);
+        let mut stamp = 1_000_000_000u64;
+        let mut checks = vec![];
+        for f in objects {
+            stamp += 33_000_000;
+            let re = |img: &Image| translucent_tof::node::peer::restamp(img, stamp);
+            let restamped = Published {
+                depth: re(&f.depth),
+                ir: re(&f.ir),
+                phasors: f.phasors.iter().map(re).collect(),
+                truth_z_mm: f.truth_z_mm.clone(),
+            };
+            phasors.publish(&restamped);
+            peer.publish(&info, &restamped.depth, &restamped.ir)
+                .expect("publishing");
+            assert!(
+                peer.wait_for(stamp, Duration::from_secs(20)).await,
+                "no corrected depth at {stamp}"
+            );
+            let until = Instant::now() + Duration::from_secs(10);
+            while !(phasors.received.contains_key(&stamp) && peer.received.mask.contains_key(&stamp))
+                && Instant::now() < until
+            {
+                phasors.drain();
+                peer.drain();
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+            let xi = floats(phasors.received.get(&stamp).expect("a translucency_image"));
+            assert!(xi.iter().all(|x| x.is_nan()), "xi is not measured with no latch");
+            let corrected = depth_mm(&peer.received.corrected[&stamp]).expect("corrected depth");
+            let mask = peer
+                .received
+                .mask
+                .get(&stamp)
+                .map(|m| m.data.clone())
+                .unwrap_or_default();
+            checks.push(dds_check(&f.truth_z_mm, &corrected, &mask, &xi, drawn));
+        }
+        checks
+    });
+    let stats = node.stop();
+    for c in &checks {
+        println!("xi {:.4}, no latch: {c:?}", drawn.xi);
+        assert!(c.sheet_in_mask * 100 >= c.sheet_pixels * 90, "{c:?}");
+        assert!(c.sheet_rms_mm <= 30.0, "{c:?}");
+        assert!(c.box_pixels > 500 && c.box_in_mask * 20 <= c.box_pixels, "{c:?}");
+    }
+    assert!(stats["published"].as_u64() >= Some(objects.len() as u64), "{stats}");
+}
+
 #[derive(Debug)]
 struct DdsCheck {
     sheet_pixels: usize,

@@ -193,13 +193,19 @@ fn a_moving_camera_is_corrected_with_no_latch() {
     let row = &rows[0];
     assert!(row.get("error").is_none(), "{row}");
     let (every, raw) = (num(row, "all_pixels_rms_mm"), num(row, "all_pixels_rms_raw_mm"));
-    assert!(every <= 20.0 && every < raw, "every sheet pixel {every:.1} mm (raw {raw:.1})");
+    assert!(
+        every <= 20.0 && every < raw,
+        "every sheet pixel {every:.1} mm (raw {raw:.1})"
+    );
     assert!(num(row, "recovered_share") >= 0.9, "{row}");
     let sheet = &row["materials"][0];
     assert_eq!(sheet["xi_not_measured"], Value::Bool(true), "{sheet}");
     let boxed = &row["opaque"][0];
     assert!(num(boxed, "not_flagged") >= 0.95, "{boxed}");
-    assert!(num(boxed, "median_error_mm") <= num(boxed, "median_raw_error_mm") + 1.0, "{boxed}");
+    assert!(
+        num(boxed, "median_error_mm") <= num(boxed, "median_raw_error_mm") + 1.0,
+        "{boxed}"
+    );
 }
 
 /// The whole rendered set against its committed baseline (`bags/rendered/baseline.json`,

@@ -106,6 +106,13 @@ pub const PARAMETERS: &[ParamSpec] = &[
         false,
         "a multi-frequency camera's frequencies, Hz, one per phasor_<k>/image_raw ([20e6, 50e6, 100e6]); unset: single frequency",
     ),
+    spec(
+        "no_latch",
+        "bool",
+        Some("false"),
+        false,
+        "with three or more modulation_frequencies_hz: latch nothing, correct every frame from two free returns per pixel (a moving camera); xi is not measured",
+    ),
     spec("waveform", "string", Some("sinusoid"), false, "sinusoid or triangle"),
     spec(
         "ir_mode",
@@ -240,13 +247,17 @@ pub fn parameters_help() -> String {
     let mut out = String::from(
         "Parameters (--ros-args -p NAME:=VALUE or --params-file FILE; `ros2 param` at run time, * = takes effect from the next frame):\n",
     );
+    // Columns as wide as their longest entry and a space, so that none run together.
+    let width =
+        |f: fn(&ParamSpec) -> usize, header: &str| PARAMETERS.iter().map(f).max().unwrap_or(0).max(header.len()) + 1;
+    let (wn, wk) = (width(|p| p.name.len(), "NAME"), width(|p| p.kind.len(), "TYPE"));
     out.push_str(&format!(
-        "  {:<24}{:<8}{:<14}  {}\n",
+        "  {:<wn$}{:<wk$}{:<14}  {}\n",
         "NAME", "TYPE", "DEFAULT", "MEANING"
     ));
     for p in PARAMETERS {
         out.push_str(&format!(
-            "  {:<24}{:<8}{:<14}{}{}\n",
+            "  {:<wn$}{:<wk$}{:<14}{}{}\n",
             p.name,
             p.kind,
             p.default
@@ -292,6 +303,19 @@ fn flag_or(p: &Params, name: &str, default: bool) -> Result<bool> {
         Some(ParamValue::Bool(b)) => Ok(*b),
         Some(v) => bail!("parameter {name}: expected true or false, got {:?}", v.as_text()),
     }
+}
+
+/// `no_latch`: only with three or more `modulation_frequencies_hz` (six numbers a pixel for
+/// two free returns' four unknowns).
+fn no_latch(p: &Params) -> Result<bool> {
+    let on = flag(p, "no_latch")?;
+    let k = frequencies(p)?.map_or(0, |f| f.len());
+    if on && k < 3 {
+        bail!(
+            "parameter no_latch: needs three or more modulation_frequencies_hz (two free returns per pixel), got {k}"
+        );
+    }
+    Ok(on)
 }
 
 /// `modulation_frequencies_hz`: `None` unset (or empty), else at least two
@@ -459,6 +483,7 @@ pub fn settings(a: &NodeArgs) -> Result<NodeSettings> {
         stats_json: a.stats_json.clone(),
         max_frames: a.max_frames,
         multi_frequency: frequencies(p)?,
+        no_latch: no_latch(p)?,
     })
 }
 

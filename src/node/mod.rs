@@ -147,6 +147,9 @@ pub struct NodeSettings {
     /// A multi-frequency camera's frequencies, Hz (`modulation_frequencies_hz`):
     /// subscribe to `phasor_<k>/image_raw` and take the multi-frequency path.
     pub multi_frequency: Option<Vec<f64>>,
+    /// With the multi-frequency path: latch nothing, every frame from two free returns
+    /// per pixel (`no_latch`, a moving camera).
+    pub no_latch: bool,
 }
 
 /// Counters and timings, logged on exit and written with `--stats-json`.
@@ -731,9 +734,14 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     );
     if let Some(f) = &s.multi_frequency {
         info!(
-            "multi-frequency path: phasors at {f:?} Hz on {}; publishes {}",
+            "multi-frequency path: phasors at {f:?} Hz on {}; publishes {}{}",
             phasor_t.join(", "),
-            r(names::TRANSLUCENCY_IMAGE)?
+            r(names::TRANSLUCENCY_IMAGE)?,
+            if s.no_latch {
+                "; no latch: every frame from two free returns per pixel, xi not measured"
+            } else {
+                ""
+            }
         );
     }
 
@@ -947,7 +955,10 @@ fn worker(
     };
     let mut core: NodeCore<Token> = NodeCore::new(s.config.clone(), s.background_frames, s.latch_timeout)
         .with_watch(s.passthrough, s.relatch_on_move);
-    let mut multi = s.multi_frequency.clone().map(|f| MultiFrequencyNode::new(f, &s.config));
+    let mut multi = s
+        .multi_frequency
+        .clone()
+        .map(|f| MultiFrequencyNode::new(f, &s.config, s.no_latch));
     let mut latencies: Vec<f64> = Vec::with_capacity(LATENCY_WINDOW);
     let mut last_report = Instant::now();
     let (mut last_sample, mut last_trim) = (Instant::now(), Instant::now());

@@ -8,7 +8,9 @@
 //! service and its replies, the depth background, passing frames through
 //! before a latch. This part latches the phasors of the same frames beside
 //! it and recovers the frames after. A camera moved after the latch is not
-//! watched for on this path.
+//! watched for on this path. With `no_latch` (a moving camera, three
+//! frequencies or more) nothing is latched: every frame is recovered on its
+//! own from two free returns per pixel.
 
 use crate::image::{depth_mm, ir_counts, phasor_samples, translucency_image};
 use crate::msgs::{Image, TriggerResponse};
@@ -35,11 +37,14 @@ pub struct MultiFrequencyNode {
     stage: Option<MultiFrequencyStage>,
     /// The frames of the latch in progress: phasors with their depth.
     pending: Vec<(PhasorFrame, DepthFrame)>,
+    /// Latch nothing: every frame from two free returns per pixel (a moving camera).
+    no_latch: bool,
 }
 
 impl MultiFrequencyNode {
-    /// The path at `frequencies_hz` with `config`'s physics and waveform.
-    pub fn new(frequencies_hz: Vec<f64>, config: &PipelineConfig) -> Self {
+    /// The path at `frequencies_hz` with `config`'s physics and waveform; with `no_latch`,
+    /// every frame on its own (two free returns per pixel), whatever is latched.
+    pub fn new(frequencies_hz: Vec<f64>, config: &PipelineConfig, no_latch: bool) -> Self {
         let mut mf = MultiFrequencyConfig::new(frequencies_hz, config.model.clone());
         mf.min_region_pixels = config.min_region_pixels;
         Self {
@@ -47,6 +52,7 @@ impl MultiFrequencyNode {
             depth_range_mm: config.model.sensor.unambiguous_range_mm(),
             stage: None,
             pending: vec![],
+            no_latch,
         }
     }
 
@@ -95,6 +101,11 @@ impl MultiFrequencyNode {
         };
         if core.intrinsics().is_none() {
             return plain(core.on_frame(&f.depth, &f.ir));
+        }
+        if self.no_latch {
+            return self
+                .recover(core, f, &phasors)
+                .unwrap_or_else(|(cause, detail)| dropped(core, cause, detail));
         }
         if core.latching() {
             return self.latch_frame(core, f, phasors);
@@ -223,9 +234,12 @@ impl MultiFrequencyNode {
             format!("frame at stamp {stamp} ns dropped: no phasor background"),
         ))?;
         let depth = depth_frame(f)?;
-        let out = stage
-            .process(phasors, &depth)
-            .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns dropped: {e}")))?;
+        let out = if self.no_latch {
+            stage.process_unlatched(phasors, &depth)
+        } else {
+            stage.process(phasors, &depth)
+        }
+        .map_err(|e| (DropCause::Pipeline, format!("frame at stamp {stamp} ns dropped: {e}")))?;
         let image = |e: crate::image::ImageError| (DropCause::Pipeline, format!("frame at stamp {stamp} ns: {e}"));
         let translucency = translucency_image(&f.depth.header, &out.translucency).map_err(image)?;
         let outputs = NodeOutputs::recovered(
