@@ -518,6 +518,68 @@ fn a_camera_moved_after_the_latch_is_reported_passed_through_and_relatched() {
     assert!(!log.contains("[ERROR]"), "{log}");
 }
 
+/// `materials:=FILE` over DDS: the node reads a materials file written by `calibrate-xi`
+/// (here from the rendered document holder's own frames, so the class is known) and every
+/// `~/translucency` estimate carries a class among the file's materials, `opaque` and
+/// `unknown`, with a probability; once the sheet's evidence is in, it is classed as the
+/// file's material and recovered with its xi.
+#[test]
+fn the_node_classifies_objects_with_a_materials_file() {
+    if !isolated("the_node_classifies_objects_with_a_materials_file") {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("materials.toml");
+    let rendered = Path::new(env!("CARGO_MANIFEST_DIR")).join("bags/rendered/paper_document_holder.mcap");
+    let out = Command::new(exe())
+        .arg("calibrate-xi")
+        .arg(&rendered)
+        .args(["--name", "holder", "-o"])
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let node = NodeChild::start(&["background_frames:=10", &format!("materials:={}", file.display())]);
+    let (info, pairs) = bag_frames(&rendered).unwrap();
+    let estimates = rt().block_on(async {
+        let ctx = translucent_tof::node::context(0, false).unwrap();
+        let mut peer = driver(&ctx, "materials_peer").await;
+        let mut t = 3_000_000_000u64;
+        let reply = peer
+            .latch_while_streaming(&info, &pairs[..10], Duration::from_millis(40), &mut t, 33_000_000)
+            .await
+            .unwrap();
+        assert!(reply.success, "{reply:?}");
+        for (d, i) in &pairs[10..] {
+            t += 100_000_000;
+            peer.publish(&info, &stamped(d, t), &stamped(i, t)).unwrap();
+            assert!(peer.wait_for(t, Duration::from_secs(20)).await, "no output at {t}");
+        }
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        peer.drain();
+        peer.received.estimates.clone()
+    });
+    let (_, log) = node.stop_with_log();
+    // Frames passed through before the latch carry no class (and say why in `method`).
+    let estimates: Vec<_> = estimates
+        .iter()
+        .filter(|e| !e.method.starts_with("passthrough"))
+        .collect();
+    assert!(!estimates.is_empty(), "no estimate of a recovered frame");
+    for e in &estimates {
+        println!(
+            "xi {:.3} [{:.3}, {:.3}] class {:?} p {:.3}",
+            e.xi, e.xi_lower, e.xi_upper, e.material, e.class_probability
+        );
+        assert!(["holder", "opaque", "unknown"].contains(&e.material.as_str()), "{e:?}");
+        assert!((0.0..=1.0).contains(&e.class_probability), "{e:?}");
+    }
+    let last = estimates.last().expect("an estimate");
+    assert_eq!(last.material, "holder", "{last:?}");
+    assert!(last.class_probability > 0.5, "{last:?}");
+    assert!(!log.contains("[ERROR]"), "{log}");
+}
+
 #[test]
 fn overload_drops_the_oldest_frames_and_memory_stays_bounded() {
     if !isolated("overload_drops_the_oldest_frames_and_memory_stays_bounded") {
