@@ -179,6 +179,7 @@ fn frame_row(out: &MultiFrequencyOutput, f: &DepthFrame, rec: &Recording, errors
         "changed_pixels": out.changed_pixels,
         "opaque_pixels": out.opaque_pixels,
         "failed_pixels": out.failed_pixels,
+        "unclaimed_pixels": out.unclaimed_pixels,
         "unusable_pixels": out.unusable_pixels,
         "regions": o.regions.iter().map(|r| json!({
             "id": r.id,

@@ -465,6 +465,12 @@ pub enum PixelClass {
     Layer,
     /// Changed, but the inversion refused it: the reading is kept.
     Failed,
+    /// Changed, but neither a layer nor an opaque surface can be claimed: a layer explains
+    /// it better than one return, but not beyond the level; or one return at the background's
+    /// own distance, weaker than the background, explains it (the background dimmed: seen
+    /// through a layer whose own return is under the noise, or shadowed). The reading is kept
+    /// and no region claims it: an opaque region's bound on ξ would not hold for it.
+    Unclaimed,
 }
 
 /// A pixel with no background latched: its phasors, their noise's shape (the square root
@@ -520,6 +526,8 @@ pub struct MultiFrequencyOutput {
     pub opaque_pixels: usize,
     /// Changed pixels the inversion refused.
     pub failed_pixels: usize,
+    /// Changed pixels neither a layer nor opaque can be claimed for ([`PixelClass::Unclaimed`]).
+    pub unclaimed_pixels: usize,
     /// Pixels without a usable background or phasors.
     pub unusable_pixels: usize,
     /// Median ξ over the mask (NaN when empty).
@@ -767,6 +775,9 @@ impl MultiFrequencyStage {
             return PixelResult::only(PixelClass::Background);
         }
         match self.inversion.invert(&inputs.phasors()) {
+            Ok(est) if unclaimed(&est, &inputs, self.config.opacity_threshold) => {
+                PixelResult::only(PixelClass::Unclaimed)
+            }
             Ok(est) => self.classify(&est),
             Err(_) => PixelResult::only(PixelClass::Failed),
         }
@@ -823,9 +834,13 @@ impl MultiFrequencyStage {
             },
             translucency: filled.translucency,
             labels,
-            changed_pixels: count(PixelClass::Opaque) + count(PixelClass::Layer) + count(PixelClass::Failed),
+            changed_pixels: count(PixelClass::Opaque)
+                + count(PixelClass::Layer)
+                + count(PixelClass::Failed)
+                + count(PixelClass::Unclaimed),
             opaque_pixels: count(PixelClass::Opaque),
             failed_pixels: count(PixelClass::Failed),
+            unclaimed_pixels: count(PixelClass::Unclaimed),
             unusable_pixels: count(PixelClass::Unusable),
             xi_pixel_median: filled.xi_median,
         }
@@ -975,6 +990,24 @@ impl MultiFrequencyStage {
         f.xi_median = median_select(&mut xis);
         f
     }
+}
+
+/// Farthest from the background's distance, beyond three of its own standard deviations,
+/// that one return still counts as the background's ([`PixelClass::Unclaimed`]), mm.
+const DIMMED_TOLERANCE_MM: f64 = 30.0;
+
+/// Whether a changed pixel's fit claims nothing ([`PixelClass::Unclaimed`]): a layer preferred
+/// to one return (at 95 %) but not beyond `level`, or one return at the background's own
+/// distance and weaker than it (a layer whose own return is under the noise shows that, its ξ²
+/// that return over the background's; so does a shadow; an opaque surface there would be the
+/// background itself).
+fn unclaimed(est: &MultiFrequencyEstimate, inputs: &PixelInputs, level: f64) -> bool {
+    if !est.opaque {
+        return est.opacity_statistic <= level;
+    }
+    let background = inputs.background.iter().map(|b| b.a.hypot(b.b)).fold(0.0, f64::max);
+    let tolerance = (3.0 * est.foreground_distance_sigma_mm).max(DIMMED_TOLERANCE_MM);
+    (est.foreground_distance_mm - inputs.background_distance_mm).abs() <= tolerance && est.first_return < background
 }
 
 /// Each pixel's layer distance along its ray and its σ, mm (what [`MultiFrequencyStage::fill`]
