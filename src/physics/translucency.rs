@@ -23,7 +23,7 @@ use super::inversion::{
 };
 use super::model::ForwardModel;
 use super::stats::{median_and_sigma, student_t975};
-use super::surface::local_planes_adaptive;
+use super::surface::{local_planes_adaptive, Plane};
 
 /// How ξ was chosen.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -242,6 +242,37 @@ const MAX_ALBEDO: f64 = 1.1;
 /// pixels without a usable normal are censored there.
 const OPAQUE_ALBEDO_BOUND: f64 = 1e3;
 
+/// Per pixel of the sample: whether the reading itself (the surface as measured) gives it a
+/// usable normal, one seen at more than [`MIN_INCIDENCE_COS`]: not a face seen nearly
+/// edge-on, a silhouette or a mixed edge, whose normal no ξ makes known.
+fn readable_normals(sample: &FrameSample, planes: &ImageBuf<Option<Plane>>) -> Vec<bool> {
+    let obs = &sample.observations;
+    (0..obs.data.len())
+        .map(|i| {
+            planes.data[i]
+                .map(|p| p.incidence_cos(&sample.rays.data[i]))
+                .is_some_and(|c| c > MIN_INCIDENCE_COS)
+        })
+        .collect()
+}
+
+/// The local planes of the reading itself (the surface as measured: the layer at ξ = 0).
+fn reading_planes(
+    sample: &FrameSample,
+    mask: &ImageBuf<bool>,
+    radii: &[usize],
+    block_steps: usize,
+) -> ImageBuf<Option<Plane>> {
+    let obs = &sample.observations;
+    let mut points = ImageBuf::filled(obs.width, obs.height, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
+    for (i, o) in obs.data.iter().enumerate() {
+        if let Some(o) = o {
+            points.data[i] = sample.rays.data[i] * o.distance_mm;
+        }
+    }
+    local_planes_adaptive(&points, &sample.rays, mask, radii, 12, 0.05, block_steps)
+}
+
 /// Robust summary of `log rho` in one group of pixels at one ξ.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct GroupStat {
@@ -345,6 +376,13 @@ pub fn frame_profile(
     let observed: Vec<(usize, PixelObservation)> = (0..w * h).filter_map(|i| obs.data[i].map(|o| (i, o))).collect();
     let observations: Vec<PixelObservation> = observed.iter().map(|&(_, o)| o).collect();
     // Each ξ on its own (in parallel over the current rayon pool), gathered in grid order.
+    // Pixels whose reading gives no usable normal (a surface seen nearly edge-on, a silhouette
+    // against the background, a mixed edge) carry no albedo at any ξ: left out of the albedo
+    // statistics at every ξ alike (so no ξ wins by it), rather than censored (a censored share
+    // that grows as an object turns a face edge-on moves its groups' medians with its pose:
+    // an opaque box carried and turning through a video was taken for a layer by it).
+    let reading = reading_planes(sample, &mask, &radii, settings.normal_block_steps);
+    let readable = readable_normals(sample, &reading);
     let per_xi = |xi: f64| -> (Vec<GroupStat>, f64, f64, TruthFit) {
         // Opaque (xi 0) is judged by its albedos' consistency alone: the bound on X comes from
         // `Lin`, which rests on an assumed background albedo, and an opaque object brighter
@@ -399,19 +437,26 @@ pub fn frame_profile(
                 }
             }
         }
-        // Normals from the smooth-surface prior: local planes over the recovered layer.
-        let planes = local_planes_adaptive(
-            &points,
-            &sample.rays,
-            &mask,
-            &radii,
-            12,
-            0.05,
-            settings.normal_block_steps,
-        );
+        // Normals from the smooth-surface prior: local planes over the recovered layer (at
+        // ξ = 0 the layer is the reading, whose planes are known).
+        let computed;
+        let planes = if xi == 0.0 {
+            &reading
+        } else {
+            computed = local_planes_adaptive(
+                &points,
+                &sample.rays,
+                &mask,
+                &radii,
+                12,
+                0.05,
+                settings.normal_block_steps,
+            );
+            &computed
+        };
         let mut per_group: Vec<Vec<f64>> = vec![vec![]; n_groups];
         for i in 0..w * h {
-            if obs.data[i].is_none() {
+            if obs.data[i].is_none() || !readable[i] {
                 continue;
             }
             if !xs[i].is_finite() {
@@ -1148,6 +1193,70 @@ mod tests {
             "{iv:?}"
         );
         assert_eq!(cover([0.4, 0.5], 0.52), [0.4, 0.52]);
+    }
+
+    /// A box's corner, one face seen face-on and the other nearly edge-on (80° from the view):
+    /// the first face's pixels read a usable normal at every ξ alike, the grazing face's do not
+    /// (cos of incidence under 0.3), and are left out of the albedo statistics.
+    #[test]
+    fn a_face_seen_edge_on_is_not_readable_and_one_seen_face_on_is() {
+        let (w, h, f) = (48usize, 32usize, 60.0);
+        let ray = |u: usize, v: usize| Vector3::new((u as f64 - 23.5) / f, (v as f64 - 15.5) / f, 1.0).normalize();
+        let rays = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|i| ray(i % w, i / w)).collect(),
+        };
+        // Left: z = 2000; right of x = 0: z = 2000 + x tan(80°), a face receding steeply.
+        let steep = 80f64.to_radians().tan();
+        let observations = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| {
+                    let r = rays.data[i];
+                    let t = if r.x < 0.0 {
+                        2000.0 / r.z
+                    } else {
+                        2000.0 / (r.z - steep * r.x)
+                    };
+                    (t > 0.0 && t < 1e5).then_some(PixelObservation {
+                        distance_mm: t,
+                        ir: 1000.0,
+                        background_distance_mm: 3000.0,
+                        background_ir: 800.0,
+                        emitted_light: 1e10,
+                    })
+                })
+                .collect(),
+        };
+        let mask = ImageBuf {
+            width: w,
+            height: h,
+            data: observations.data.iter().map(Option::is_some).collect(),
+        };
+        let sample = FrameSample {
+            observations,
+            rays,
+            truth_mm: None,
+            stride: 1,
+        };
+        let readable = readable_normals(&sample, &reading_planes(&sample, &mask, &[3, 6, 12, 18], 1));
+        let rows = 6..h - 6;
+        assert!(
+            rows.clone().all(|v| (4..16).all(|u| readable[v * w + u])),
+            "the face seen face-on"
+        );
+        // Beyond the narrowest window's reach of the corner (3 pixels): windows there hold only
+        // the edge-on face.
+        let edge_on: Vec<usize> = (0..w)
+            .filter(|&u| ray(u, 16).x > 4.0 / f && mask.data[16 * w + u])
+            .collect();
+        assert!(!edge_on.is_empty());
+        assert!(
+            rows.clone().all(|v| edge_on.iter().all(|&u| !readable[v * w + u])),
+            "the face seen edge-on"
+        );
     }
 
     #[test]
