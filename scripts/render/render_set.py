@@ -217,7 +217,7 @@ def _write_bag(spec, out_dir, cache):
     stage_rows = []
     os.makedirs(out_dir, exist_ok=True)
     tmp = os.path.join(cache, name + ".mcap.tmp")  # moved into out_dir when complete
-    with open(tmp, "wb") as out, (_zstd_level(19) if freqs else _nothing()):
+    with open(tmp, "wb") as out, (_zstd_level(19) if freqs and spec.get("zstd_level") is None else _nothing()):
         # multi-frequency bags: zstd level 19 (the phasor images are noisy floats; level 3,
         # the writer's default, would put a 16-frame bag above 5 MB); the content is the same
         w = Writer(out, compression=CompressionType.ZSTD)

@@ -539,7 +539,8 @@ def multi_frequency(spec):
 
 
 def mf_specs():
-    return [multi_frequency(s) for s in [two_materials(), opaque_and_translucent()] + [draw(i) for i in MF_DRAWS]]
+    return [multi_frequency(s) for s in [two_materials(), opaque_and_translucent()] + [draw(i) for i in MF_DRAWS]
+            + [video(i) for i in range(3)]]
 
 
 # ------------------------------------------------ a moving camera (no latch) ---
