@@ -637,18 +637,8 @@ fn the_node_takes_the_multi_frequency_path_over_dds() {
         let mut phasors = PhasorPeer::new(&ctx2, 3);
         phasors.wait_for_node().await;
         let info = camera_info(&Header::new(0, "tof_optical_frame"), &k);
-        let send = |peer: &Peer, phasors: &PhasorPeer, f: &Published, stamp: u64| {
-            let re = |img: &Image| translucent_tof::node::peer::restamp(img, stamp);
-            let restamped = Published {
-                depth: re(&f.depth),
-                ir: re(&f.ir),
-                phasors: f.phasors.iter().map(re).collect(),
-                truth_z_mm: f.truth_z_mm.clone(),
-            };
-            phasors.publish(&restamped);
-            peer.publish(&info, &restamped.depth, &restamped.ir)
-                .expect("publishing");
-        };
+        let send =
+            |peer: &Peer, phasors: &PhasorPeer, f: &Published, stamp: u64| send_frame(peer, phasors, &info, f, stamp);
         // The latch, while the empty scene streams (every frame with its phasors).
         let mut stamp = 1_000_000_000u64;
         let mut tick = tokio::time::interval(Duration::from_millis(60));
@@ -676,29 +666,7 @@ fn the_node_takes_the_multi_frequency_path_over_dds() {
         let mut checks = vec![];
         for f in objects {
             stamp += 33_000_000;
-            send(&peer, &phasors, f, stamp);
-            assert!(
-                peer.wait_for(stamp, Duration::from_secs(20)).await,
-                "no corrected depth at {stamp}"
-            );
-            // The mask and the translucency image follow the corrected depth.
-            let until = Instant::now() + Duration::from_secs(10);
-            while !(phasors.received.contains_key(&stamp) && peer.received.mask.contains_key(&stamp))
-                && Instant::now() < until
-            {
-                phasors.drain();
-                peer.drain();
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
-            let xi = floats(phasors.received.get(&stamp).expect("a translucency_image"));
-            let corrected = depth_mm(&peer.received.corrected[&stamp]).expect("corrected depth");
-            let mask = peer
-                .received
-                .mask
-                .get(&stamp)
-                .map(|m| m.data.clone())
-                .unwrap_or_default();
-            checks.push(dds_check(&f.truth_z_mm, &corrected, &mask, &xi, drawn));
+            checks.push(round_trip(&mut peer, &mut phasors, &info, (f, stamp), drawn).await.0);
         }
         (checks, reply)
     });
@@ -766,38 +734,9 @@ fn the_node_corrects_every_frame_with_no_latch_over_dds() {
         let mut checks = vec![];
         for f in objects {
             stamp += 33_000_000;
-            let re = |img: &Image| translucent_tof::node::peer::restamp(img, stamp);
-            let restamped = Published {
-                depth: re(&f.depth),
-                ir: re(&f.ir),
-                phasors: f.phasors.iter().map(re).collect(),
-                truth_z_mm: f.truth_z_mm.clone(),
-            };
-            phasors.publish(&restamped);
-            peer.publish(&info, &restamped.depth, &restamped.ir)
-                .expect("publishing");
-            assert!(
-                peer.wait_for(stamp, Duration::from_secs(20)).await,
-                "no corrected depth at {stamp}"
-            );
-            let until = Instant::now() + Duration::from_secs(10);
-            while !(phasors.received.contains_key(&stamp) && peer.received.mask.contains_key(&stamp))
-                && Instant::now() < until
-            {
-                phasors.drain();
-                peer.drain();
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
-            let xi = floats(phasors.received.get(&stamp).expect("a translucency_image"));
+            let (check, xi) = round_trip(&mut peer, &mut phasors, &info, (f, stamp), drawn).await;
             assert!(xi.iter().all(|x| x.is_nan()), "xi is not measured with no latch");
-            let corrected = depth_mm(&peer.received.corrected[&stamp]).expect("corrected depth");
-            let mask = peer
-                .received
-                .mask
-                .get(&stamp)
-                .map(|m| m.data.clone())
-                .unwrap_or_default();
-            checks.push(dds_check(&f.truth_z_mm, &corrected, &mask, &xi, drawn));
+            checks.push(check);
         }
         checks
     });
@@ -809,6 +748,52 @@ fn the_node_corrects_every_frame_with_no_latch_over_dds() {
         assert!(c.box_pixels > 500 && c.box_in_mask * 20 <= c.box_pixels, "{c:?}");
     }
     assert!(stats["published"].as_u64() >= Some(objects.len() as u64), "{stats}");
+}
+
+/// Publishes `f` restamped at `stamp`: its phasors on `phasors`, depth, IR and `info` on `peer`.
+fn send_frame(peer: &Peer, phasors: &PhasorPeer, info: &translucent_tof::msgs::CameraInfo, f: &Published, stamp: u64) {
+    let re = |img: &Image| translucent_tof::node::peer::restamp(img, stamp);
+    let restamped = Published {
+        depth: re(&f.depth),
+        ir: re(&f.ir),
+        phasors: f.phasors.iter().map(re).collect(),
+        truth_z_mm: f.truth_z_mm.clone(),
+    };
+    phasors.publish(&restamped);
+    peer.publish(info, &restamped.depth, &restamped.ir).expect("publishing");
+}
+
+/// [`send_frame`], then waits for the node's corrected depth, mask and translucency image of
+/// it, and returns what they show against the truth and the translucency image's values.
+async fn round_trip(
+    peer: &mut Peer,
+    phasors: &mut PhasorPeer,
+    info: &translucent_tof::msgs::CameraInfo,
+    (f, stamp): (&Published, u64),
+    drawn: Drawn,
+) -> (DdsCheck, Vec<f32>) {
+    send_frame(peer, phasors, info, f, stamp);
+    assert!(
+        peer.wait_for(stamp, Duration::from_secs(20)).await,
+        "no corrected depth at {stamp}"
+    );
+    // The mask and the translucency image follow the corrected depth.
+    let until = Instant::now() + Duration::from_secs(10);
+    while !(phasors.received.contains_key(&stamp) && peer.received.mask.contains_key(&stamp)) && Instant::now() < until
+    {
+        phasors.drain();
+        peer.drain();
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let xi = floats(phasors.received.get(&stamp).expect("a translucency_image"));
+    let corrected = depth_mm(&peer.received.corrected[&stamp]).expect("corrected depth");
+    let mask = peer
+        .received
+        .mask
+        .get(&stamp)
+        .map(|m| m.data.clone())
+        .unwrap_or_default();
+    (dds_check(&f.truth_z_mm, &corrected, &mask, &xi, drawn), xi)
 }
 
 #[derive(Debug)]

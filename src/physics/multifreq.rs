@@ -700,14 +700,9 @@ impl MultiFrequencyInversion {
         let (fx, fl, fh) = (f(x), f(bracket.0), f(bracket.1));
         let (l, r) = ((bracket.0, fl), (bracket.1, fh));
         let (near, far) = if fl <= fh { (l, r) } else { (r, l) };
-        let mut best = [(x, fx), near, far];
-        best.sort_by(|a, b| a.1.total_cmp(&b.1));
-        let found = brent_minimum(bracket, best, self.settings.tolerance_mm, &f);
-        if found.1 <= best[0].1 {
-            found
-        } else {
-            best[0]
-        }
+        let mut seed = [(x, fx), near, far];
+        seed.sort_by(|a, b| a.1.total_cmp(&b.1));
+        brent_minimum(bracket, seed, self.settings.tolerance_mm, &f)
     }
 
     /// The Fisher information of two free returns' `(d1, a1, d2, a2)` (columns `a1 u'(d1)`,
@@ -1109,9 +1104,8 @@ impl MultiFrequencyInversion {
         for m in lowest.into_iter().filter(|m| m.value.is_finite()) {
             let bracket = ((m.x - h).max(lo), (m.x + h).min(hi));
             let refined = brent_minimum(bracket, m.seed(h), tol, &f);
-            let candidate = if refined.1 <= m.value { refined } else { (m.x, m.value) };
-            if candidate.1 < best.1 {
-                best = candidate;
+            if refined.1 < best.1 {
+                best = refined;
             }
         }
         best
@@ -1203,7 +1197,9 @@ impl GridMinima {
 /// Brent's search for the minimum of `f` on `[lo, hi]` (golden section with parabolic
 /// steps where the parabola through the last three points is trustworthy), to a bracket
 /// about `tol` wide: a smooth minimum takes a handful of evaluations where golden section
-/// alone takes one per factor 1.618 of narrowing.
+/// alone takes one per factor 1.618 of narrowing. `seed` holds the three best points known,
+/// best first; the point returned is never worse than the first (the search moves only to
+/// lower values).
 fn brent_minimum((mut lo, mut hi): (f64, f64), seed: [(f64, f64); 3], tol: f64, f: &impl Fn(f64) -> f64) -> (f64, f64) {
     const GOLDEN: f64 = 0.381_966_011_250_105_1; // (3 - sqrt 5) / 2
     const MAX_STEPS: usize = 100;
