@@ -846,37 +846,9 @@ impl Pipeline {
         let Some(region) = Region::around(obs_mask, self.config.prior_stride_px) else {
             return;
         };
-        let n = region.len();
         let rays = region.crop(&self.rays);
         let mask = region.crop(obs_mask);
-        let nan = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
-        let mut points = ImageBuf::filled(region.width, region.height, nan);
-        let mut df = vec![f64::NAN; n];
-        let mut pinned = 0;
-        let mut res2 = 0.0;
-        let mut fitted = 0usize;
-        let mut several_roots = vec![];
-        let mut unresolved = 0;
-        let mut noise = vec![f64::NAN; n];
-        let bg = self.background.as_ref();
-        // The translucent pixels with an observation, in pixel order, each as its index in the
-        // rectangle and in the image (walking the rectangle's rows: no division per pixel), with
-        // their observations: inverted in batches (in parallel over the current rayon pool
-        // when there are enough of them), then the counts in pixel order.
-        let mut observed: Vec<(usize, usize)> = Vec::with_capacity(observations.count());
-        let (mut row, mut row_start) = (0, 0);
-        let full = region.full_width.max(1);
-        for fi in observations.pixels() {
-            while fi >= row_start + full {
-                (row, row_start) = (row + 1, row_start + full);
-            }
-            let col = fi - row_start;
-            if (region.row0..region.row0 + region.height).contains(&row)
-                && (region.col0..region.col0 + region.width).contains(&col)
-            {
-                observed.push(((row - region.row0) * region.width + col - region.col0, fi));
-            }
-        }
+        let observed = observed_in(&region, observations);
         // Every observation lies in the rectangle (both come from the frame's mask), so the
         // observations are the frame's own list, not a copy (unless that ever fails).
         let held: std::borrow::Cow<[PixelObservation]> = if observed.len() == observations.count() {
@@ -887,8 +859,51 @@ impl Pipeline {
                 .filter_map(|&(_, fi)| observations.get(fi).copied())
                 .collect()
         };
-        let per_pixel: Vec<Option<PixelSolve>> = map_chunks_ordered(
+        let per_pixel = self.solve_pixels(&observed, &held, xi);
+        let mut roots = Roots::of(
+            region.len(),
             &observed,
+            &per_pixel,
+            &rays,
+            self.config.max_layer_sigma_mm,
+        );
+        if self.config.prior_radius_px > 0 {
+            self.apply_surface_prior(
+                &mut roots,
+                (&observed, &held, observations),
+                (&rays, &mask),
+                xi,
+                region.width,
+            );
+        }
+        let xi_share = self.xi_share(&observed, &held, &roots.df, region.width, xi_estimate);
+        for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
+            let (z, sigma) = if roots.df[i].is_finite() {
+                out.tally.recovered += 1;
+                let s = roots.noise[i].hypot(xi_share[i]);
+                (
+                    (roots.df[i] / self.scale.data[fi]) as f32,
+                    (s / self.scale.data[fi]) as f32,
+                )
+            } else {
+                (f32::NAN, f32::NAN)
+            };
+            out.z_mm.data[fi] = z;
+            out.sigma_mm.data[fi] = sigma;
+        }
+        out.tally.pinned += roots.pinned;
+        out.tally.unresolved += roots.unresolved;
+        out.tally.res2 += roots.res2;
+        out.tally.fitted += roots.fitted;
+    }
+
+    /// Each observed pixel inverted at ξ (`None` where no root), with the layer's standard
+    /// deviation from the reading and IR noise: inverted in batches, in parallel over the
+    /// current rayon pool when there are enough of them, in pixel order.
+    fn solve_pixels(&self, observed: &[(usize, usize)], held: &[PixelObservation], xi: f64) -> Vec<Option<PixelSolve>> {
+        let bg = self.background.as_ref();
+        map_chunks_ordered(
+            observed,
             INVERSION_BATCH,
             MIN_PARALLEL_PIXELS,
             |start: usize, batch: &[(usize, usize)]| {
@@ -922,93 +937,71 @@ impl Pipeline {
                     })
                     .collect()
             },
+        )
+    }
+
+    /// The smooth-surface prior on the roots: where a pixel fits several layers, the one its
+    /// neighbourhood's surface is nearest (the first pass took the one nearest the reading);
+    /// then every observed pixel inside the object takes the surface, and each its standard
+    /// error about it.
+    fn apply_surface_prior(
+        &self,
+        roots: &mut Roots,
+        (observed, held, observations): (&[(usize, usize)], &[PixelObservation], &SparseImage<PixelObservation>),
+        (rays, mask): (&ImageBuf<Vector3<f64>>, &ImageBuf<bool>),
+        xi: f64,
+        width: usize,
+    ) {
+        let windows = Windows {
+            radius: self.config.prior_radius_px,
+            min_points: 12,
+            stride: self.config.prior_stride_px,
+        };
+        let mut surfaces = LocalSurfaces::new(&roots.points, rays, mask, &windows);
+        let df = &roots.df;
+        let repicks: Vec<Option<f64>> = map_ordered(
+            &roots.several_roots,
+            MIN_PARALLEL_PIXELS,
+            64,
+            |&(i, fi): &(usize, usize)| {
+                let o = *observations.get(fi)?;
+                let t = surfaces.ray_distance(i, rays)?;
+                let est = foreground_distance_without_slopes(&self.config.model, &o, xi, &self.bounds, Some(t))?;
+                (!est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5).then_some(est.foreground_distance_mm)
+            },
         );
-        for (&(i, fi), solve) in observed.iter().zip(&per_pixel) {
-            if let Some(est) = *solve {
-                res2 += est.residual_mm * est.residual_mm;
-                fitted += 1;
-                if est.several_roots {
-                    several_roots.push((i, fi));
-                }
-                if est.pinned {
-                    pinned += 1;
-                } else if !(est.layer_sigma_mm <= self.config.max_layer_sigma_mm) {
-                    unresolved += 1;
-                } else {
-                    df[i] = est.foreground_distance_mm;
-                    noise[i] = est.layer_sigma_mm;
-                    points.data[i] = rays.data[i] * est.foreground_distance_mm;
-                }
-            } else {
-                pinned += 1;
+        let mut repicked = vec![];
+        for (&(i, _), d) in roots.several_roots.iter().zip(repicks) {
+            if let Some(d) = d {
+                roots.df[i] = d;
+                roots.points.data[i] = rays.data[i] * d;
+                repicked.push(i);
             }
         }
-        if self.config.prior_radius_px > 0 {
-            let windows = Windows {
-                radius: self.config.prior_radius_px,
-                min_points: 12,
-                stride: self.config.prior_stride_px,
-            };
-            let mut surfaces = LocalSurfaces::new(&points, &rays, &mask, &windows);
-            // Where a pixel fits several layers, the one its neighbourhood's surface is nearest
-            // (the first pass took the one nearest the reading); then the surface again.
-            let repicks: Vec<Option<f64>> =
-                map_ordered(&several_roots, MIN_PARALLEL_PIXELS, 64, |&(i, fi): &(usize, usize)| {
-                    let o = *observations.get(fi)?;
-                    let t = surfaces.ray_distance(i, &rays)?;
-                    let est = foreground_distance_without_slopes(&self.config.model, &o, xi, &self.bounds, Some(t))?;
-                    (!est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5)
-                        .then_some(est.foreground_distance_mm)
-                });
-            let mut repicked = vec![];
-            for (&(i, _), d) in several_roots.iter().zip(repicks) {
-                if let Some(d) = d {
-                    df[i] = d;
-                    points.data[i] = rays.data[i] * d;
-                    repicked.push(i);
+        // The windows those pixels are in, refitted (the same surfaces as refitting all).
+        surfaces.update(&roots.points, rays, &windows, &repicked);
+        let own = roots.df.clone();
+        // Pixels without their own root but inside the object take the neighbourhood's surface too.
+        for (&(i, _), o) in observed.iter().zip(held.iter()) {
+            let t = surfaces.ray_distance(i, rays).or_else(|| {
+                surfaces
+                    .nearest_plane(i, self.config.prior_radius_px, rays)
+                    .and_then(|p| p.ray_distance(&rays.data[i]))
+            });
+            if let Some(t) = t {
+                if t > self.bounds.min_distance_mm && t < o.background_distance_mm {
+                    roots.df[i] = t;
                 }
             }
-            // The windows those pixels are in, refitted (the same surfaces as refitting all).
-            surfaces.update(&points, &rays, &windows, &repicked);
-            let roots = df.clone();
-            // Pixels without their own root but inside the object take the neighbourhood's surface too.
-            for (&(i, _), o) in observed.iter().zip(held.iter()) {
-                let t = surfaces.ray_distance(i, &rays).or_else(|| {
-                    surfaces
-                        .nearest_plane(i, self.config.prior_radius_px, &rays)
-                        .and_then(|p| p.ray_distance(&rays.data[i]))
-                });
-                if let Some(t) = t {
-                    if t > self.bounds.min_distance_mm && t < o.background_distance_mm {
-                        df[i] = t;
-                    }
-                }
-            }
-            noise = surface_standard_error(
-                &roots,
-                &df,
-                &noise,
-                region.width,
-                self.config.prior_radius_px,
-                self.config.max_layer_sigma_mm,
-            );
         }
-        let xi_share = self.xi_share(&observed, &held, &df, region.width, xi_estimate);
-        for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
-            let (z, sigma) = if df[i].is_finite() {
-                out.tally.recovered += 1;
-                let s = noise[i].hypot(xi_share[i]);
-                ((df[i] / self.scale.data[fi]) as f32, (s / self.scale.data[fi]) as f32)
-            } else {
-                (f32::NAN, f32::NAN)
-            };
-            out.z_mm.data[fi] = z;
-            out.sigma_mm.data[fi] = sigma;
-        }
-        out.tally.pinned += pinned;
-        out.tally.unresolved += unresolved;
-        out.tally.res2 += res2;
-        out.tally.fitted += fitted;
+        roots.noise = surface_standard_error(
+            &own,
+            &roots.df,
+            &roots.noise,
+            width,
+            self.config.prior_radius_px,
+            self.config.max_layer_sigma_mm,
+        );
     }
 
     /// ξ's share of each recovered layer's standard deviation (ray distance, mm, by the
@@ -1229,6 +1222,85 @@ pub(crate) fn surface_standard_error(
             (scatter2 * (SURFACE_PARAMETERS / n).min(1.0)).sqrt()
         })
         .collect()
+}
+
+/// The observed pixels inside `region`, in pixel order, each as its index in the rectangle
+/// and in the image (walking the rectangle's rows: no division per pixel).
+fn observed_in(region: &Region, observations: &SparseImage<PixelObservation>) -> Vec<(usize, usize)> {
+    let mut observed: Vec<(usize, usize)> = Vec::with_capacity(observations.count());
+    let (mut row, mut row_start) = (0, 0);
+    let full = region.full_width.max(1);
+    for fi in observations.pixels() {
+        while fi >= row_start + full {
+            (row, row_start) = (row + 1, row_start + full);
+        }
+        let col = fi - row_start;
+        if (region.row0..region.row0 + region.height).contains(&row)
+            && (region.col0..region.col0 + region.width).contains(&col)
+        {
+            observed.push(((row - region.row0) * region.width + col - region.col0, fi));
+        }
+    }
+    observed
+}
+
+/// The pixels' own roots in a rectangle (by its index): the layer's distance and standard
+/// deviation (NaN where pinned, without a root or too noisy), its points, the pixels with
+/// several roots, and the counts.
+struct Roots {
+    df: Vec<f64>,
+    noise: Vec<f64>,
+    points: ImageBuf<Vector3<f64>>,
+    several_roots: Vec<(usize, usize)>,
+    pinned: usize,
+    unresolved: usize,
+    res2: f64,
+    fitted: usize,
+}
+
+impl Roots {
+    /// The solves of the `observed` pixels of a rectangle of `n` pixels (its `rays`), a layer
+    /// kept where its standard deviation is at most `max_sigma_mm`.
+    fn of(
+        n: usize,
+        observed: &[(usize, usize)],
+        solves: &[Option<PixelSolve>],
+        rays: &ImageBuf<Vector3<f64>>,
+        max_sigma_mm: f64,
+    ) -> Self {
+        let nan = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
+        let mut r = Roots {
+            df: vec![f64::NAN; n],
+            noise: vec![f64::NAN; n],
+            points: ImageBuf::filled(rays.width, rays.height, nan),
+            several_roots: vec![],
+            pinned: 0,
+            unresolved: 0,
+            res2: 0.0,
+            fitted: 0,
+        };
+        for (&(i, fi), solve) in observed.iter().zip(solves) {
+            let Some(est) = *solve else {
+                r.pinned += 1;
+                continue;
+            };
+            r.res2 += est.residual_mm * est.residual_mm;
+            r.fitted += 1;
+            if est.several_roots {
+                r.several_roots.push((i, fi));
+            }
+            if est.pinned {
+                r.pinned += 1;
+            } else if !(est.layer_sigma_mm <= max_sigma_mm) {
+                r.unresolved += 1;
+            } else {
+                r.df[i] = est.foreground_distance_mm;
+                r.noise[i] = est.layer_sigma_mm;
+                r.points.data[i] = rays.data[i] * est.foreground_distance_mm;
+            }
+        }
+        r
+    }
 }
 
 /// Counts of a frame's recovery, summed over its materials.
