@@ -1,0 +1,613 @@
+//! The inversion stage: each segmented pixel's layer at the frame's ξ (Eq. 8-12, in
+//! batches over the rayon pool), the smooth-surface prior over each region's roots, and
+//! the standard deviation of what is published (the roots' scatter about the surface and
+//! ξ's share of it).
+
+use nalgebra::Vector3;
+
+use super::{label_mask, restrict, DepthFrame, FrameOutput, Observed, Pipeline, RegionOutput};
+use crate::physics::parallel::{map_chunks_ordered, map_ordered};
+use crate::physics::surface::{LocalSurfaces, Windows};
+use crate::physics::{
+    foreground_distance_without_slopes, foreground_distances, ImageBuf, PixelObservation, Region, SparseImage,
+    XiEstimate,
+};
+
+/// Fewest pixels whose inversions are spread over the rayon pool: about half a
+/// millisecond of one core's work (see [`map_ordered`]).
+const MIN_PARALLEL_PIXELS: usize = 2048;
+
+/// Pixels inverted together ([`foreground_distances`]): enough to fill the
+/// vector loops, few enough to stay in cache and to share out over the pool.
+const INVERSION_BATCH: usize = 256;
+
+impl Pipeline {
+    /// Recovery with each region's own ξ ([`Self::region_estimates`]): opaque regions keep
+    /// their readings and leave the mask. `None` when there is no estimate yet.
+    pub fn recover_regions(&self, frame: &DepthFrame, obs: &Observed) -> Option<FrameOutput> {
+        let fallback = self.xi()?;
+        let regions = self.region_estimates_with(obs, &fallback);
+        Some(self.recover_with(frame, obs, regions, &fallback))
+    }
+
+    /// Per-pixel inversion at one given `xi` for every region, then the smooth-surface prior.
+    pub fn recover(&self, frame: &DepthFrame, obs: &Observed, xi: &XiEstimate) -> FrameOutput {
+        let regions = obs
+            .regions
+            .iter()
+            .map(|r| RegionOutput {
+                id: 0,
+                xi: xi.clone(),
+                pixels: r.pixels,
+                opaque: xi.is_opaque(),
+                class: None,
+            })
+            .collect();
+        self.recover_with(frame, obs, regions, xi)
+    }
+
+    /// Recovery with each region's ξ: the regions of one material together (the prior's
+    /// windows never mix two materials), opaque regions left as read and out of the mask.
+    /// `fallback` is the frame's ξ when it has no region.
+    fn recover_with(
+        &self,
+        frame: &DepthFrame,
+        obs: &Observed,
+        regions: Vec<RegionOutput>,
+        fallback: &XiEstimate,
+    ) -> FrameOutput {
+        let main = regions
+            .iter()
+            .filter(|r| !r.opaque)
+            .max_by_key(|r| r.pixels)
+            .or_else(|| regions.iter().max_by_key(|r| r.pixels))
+            .map_or_else(|| fallback.clone(), |r| r.xi.clone());
+        let mut out = FrameOutput {
+            stamp_ns: frame.stamp_ns,
+            mask: obs.mask.clone(),
+            corrected_z_mm: frame.z_mm.clone(),
+            corrected_sigma_mm: ImageBuf::filled(frame.z_mm.width, frame.z_mm.height, f32::NAN),
+            xi: main,
+            regions,
+            translucent_pixels: 0,
+            recovered_pixels: 0,
+            pinned_pixels: 0,
+            unresolved_pixels: 0,
+            fit_residual_mm: f64::NAN,
+            passthrough: None,
+        };
+        // Groups of regions recovered together: one per material and ξ.
+        let mut groups: Vec<(u32, XiEstimate, Vec<u32>)> = vec![];
+        for (k, r) in out.regions.iter().enumerate() {
+            let label = k as u32 + 1;
+            if r.opaque {
+                continue;
+            }
+            out.translucent_pixels += r.pixels;
+            match groups.iter_mut().find(|g| g.0 == r.id && g.1 == r.xi) {
+                Some(g) => g.2.push(label),
+                None => groups.push((r.id, r.xi.clone(), vec![label])),
+            }
+        }
+        for (k, r) in out.regions.iter().enumerate() {
+            if r.opaque {
+                let label = k as u32 + 1;
+                for (m, l) in out.mask.data.iter_mut().zip(&obs.labels.data) {
+                    if *l == label {
+                        *m = false;
+                    }
+                }
+            }
+        }
+        let mut tally = Tally::default();
+        for (_, xi, labels) in &groups {
+            let mut layer = Layer {
+                z_mm: &mut out.corrected_z_mm,
+                sigma_mm: &mut out.corrected_sigma_mm,
+                tally: &mut tally,
+            };
+            if labels.len() == obs.regions.len() {
+                // Every region: the frame's own mask and observations, no copy.
+                self.recover_layer(&obs.mask, &obs.observations, xi, &mut layer);
+            } else {
+                let mask = label_mask(obs, |l| labels.contains(&l));
+                let Some(observations) = restrict(&obs.observations, &mask) else {
+                    continue;
+                };
+                self.recover_layer(&mask, &observations, xi, &mut layer);
+            }
+        }
+        out.recovered_pixels = tally.recovered;
+        out.pinned_pixels = tally.pinned;
+        out.unresolved_pixels = tally.unresolved;
+        if tally.fitted > 0 {
+            out.fit_residual_mm = (tally.res2 / tally.fitted as f64).sqrt();
+        }
+        out
+    }
+
+    /// The layer at the `mask` pixels at one ξ, written into `out` (z and its standard
+    /// deviation, mm; NaN where nothing was recovered), with the counts added to its tally.
+    fn recover_layer(
+        &self,
+        obs_mask: &ImageBuf<bool>,
+        observations: &SparseImage<PixelObservation>,
+        xi_estimate: &XiEstimate,
+        out: &mut Layer,
+    ) {
+        let xi = xi_estimate.xi;
+        // The work is done on the rectangle around the translucent pixels (on the prior's
+        // block grid, so its windows are those of the whole image): often a small part of it.
+        let Some(region) = Region::around(obs_mask, self.config.prior_stride_px) else {
+            return;
+        };
+        let rays = region.crop(&self.rays);
+        let mask = region.crop(obs_mask);
+        let observed = observed_in(&region, observations);
+        // Every observation lies in the rectangle (both come from the frame's mask), so the
+        // observations are the frame's own list, not a copy (unless that ever fails).
+        let held: std::borrow::Cow<[PixelObservation]> = if observed.len() == observations.count() {
+            std::borrow::Cow::Borrowed(observations.values())
+        } else {
+            observed
+                .iter()
+                .filter_map(|&(_, fi)| observations.get(fi).copied())
+                .collect()
+        };
+        let per_pixel = self.solve_pixels(&observed, &held, xi);
+        let mut roots = Roots::of(
+            region.len(),
+            &observed,
+            &per_pixel,
+            &rays,
+            self.config.max_layer_sigma_mm,
+        );
+        if self.config.prior_radius_px > 0 {
+            self.apply_surface_prior(
+                &mut roots,
+                (&observed, &held, observations),
+                (&rays, &mask),
+                xi,
+                region.width,
+            );
+        }
+        let xi_share = self.xi_share(&observed, &held, &roots.df, region.width, xi_estimate);
+        for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
+            let (z, sigma) = if roots.df[i].is_finite() {
+                out.tally.recovered += 1;
+                let s = roots.noise[i].hypot(xi_share[i]);
+                (
+                    (roots.df[i] / self.scale.data[fi]) as f32,
+                    (s / self.scale.data[fi]) as f32,
+                )
+            } else {
+                (f32::NAN, f32::NAN)
+            };
+            out.z_mm.data[fi] = z;
+            out.sigma_mm.data[fi] = sigma;
+        }
+        out.tally.pinned += roots.pinned;
+        out.tally.unresolved += roots.unresolved;
+        out.tally.res2 += roots.res2;
+        out.tally.fitted += roots.fitted;
+    }
+
+    /// Each observed pixel inverted at ξ (`None` where no root), with the layer's standard
+    /// deviation from the reading and IR noise: inverted in batches, in parallel over the
+    /// current rayon pool when there are enough of them, in pixel order.
+    fn solve_pixels(&self, observed: &[(usize, usize)], held: &[PixelObservation], xi: f64) -> Vec<Option<PixelSolve>> {
+        let bg = self.background.as_ref();
+        map_chunks_ordered(
+            observed,
+            INVERSION_BATCH,
+            MIN_PARALLEL_PIXELS,
+            |start: usize, batch: &[(usize, usize)]| {
+                let observations = &held[start..start + batch.len()];
+                let estimates = foreground_distances(&self.config.model, observations, xi, &self.bounds, true);
+                batch
+                    .iter()
+                    .zip(observations.iter().zip(estimates))
+                    .map(|(&(_, fi), (o, est))| {
+                        let est = est?;
+                        // Reading and IR noise: the background's, measured over the latch, scaled
+                        // to this pixel's light as shot noise; the layer's follows through the
+                        // model's slopes (implicit function: d df = -(dF/dI dI - dd) / (dF/d df)).
+                        let light = (o.ir / o.background_ir).max(1e-9);
+                        let d_sigma = bg
+                            .map(|b| b.noise_mm.data[fi])
+                            .filter(|v| v.is_finite())
+                            .unwrap_or(self.config.threshold_mm / 3.0)
+                            / light.sqrt();
+                        let ir_sigma =
+                            bg.map(|b| b.ir_noise.data[fi]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
+                        let dfdi = est.reading_per_ir;
+                        let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
+                        Some(PixelSolve {
+                            foreground_distance_mm: est.foreground_distance_mm,
+                            residual_mm: est.residual_mm,
+                            layer_sigma_mm: (d_sigma * d_sigma + ir_term * ir_term).sqrt() / est.slope.abs(),
+                            several_roots: est.roots > 1,
+                            pinned: est.pinned,
+                        })
+                    })
+                    .collect()
+            },
+        )
+    }
+
+    /// The smooth-surface prior on the roots: where a pixel fits several layers, the one its
+    /// neighbourhood's surface is nearest (the first pass took the one nearest the reading);
+    /// then every observed pixel inside the object takes the surface, and each its standard
+    /// error about it.
+    fn apply_surface_prior(
+        &self,
+        roots: &mut Roots,
+        (observed, held, observations): (&[(usize, usize)], &[PixelObservation], &SparseImage<PixelObservation>),
+        (rays, mask): (&ImageBuf<Vector3<f64>>, &ImageBuf<bool>),
+        xi: f64,
+        width: usize,
+    ) {
+        let windows = Windows {
+            radius: self.config.prior_radius_px,
+            min_points: 12,
+            stride: self.config.prior_stride_px,
+        };
+        let mut surfaces = LocalSurfaces::new(&roots.points, rays, mask, &windows);
+        let df = &roots.df;
+        let repicks: Vec<Option<f64>> = map_ordered(
+            &roots.several_roots,
+            MIN_PARALLEL_PIXELS,
+            64,
+            |&(i, fi): &(usize, usize)| {
+                let o = *observations.get(fi)?;
+                let t = surfaces.ray_distance(i, rays)?;
+                let est = foreground_distance_without_slopes(&self.config.model, &o, xi, &self.bounds, Some(t))?;
+                (!est.pinned && (est.foreground_distance_mm - df[i]).abs() > 0.5).then_some(est.foreground_distance_mm)
+            },
+        );
+        let mut repicked = vec![];
+        for (&(i, _), d) in roots.several_roots.iter().zip(repicks) {
+            if let Some(d) = d {
+                roots.df[i] = d;
+                roots.points.data[i] = rays.data[i] * d;
+                repicked.push(i);
+            }
+        }
+        // The windows those pixels are in, refitted (the same surfaces as refitting all).
+        surfaces.update(&roots.points, rays, &windows, &repicked);
+        let own = roots.df.clone();
+        // Pixels without their own root but inside the object take the neighbourhood's surface too.
+        for (&(i, _), o) in observed.iter().zip(held.iter()) {
+            let t = surfaces.ray_distance(i, rays).or_else(|| {
+                surfaces
+                    .nearest_plane(i, self.config.prior_radius_px, rays)
+                    .and_then(|p| p.ray_distance(&rays.data[i]))
+            });
+            if let Some(t) = t {
+                if t > self.bounds.min_distance_mm && t < o.background_distance_mm {
+                    roots.df[i] = t;
+                }
+            }
+        }
+        roots.noise = surface_standard_error(
+            &own,
+            &roots.df,
+            &roots.noise,
+            width,
+            self.config.prior_radius_px,
+            self.config.max_layer_sigma_mm,
+        );
+    }
+
+    /// ξ's share of each recovered layer's standard deviation (ray distance, mm, by the
+    /// index in the rectangle `width` wide): how far the layer moves between ξ and the ends
+    /// of its 95 % interval, the farther end taken as 1.96 σ; 0 for a given ξ (no interval).
+    /// Found at one pixel of each `prior_stride_px` square block (the layer moves with ξ as
+    /// smoothly as the surface runs) and taken by the block's other pixels.
+    fn xi_share(
+        &self,
+        observed: &[(usize, usize)],
+        held: &[PixelObservation],
+        df: &[f64],
+        width: usize,
+        xi: &XiEstimate,
+    ) -> Vec<f64> {
+        let mut share = vec![0.0; df.len()];
+        let ends: Vec<f64> = xi
+            .interval
+            .iter()
+            .copied()
+            .filter(|e| (e - xi.xi).abs() > 1e-9)
+            .collect();
+        if ends.is_empty() {
+            return share;
+        }
+        let (w, stride) = (width.max(1), self.config.prior_stride_px.max(1));
+        let block = |i: usize| (i / w / stride) * w.div_ceil(stride) + (i % w) / stride;
+        let recovered: Vec<(usize, &PixelObservation)> = observed
+            .iter()
+            .zip(held)
+            .filter(|((i, _), _)| df[*i].is_finite())
+            .map(|(&(i, _), o)| (i, o))
+            .collect();
+        // Each block's first recovered pixel stands for it.
+        let mut first_of_block = vec![usize::MAX; block(df.len().saturating_sub(1)) + 1];
+        let mut items: Vec<(usize, &PixelObservation)> = vec![];
+        for &(i, o) in &recovered {
+            if let Some(first) = first_of_block.get_mut(block(i)).filter(|f| **f == usize::MAX) {
+                *first = i;
+                items.push((i, o));
+            }
+        }
+        let moves = map_ordered(&items, MIN_PARALLEL_PIXELS, 64, |&(i, o)| {
+            let moved = ends.iter().filter_map(|&e| {
+                let est = foreground_distance_without_slopes(&self.config.model, o, e, &self.bounds, Some(df[i]))?;
+                (!est.pinned).then(|| (est.foreground_distance_mm - df[i]).abs())
+            });
+            moved.fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v))))
+        });
+        for (&(i, _), m) in items.iter().zip(moves) {
+            share[i] = m.map_or(self.config.max_layer_sigma_mm, |m| m / 1.96);
+        }
+        for &(i, _) in &recovered {
+            if let Some(&first) = first_of_block.get(block(i)).filter(|f| **f != usize::MAX) {
+                share[i] = share[first];
+            }
+        }
+        share
+    }
+}
+
+/// Where a layer's recovery is written: z and its standard deviation (mm), and the counts.
+struct Layer<'a> {
+    z_mm: &'a mut ImageBuf<f32>,
+    sigma_mm: &'a mut ImageBuf<f32>,
+    tally: &'a mut Tally,
+}
+
+/// Parameters a window's surface fits (a quadric's six): its value at a pixel averages the
+/// noise of `n` roots down by `sqrt(SURFACE_PARAMETERS / n)`.
+const SURFACE_PARAMETERS: f64 = 6.0;
+
+/// The standard error of the surface prior's layer at each pixel (mm, by the rectangle's
+/// index, `width` wide): the roots' scatter about the surface within `radius` (at least their
+/// reading noise, `noise`), averaged down by the window's count. A pixel with no root near
+/// gets `unknown_mm`.
+pub(crate) fn surface_standard_error(
+    roots: &[f64],
+    surface: &[f64],
+    noise: &[f64],
+    width: usize,
+    radius: usize,
+    unknown_mm: f64,
+) -> Vec<f64> {
+    let w = width.max(1);
+    let h = roots.len() / w;
+    // Summed-area tables of (residual^2, noise^2, count) over the pixels with both.
+    let mut table = vec![[0.0f64; 3]; (w + 1) * (h + 1)];
+    for r in 0..h {
+        for c in 0..w {
+            let i = r * w + c;
+            let e = roots[i] - surface[i];
+            let v = if e.is_finite() && noise[i].is_finite() {
+                [e * e, noise[i] * noise[i], 1.0]
+            } else {
+                [0.0; 3]
+            };
+            let (up, left, diag) = (
+                table[r * (w + 1) + c + 1],
+                table[(r + 1) * (w + 1) + c],
+                table[r * (w + 1) + c],
+            );
+            table[(r + 1) * (w + 1) + c + 1] = std::array::from_fn(|k| v[k] + up[k] + left[k] - diag[k]);
+        }
+    }
+    (0..roots.len())
+        .map(|i| {
+            if !surface[i].is_finite() {
+                return f64::NAN;
+            }
+            let (r, c) = (i / w, i % w);
+            let (r0, r1, c0, c1) = (
+                r.saturating_sub(radius),
+                (r + radius + 1).min(h),
+                c.saturating_sub(radius),
+                (c + radius + 1).min(w),
+            );
+            let at = |rr: usize, cc: usize| table[rr * (w + 1) + cc];
+            let (a, b, cc, d) = (at(r1, c1), at(r0, c1), at(r1, c0), at(r0, c0));
+            let sum: [f64; 3] = std::array::from_fn(|k| a[k] - b[k] - cc[k] + d[k]);
+            let n = sum[2];
+            if n < 1.0 {
+                return unknown_mm;
+            }
+            let scatter2 = (sum[0] / n).max(sum[1] / n);
+            (scatter2 * (SURFACE_PARAMETERS / n).min(1.0)).sqrt()
+        })
+        .collect()
+}
+
+/// The observed pixels inside `region`, in pixel order, each as its index in the rectangle
+/// and in the image (walking the rectangle's rows: no division per pixel).
+fn observed_in(region: &Region, observations: &SparseImage<PixelObservation>) -> Vec<(usize, usize)> {
+    let mut observed: Vec<(usize, usize)> = Vec::with_capacity(observations.count());
+    let (mut row, mut row_start) = (0, 0);
+    let full = region.full_width.max(1);
+    for fi in observations.pixels() {
+        while fi >= row_start + full {
+            (row, row_start) = (row + 1, row_start + full);
+        }
+        let col = fi - row_start;
+        if (region.row0..region.row0 + region.height).contains(&row)
+            && (region.col0..region.col0 + region.width).contains(&col)
+        {
+            observed.push(((row - region.row0) * region.width + col - region.col0, fi));
+        }
+    }
+    observed
+}
+
+/// The pixels' own roots in a rectangle (by its index): the layer's distance and standard
+/// deviation (NaN where pinned, without a root or too noisy), its points, the pixels with
+/// several roots, and the counts.
+struct Roots {
+    df: Vec<f64>,
+    noise: Vec<f64>,
+    points: ImageBuf<Vector3<f64>>,
+    several_roots: Vec<(usize, usize)>,
+    pinned: usize,
+    unresolved: usize,
+    res2: f64,
+    fitted: usize,
+}
+
+impl Roots {
+    /// The solves of the `observed` pixels of a rectangle of `n` pixels (its `rays`), a layer
+    /// kept where its standard deviation is at most `max_sigma_mm`.
+    fn of(
+        n: usize,
+        observed: &[(usize, usize)],
+        solves: &[Option<PixelSolve>],
+        rays: &ImageBuf<Vector3<f64>>,
+        max_sigma_mm: f64,
+    ) -> Self {
+        let nan = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
+        let mut r = Roots {
+            df: vec![f64::NAN; n],
+            noise: vec![f64::NAN; n],
+            points: ImageBuf::filled(rays.width, rays.height, nan),
+            several_roots: vec![],
+            pinned: 0,
+            unresolved: 0,
+            res2: 0.0,
+            fitted: 0,
+        };
+        for (&(i, fi), solve) in observed.iter().zip(solves) {
+            let Some(est) = *solve else {
+                r.pinned += 1;
+                continue;
+            };
+            r.res2 += est.residual_mm * est.residual_mm;
+            r.fitted += 1;
+            if est.several_roots {
+                r.several_roots.push((i, fi));
+            }
+            if est.pinned {
+                r.pinned += 1;
+            } else if !(est.layer_sigma_mm <= max_sigma_mm) {
+                r.unresolved += 1;
+            } else {
+                r.df[i] = est.foreground_distance_mm;
+                r.noise[i] = est.layer_sigma_mm;
+                r.points.data[i] = rays.data[i] * est.foreground_distance_mm;
+            }
+        }
+        r
+    }
+}
+
+/// Counts of a frame's recovery, summed over its materials.
+#[derive(Debug, Clone, Copy, Default)]
+struct Tally {
+    recovered: usize,
+    pinned: usize,
+    unresolved: usize,
+    res2: f64,
+    fitted: usize,
+}
+
+/// What recovery keeps of a pixel's inversion ([`crate::physics::LayerEstimate`]'s fields it
+/// reads, and the layer's noise).
+#[derive(Debug, Clone, Copy)]
+struct PixelSolve {
+    foreground_distance_mm: f64,
+    residual_mm: f64,
+    /// The layer's standard deviation from the reading and IR noise, mm.
+    layer_sigma_mm: f64,
+    several_roots: bool,
+    pinned: bool,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn observation(d: f64) -> PixelObservation {
+        PixelObservation {
+            distance_mm: d,
+            ir: 1000.0,
+            background_distance_mm: 2000.0,
+            background_ir: 800.0,
+            emitted_light: 1e10,
+        }
+    }
+
+    #[test]
+    fn the_observed_pixels_map_into_their_rectangle() {
+        let (w, h) = (10, 8);
+        let mut mask = ImageBuf::filled(w, h, false);
+        for (c, r) in [(3, 2), (4, 2), (6, 5)] {
+            mask.data[r * w + c] = true;
+        }
+        let region = Region::around(&mask, 1).expect("a rectangle");
+        let obs = SparseImage::from_mask(&mask, |i| Some(observation(i as f64))).expect("observations");
+        let got = observed_in(&region, &obs);
+        // The rectangle spans columns 3..=6 and rows 2..=5: 4 wide.
+        assert_eq!((region.col0, region.row0, region.width, region.height), (3, 2, 4, 4));
+        assert_eq!(got, vec![(0, 23), (1, 24), (3 * 4 + 3, 56)]);
+    }
+
+    #[test]
+    fn roots_keep_resolved_layers_and_count_the_rest() {
+        let (w, h) = (4, 1);
+        let rays = ImageBuf {
+            width: w,
+            height: h,
+            data: vec![Vector3::new(0.0, 0.0, 1.0); w * h],
+        };
+        let solve = |d: f64, sigma: f64, pinned: bool, several: bool| {
+            Some(PixelSolve {
+                foreground_distance_mm: d,
+                residual_mm: 1.0,
+                layer_sigma_mm: sigma,
+                several_roots: several,
+                pinned,
+            })
+        };
+        let observed = [(0, 0), (1, 1), (2, 2), (3, 3)];
+        let solves = [
+            solve(1000.0, 5.0, false, true),
+            solve(1100.0, 500.0, false, false),
+            solve(1200.0, 5.0, true, false),
+            None,
+        ];
+        let r = Roots::of(w * h, &observed, &solves, &rays, 100.0);
+        assert_eq!(r.df[0], 1000.0);
+        assert!(r.df[1..].iter().all(|d| d.is_nan()));
+        assert_eq!((r.pinned, r.unresolved, r.fitted), (2, 1, 3));
+        assert_eq!(r.several_roots, vec![(0, 0)]);
+        assert_eq!(r.points.data[0], Vector3::new(0.0, 0.0, 1000.0));
+    }
+
+    #[test]
+    fn the_surface_error_averages_the_scatter_down_and_keeps_the_reading_noise() {
+        // A 9 x 9 patch, roots scattered +-3 mm about a flat surface, reading noise 1 mm.
+        let (w, n) = (9, 81);
+        let surface = vec![1000.0; n];
+        let roots: Vec<f64> = (0..n).map(|i| 1000.0 + if i % 2 == 0 { 3.0 } else { -3.0 }).collect();
+        let noise = vec![1.0; n];
+        let se = surface_standard_error(&roots, &surface, &noise, w, 4, f64::NAN);
+        // The centre's window holds all 81: sqrt(9 * 6 / 81).
+        assert!((se[40] - (9.0f64 * 6.0 / 81.0).sqrt()).abs() < 1e-9, "{}", se[40]);
+        // Where the reading noise exceeds the scatter, it is the noise that is averaged.
+        let quiet: Vec<f64> = vec![1000.0; n];
+        let se = surface_standard_error(&quiet, &surface, &vec![2.0; n], w, 4, f64::NAN);
+        assert!((se[40] - (4.0f64 * 6.0 / 81.0).sqrt()).abs() < 1e-9, "{}", se[40]);
+        // No surface, no error; no root near, the stated unknown.
+        let mut none = surface.clone();
+        none[0] = f64::NAN;
+        assert!(surface_standard_error(&roots, &none, &noise, w, 4, 7.0)[0].is_nan());
+        let empty = vec![f64::NAN; n];
+        assert_eq!(surface_standard_error(&empty, &surface, &noise, w, 1, 7.0)[40], 7.0);
+    }
+}
