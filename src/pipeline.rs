@@ -2,11 +2,21 @@
 //! background, segment the pixels that changed, estimate ξ, invert the
 //! two-layer model per pixel and apply the smooth-surface prior.
 //!
+//! Its stages, each a module with its own tests: `latch` (the background and
+//! where a recording's scene changes), `segment` (the changed pixels, their
+//! observations and regions), `objects` (each region followed as an object,
+//! its evidence, ξ and class), `invert` (each pixel's layer, the surface
+//! prior and σ); `truth` measures the outputs against ground truth;
+//! [`multifreq`] is the multi-frequency path. This file holds the types they
+//! share and [`Pipeline::process`], which runs them in order.
+//!
 //! Buffers in, buffers out: no ROS, no files.
 
 mod invert;
 mod latch;
 pub mod multifreq;
+mod objects;
+mod segment;
 mod truth;
 
 pub(crate) use invert::surface_standard_error;
@@ -450,293 +460,6 @@ impl Pipeline {
         self.background.as_ref()
     }
 
-    /// Segments a frame and gathers what the inversion needs.
-    pub fn observe(&self, frame: &DepthFrame) -> Result<Observed, PipelineError> {
-        check_size(frame, &self.intrinsics)?;
-        let bg = self.background.as_ref().ok_or(PipelineError::NoBackground)?;
-        let k = &self.intrinsics;
-        let d = z_to_ray_distance(&frame.z_mm, &self.scale);
-        let range = self.config.model.sensor.unambiguous_range_mm();
-        let raw = changed_pixels(
-            &d,
-            &bg.distance_mm,
-            self.config.threshold_mm,
-            range,
-            self.change_noise.as_ref(),
-        );
-        let (mask, _) = remove_small_regions(&raw, self.config.min_region_pixels);
-        let observations = SparseImage::from_mask(&mask, |i| {
-            let ir = frame.ir.data[i] as f64;
-            // The background behind the layer (displaced when the model refracts).
-            let (db, ib) = if self.config.model.options.refracts() {
-                self.config
-                    .model
-                    .options
-                    .background_through_layer(&bg.distance_mm, &bg.ir, &bg.emitted_light, i % k.width, i / k.width)
-                    .unwrap_or((f64::NAN, f64::NAN))
-            } else {
-                (bg.distance_mm.data[i], bg.ir.data[i])
-            };
-            let o = PixelObservation {
-                distance_mm: d.data[i],
-                ir,
-                background_distance_mm: db,
-                background_ir: ib,
-                emitted_light: bg.emitted_light.data[i],
-            };
-            let ok = ir.is_finite()
-                && ir > 0.0
-                && o.background_ir > 0.0
-                && o.emitted_light.is_finite()
-                && o.emitted_light > 0.0;
-            ok.then_some(o)
-        })
-        .ok_or(PipelineError::TooLarge {
-            width: k.width,
-            height: k.height,
-        })?;
-        let translucent_pixels = mask.data.iter().filter(|&&m| m).count();
-        // A pixel's reading noise: the latch's, grown as shot noise where less light returns.
-        let fallback = self.config.threshold_mm / NOISE_SIGMAS;
-        let noise = |i: usize| {
-            let latch = self.change_noise.as_ref().map_or(fallback, |n| n.data[i]);
-            let light = frame.ir.data[i] as f64 / bg.ir.data[i];
-            if light > 0.0 && latch.is_finite() {
-                latch / light.min(1.0).sqrt()
-            } else {
-                fallback
-            }
-        };
-        let (labels, sizes) = label_regions(&mask, &d, noise, range, self.config.min_region_pixels);
-        let regions = sizes
-            .into_iter()
-            .map(|pixels| ObservedRegion { pixels, material: None })
-            .collect();
-        Ok(Observed {
-            stamp_ns: frame.stamp_ns,
-            distance_mm: d,
-            mask,
-            observations,
-            translucent_pixels,
-            labels,
-            regions,
-        })
-    }
-
-    /// Adds a frame's evidence about ξ (no-op for a fixed ξ), region by region: the objects
-    /// stage ([`Materials::add_frame`]) gives each region the object it continues, or starts
-    /// one, and that object's estimate is renewed. Records the object in `obs.regions`.
-    pub fn add_xi_evidence(&mut self, obs: &mut Observed) {
-        let XiChoice::Estimate(method) = self.config.xi else {
-            return;
-        };
-        self.evidence_frames += 1;
-        let settings = self.config.xi_settings;
-        let single = obs.regions.len() == 1;
-        let mut pixels: Vec<Vec<u32>> = vec![vec![]; obs.regions.len()];
-        for (i, &l) in obs.labels.data.iter().enumerate() {
-            if let Some(p) = (l as usize).checked_sub(1).and_then(|k| pixels.get_mut(k)) {
-                // `observe` refused images with more pixels than u32 indexes.
-                p.push(i as u32);
-            }
-        }
-        let mut regions: Vec<RegionEvidence> = pixels
-            .iter()
-            .map(|pixels| {
-                let (distance_mm, spread_mm) = distance_quartiles(&obs.distance_mm, pixels);
-                RegionEvidence {
-                    pixels,
-                    distance_mm,
-                    spread_mm,
-                    profile: None,
-                }
-            })
-            .collect();
-        // Evidence only where it adds (an object standing still repeats itself), the frame's
-        // lattice shared among those regions (each at least a fifth of it).
-        let needed = self
-            .materials
-            .needs_evidence(&regions, self.evidence_frames, obs.stamp_ns, &settings);
-        let count = needed.iter().filter(|&&n| n).count().max(1);
-        let budget = (settings.max_pixels_per_frame / count).max(settings.max_pixels_per_frame / 5);
-        for (k, region) in regions.iter_mut().enumerate().filter(|&(k, _)| needed[k]) {
-            let observations = if single {
-                Some(std::borrow::Cow::Borrowed(&obs.observations))
-            } else {
-                region_observations(obs, k as u32 + 1).map(std::borrow::Cow::Owned)
-            };
-            region.profile = observations.and_then(|observations| self.region_profile(&observations, budget));
-        }
-        let ids = self
-            .materials
-            .add_frame(regions, self.evidence_frames, obs.stamp_ns, method, &settings);
-        for (region, id) in obs.regions.iter_mut().zip(ids) {
-            region.material = id;
-        }
-    }
-
-    /// The estimate ξ of the material with the most evidence, or the given ξ.
-    /// `None` when ξ is to be estimated and no region has carried evidence yet.
-    pub fn xi(&self) -> Option<XiEstimate> {
-        match self.config.xi {
-            XiChoice::Fixed(x) => Some(XiEstimate::fixed(x)),
-            XiChoice::Estimate(_) => self.main_material().and_then(|m| m.estimate.clone()),
-        }
-    }
-
-    /// The materials seen since the latch, each with its pooled estimate.
-    pub fn materials(&self) -> impl Iterator<Item = &Material> {
-        self.materials.iter()
-    }
-
-    fn main_material(&self) -> Option<&Material> {
-        self.materials
-            .iter()
-            .filter(|m| m.estimate.is_some())
-            .max_by_key(|m| m.pixels())
-    }
-
-    /// Each region's ξ: its material's estimate (the given ξ when fixed). A region that
-    /// carried no evidence of its own (too small) takes the largest material's.
-    /// `None` when ξ is to be estimated and there is no estimate at all yet.
-    pub fn region_estimates(&self, obs: &Observed) -> Option<Vec<RegionOutput>> {
-        Some(self.region_estimates_with(obs, &self.xi()?))
-    }
-
-    /// The albedo scale of this run: what `Lin` is (a calibration's, or the background's).
-    pub fn albedo_scale(&self) -> AlbedoScale {
-        AlbedoScale {
-            reference: if self.background.as_ref().is_some_and(|b| b.lin_calibrated) {
-                AlbedoReference::LinCalibration
-            } else {
-                AlbedoReference::Background
-            },
-            background_albedo: self.config.background_albedo,
-        }
-    }
-
-    /// An object's class among the known materials, opaque and unknown, from its pooled
-    /// evidence (`None` without a materials file).
-    pub fn classify(&self, material: &Material) -> Option<Classification> {
-        let catalog = self.config.materials.as_ref()?;
-        let evidence = translucency::albedo_evidence(material.profiles());
-        Some(catalog.classify(evidence.as_ref(), &self.albedo_scale()))
-    }
-
-    /// An object's ξ as its class gives it: a known material's calibrated ξ and interval,
-    /// opaque's 0 (its reading kept), or, unknown, `own` (its own estimate). `own` alone
-    /// without a materials file.
-    fn with_class(&self, material: &Material, own: XiEstimate) -> (XiEstimate, Option<Classification>) {
-        let Some(catalog) = self.config.materials.as_deref() else {
-            return (own, None);
-        };
-        let evidence = translucency::albedo_evidence(material.profiles());
-        let class = catalog.classify(evidence.as_ref(), &self.albedo_scale());
-        let xi = match class.class {
-            Class::Known(i) if i < catalog.materials.len() => {
-                let m = &catalog.materials[i];
-                // The object's own most likely ξ within the material's, where its evidence
-                // prefers one; the calibrated ξ where it does not (one pose, say).
-                let best = evidence.as_ref().and_then(|e| catalog.best_xi(i, e));
-                XiEstimate {
-                    xi: best.unwrap_or(m.xi),
-                    interval: m.classification_interval(),
-                    method: XiMethod::Calibrated,
-                    frames: material.frames(),
-                    pixels: material.pixels(),
-                    note: format!(
-                        "material {:?} (probability {:.2}), calibrated from {}",
-                        m.name, class.probability, m.recording
-                    ),
-                    ..own
-                }
-            }
-            Class::Opaque => XiEstimate {
-                xi: 0.0,
-                interval: [0.0, own.interval[1].max(translucency::OPAQUE_XI)],
-                note: format!("opaque (probability {:.2}): its reading is kept", class.probability),
-                ..own
-            },
-            _ => own,
-        };
-        (xi, Some(class))
-    }
-
-    /// The evidence about ξ of a frame's largest region, as [`Self::add_xi_evidence`] computes
-    /// it (the same sample, bounds and groups), without pooling it: what a calibration
-    /// measures the implied albedo of. `None` when the frame has no region with enough pixels.
-    pub fn largest_region_profile(&self, obs: &Observed) -> Option<FrameProfile> {
-        let (k, _) = obs.regions.iter().enumerate().max_by_key(|(_, r)| r.pixels)?;
-        let observations = region_observations(obs, k as u32 + 1)?;
-        self.region_profile(&observations, self.config.xi_settings.max_pixels_per_frame)
-    }
-
-    /// A region's evidence about ξ from a lattice of at most `budget` of its pixels; `None`
-    /// when the lattice holds fewer than a group's pixels.
-    fn region_profile(&self, observations: &SparseImage<PixelObservation>, budget: usize) -> Option<FrameProfile> {
-        let settings = &self.config.xi_settings;
-        let sample = FrameSample::from_image(observations, &self.rays, None, budget);
-        (sample.pixel_count() >= settings.min_group_pixels).then(|| {
-            translucency::frame_profile(
-                &self.config.model,
-                &self.bounds,
-                &sample,
-                settings,
-                translucency::ProfileUse::Estimation,
-            )
-        })
-    }
-
-    /// [`Self::region_estimates`] with the frame's ξ already found. With ξ estimated, a
-    /// region of no object with an estimate (too small to carry evidence) is kept as read:
-    /// another object's evidence is not its own.
-    fn region_estimates_with(&self, obs: &Observed, fallback: &XiEstimate) -> Vec<RegionOutput> {
-        obs.regions
-            .iter()
-            .map(|r| {
-                let material = r.material.and_then(|id| self.materials.get(id));
-                let (id, xi) = match (
-                    self.config.xi,
-                    material.and_then(|m| m.estimate.as_ref().map(|e| (m.id, e))),
-                ) {
-                    (XiChoice::Estimate(_), Some((id, e))) => (id, e.clone()),
-                    (XiChoice::Estimate(method), None) => (0, without_evidence(method)),
-                    (XiChoice::Fixed(_), _) => (0, fallback.clone()),
-                };
-                let (xi, class) = match material.filter(|_| matches!(self.config.xi, XiChoice::Estimate(_))) {
-                    Some(m) => self.with_class(m, xi),
-                    None => (xi, None),
-                };
-                RegionOutput {
-                    id,
-                    opaque: xi.is_opaque(),
-                    xi,
-                    pixels: r.pixels,
-                    class,
-                }
-            })
-            .collect()
-    }
-
-    /// How a frame's readings depart from the background (`None` without one).
-    pub fn departure(&self, obs: &Observed) -> Option<Departure> {
-        let bg = self.background.as_ref()?;
-        let range = self.config.model.sensor.unambiguous_range_mm();
-        let mut out = Departure::default();
-        for (i, (&d, &db)) in obs.distance_mm.data.iter().zip(&bg.distance_mm.data).enumerate() {
-            if !(d.is_finite() && d > 0.0 && db.is_finite() && db > 0.0) {
-                continue;
-            }
-            out.valid += 1;
-            let sigma = self.change_noise.as_ref().map_or(0.0, |n| n.data[i]);
-            let threshold = change_threshold_mm(self.config.threshold_mm, sigma);
-            let diff = wrapped_difference(d, db, range);
-            out.nearer += usize::from(diff < -threshold);
-            out.farther += usize::from(diff > threshold);
-        }
-        Some(out)
-    }
-
     /// Online processing (the node): observe, add ξ evidence, recover with the pooled ξ.
     /// `None` for ξ when it is to be estimated and no frame has carried evidence yet.
     pub fn process(&mut self, frame: &DepthFrame) -> Result<Option<FrameOutput>, PipelineError> {
@@ -815,40 +538,6 @@ impl Pipeline {
 /// to index, which `observe` has already refused).
 fn restrict(all: &SparseImage<PixelObservation>, mask: &ImageBuf<bool>) -> Option<SparseImage<PixelObservation>> {
     SparseImage::from_mask(mask, |i| all.get(i).copied())
-}
-
-/// The observations of the region labelled `label`.
-/// The estimate of a region that carries no evidence of its own: opaque, the null
-/// hypothesis, with every ξ possible.
-fn without_evidence(method: XiMethod) -> XiEstimate {
-    XiEstimate {
-        xi: 0.0,
-        interval: [0.0, 1.0],
-        method,
-        frames: 0,
-        pixels: 0,
-        profile: vec![],
-        note: "too small to carry evidence of its own: kept as read".into(),
-    }
-}
-
-/// Median and interquartile range of the finite distances at `pixels` (NaN if none), mm.
-fn distance_quartiles(distance_mm: &ImageBuf<f64>, pixels: &[u32]) -> (f64, f64) {
-    let mut d: Vec<f64> = pixels
-        .iter()
-        .filter_map(|&i| distance_mm.data.get(i as usize).copied())
-        .filter(|d| d.is_finite())
-        .collect();
-    if d.is_empty() {
-        return (f64::NAN, f64::NAN);
-    }
-    d.sort_unstable_by(f64::total_cmp);
-    let n = d.len();
-    (d[n / 2], d[3 * n / 4] - d[n / 4])
-}
-
-fn region_observations(obs: &Observed, label: u32) -> Option<SparseImage<PixelObservation>> {
-    restrict(&obs.observations, &label_mask(obs, |l| l == label))
 }
 
 /// The pixels whose region label passes `keep`.
