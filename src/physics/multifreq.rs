@@ -632,38 +632,10 @@ impl MultiFrequencyInversion {
         }
         let fit = FreeFit::new(self, measured, noise_sigma);
         let (cells, h) = self.grid(lo, hi);
-        let units: Vec<Phasor> = (0..=cells)
-            .flat_map(|j| self.sensors.iter().map(move |s| (s, lo + j as f64 * h)))
-            .map(|(s, d)| self.unit_return(s, d))
-            .collect();
-        let k = self.sensors.len();
-        let at = |j: usize| &units[j * k..(j + 1) * k];
-        // chi^2 of every pair, then each of the lowest local minima refined.
-        let n = cells + 1;
-        let mut chi = vec![f64::INFINITY; n * n];
-        for j1 in 0..cells {
-            for j2 in j1 + 1..n {
-                chi[j1 * n + j2] = fit.pair(at(j1), at(j2)).chi_square;
-            }
-        }
-        let mut starts: Vec<(f64, usize, usize)> = vec![];
-        for j1 in 0..cells {
-            for j2 in j1 + 1..n {
-                let c = chi[j1 * n + j2];
-                let lower = |a: usize, b: usize| chi[a * n + b] < c;
-                let neighbours = (j1.saturating_sub(1)..=(j1 + 1).min(cells))
-                    .flat_map(|a| (j2.saturating_sub(1)..=(j2 + 1).min(cells)).map(move |b| (a, b)));
-                if !neighbours.into_iter().any(|(a, b)| (a, b) != (j1, j2) && lower(a, b)) {
-                    starts.push((c, j1, j2));
-                }
-            }
-        }
-        starts.sort_by(|a, b| a.0.total_cmp(&b.0));
-        starts.truncate(FREE_STARTS);
         let sep = self.settings.min_separation_mm.max(0.5 * self.settings.tolerance_mm);
         let chi_at = |d1: f64, d2: f64| fit.pair_at(self, d1, d2).chi_square;
         let mut best = (f64::INFINITY, lo, hi);
-        for &(_, j1, j2) in &starts {
+        for (j1, j2) in self.pair_grid_starts(&fit, lo, h, cells) {
             let (mut d1, mut d2) = (lo + j1 as f64 * h, lo + j2 as f64 * h);
             for _ in 0..FREE_REFINE_ROUNDS {
                 let near = ((d1 - h).max(lo), (d1 + h).min(d2 - sep));
@@ -692,6 +664,44 @@ impl MultiFrequencyInversion {
             chi_square: pair.chi_square,
             near_distance_sigma_mm: sigma,
         })
+    }
+
+    /// The grid cells `(j1, j2)`, `j1 < j2`, of the [`FREE_STARTS`] lowest local minima of two
+    /// free returns' `chi^2` over the pairs of the grid `lo + j h`, `j = 0..=cells`, lowest first.
+    fn pair_grid_starts(&self, fit: &FreeFit, lo: f64, h: f64, cells: usize) -> Vec<(usize, usize)> {
+        let units: Vec<Phasor> = (0..=cells)
+            .flat_map(|j| self.sensors.iter().map(move |s| (s, lo + j as f64 * h)))
+            .map(|(s, d)| self.unit_return(s, d))
+            .collect();
+        let k = self.sensors.len();
+        let at = |j: usize| &units[j * k..(j + 1) * k];
+        let n = cells + 1;
+        let mut chi = vec![f64::INFINITY; n * n];
+        for j1 in 0..cells {
+            for j2 in j1 + 1..n {
+                chi[j1 * n + j2] = fit.pair(at(j1), at(j2)).chi_square;
+            }
+        }
+        let mut starts: Vec<(f64, usize, usize)> = vec![];
+        for j1 in 0..cells {
+            for j2 in j1 + 1..n {
+                let c = chi[j1 * n + j2];
+                let neighbours = (j1.saturating_sub(1)..=(j1 + 1).min(cells))
+                    .flat_map(|a| (j2.saturating_sub(1)..=(j2 + 1).min(cells)).map(move |b| (a, b)));
+                if !neighbours
+                    .into_iter()
+                    .any(|(a, b)| (a, b) != (j1, j2) && chi[a * n + b] < c)
+                {
+                    starts.push((c, j1, j2));
+                }
+            }
+        }
+        starts.sort_by(|a, b| a.0.total_cmp(&b.0));
+        starts
+            .into_iter()
+            .take(FREE_STARTS)
+            .map(|(_, j1, j2)| (j1, j2))
+            .collect()
     }
 
     /// The minimum of `f` on `bracket` near `x`, Brent's search seeded with `x` and the

@@ -331,161 +331,251 @@ pub fn frame_profile(
     settings: &XiSettings,
     usage: ProfileUse,
 ) -> FrameProfile {
-    let grid = xi_grid();
-    let obs = &sample.observations;
-    let (w, h) = (obs.width, obs.height);
-    // Albedos are known up to Lin's scale: the bound on X (1 with a calibrated Lin) sets both.
-    let max_albedo = MAX_ALBEDO * bounds.max_albedo_cos;
-    let censored_albedo = CENSORED_ALBEDO * bounds.max_albedo_cos;
-    // Groups: quantile bins of the measured distance averaged over a neighbourhood. Not ξ's
-    // doing, and not the pixel's own noise either: bins of the raw reading would sort pixels
-    // by their noise, and the recovered layer with them.
-    let smooth = neighbourhood_mean_distance(obs, (6 / sample.stride).max(1));
-    let mut ds: Vec<f64> = smooth.iter().copied().filter(|d| d.is_finite()).collect();
-    ds.sort_by(f64::total_cmp);
-    let n_groups = settings
-        .groups_per_frame
-        .min(ds.len() / settings.min_group_pixels.max(1))
-        .max(1);
-    let edges: Vec<f64> = (1..n_groups).map(|k| ds[k * ds.len() / n_groups]).collect();
-    let group_of = |i: usize| edges.iter().filter(|&&e| smooth[i] >= e).count();
-    // Windows from `normal_radius_px` up to 6x that, in lattice steps; each pixel takes the
-    // narrowest whose normal is known to 0.05 rad (a cos(theta) bias under 0.13 %).
-    let radii: Vec<usize> = {
-        let mut r: Vec<usize> = [1, 2, 4, 6]
-            .iter()
-            .map(|m| (m * settings.normal_radius_px / sample.stride).max(2))
-            .collect();
-        r.dedup();
-        r
-    };
+    let frame = ProfileFrame::new(model, bounds, sample, settings, usage);
     let mut out = FrameProfile {
         groups: vec![],
         pinned_fraction: vec![],
         eq12: vec![],
         truth: vec![],
-        pixels: ds.len(),
-        median_distance_mm: ds.get(ds.len() / 2).copied().unwrap_or(f64::NAN),
+        pixels: frame.distances.len(),
+        median_distance_mm: frame
+            .distances
+            .get(frame.distances.len() / 2)
+            .copied()
+            .unwrap_or(f64::NAN),
     };
-    let mask = ImageBuf {
-        width: w,
-        height: h,
-        data: obs.data.iter().map(|o| o.is_some()).collect(),
-    };
-    // The sampled pixels with an observation, in grid order: inverted together at each ξ.
-    let observed: Vec<(usize, PixelObservation)> = (0..w * h).filter_map(|i| obs.data[i].map(|o| (i, o))).collect();
-    let observations: Vec<PixelObservation> = observed.iter().map(|&(_, o)| o).collect();
     // Each ξ on its own (in parallel over the current rayon pool), gathered in grid order.
-    // Pixels whose reading gives no usable normal (a surface seen nearly edge-on, a silhouette
-    // against the background, a mixed edge) carry no albedo at any ξ: left out of the albedo
-    // statistics at every ξ alike (so no ξ wins by it), rather than censored (a censored share
-    // that grows as an object turns a face edge-on moves its groups' medians with its pose:
-    // an opaque box carried and turning through a video was taken for a layer by it).
-    let reading = reading_planes(sample, &mask, &radii, settings.normal_block_steps);
-    let readable = readable_normals(sample, &reading);
-    let per_xi = |xi: f64| -> (Vec<GroupStat>, f64, f64, TruthFit) {
-        // Opaque (xi 0) is judged by its albedos' consistency alone: the bound on X comes from
-        // `Lin`, which rests on an assumed background albedo, and an opaque object brighter
-        // than its background exceeds it (such an object is not a layer, whatever the bound).
-        let unbounded;
-        let (bounds, max_albedo, censored_albedo) = if xi == 0.0 {
-            unbounded = InversionBounds {
-                max_albedo_cos: OPAQUE_ALBEDO_BOUND,
-                ..*bounds
-            };
-            (
-                &unbounded,
-                MAX_ALBEDO * OPAQUE_ALBEDO_BOUND,
-                CENSORED_ALBEDO * OPAQUE_ALBEDO_BOUND,
-            )
-        } else {
-            (bounds, max_albedo, censored_albedo)
+    let rows: Vec<_> = xi_grid().par_iter().map(|&xi| frame.at(xi)).collect();
+    for (stats, pinned_fraction, eq12, fit) in rows {
+        out.groups.push(stats);
+        out.pinned_fraction.push(pinned_fraction);
+        out.eq12.push(eq12);
+        out.truth.push(fit);
+    }
+    out
+}
+
+/// What [`frame_profile`] holds fixed over the ξ grid for one frame's sample.
+struct ProfileFrame<'a> {
+    model: &'a ForwardModel,
+    bounds: &'a InversionBounds,
+    sample: &'a FrameSample,
+    settings: &'a XiSettings,
+    usage: ProfileUse,
+    /// The sampled pixels with an observation, in grid order (inverted together at each ξ).
+    observed: Vec<(usize, PixelObservation)>,
+    observations: Vec<PixelObservation>,
+    mask: ImageBuf<bool>,
+    /// The normals' windows: from `normal_radius_px` up to 6x that, in lattice steps.
+    radii: Vec<usize>,
+    /// The reading's own local planes (the layer at ξ = 0) and which pixels they give a
+    /// usable normal ([`readable_normals`]).
+    reading: ImageBuf<Option<Plane>>,
+    readable: Vec<bool>,
+    /// Each pixel's neighbourhood-mean distance and the groups' edges over it.
+    smooth: Vec<f64>,
+    edges: Vec<f64>,
+    /// The finite neighbourhood-mean distances, sorted.
+    distances: Vec<f64>,
+}
+
+impl<'a> ProfileFrame<'a> {
+    fn new(
+        model: &'a ForwardModel,
+        bounds: &'a InversionBounds,
+        sample: &'a FrameSample,
+        settings: &'a XiSettings,
+        usage: ProfileUse,
+    ) -> Self {
+        let obs = &sample.observations;
+        let (w, h) = (obs.width, obs.height);
+        // Groups: quantile bins of the measured distance averaged over a neighbourhood. Not
+        // ξ's doing, and not the pixel's own noise either: bins of the raw reading would sort
+        // pixels by their noise, and the recovered layer with them.
+        let smooth = neighbourhood_mean_distance(obs, (6 / sample.stride).max(1));
+        let mut distances: Vec<f64> = smooth.iter().copied().filter(|d| d.is_finite()).collect();
+        distances.sort_by(f64::total_cmp);
+        let n_groups = settings
+            .groups_per_frame
+            .min(distances.len() / settings.min_group_pixels.max(1))
+            .max(1);
+        let edges: Vec<f64> = (1..n_groups)
+            .map(|k| distances[k * distances.len() / n_groups])
+            .collect();
+        // Each pixel takes the narrowest window whose normal is known to 0.05 rad (a
+        // cos(theta) bias under 0.13 %).
+        let mut radii: Vec<usize> = [1, 2, 4, 6]
+            .iter()
+            .map(|m| (m * settings.normal_radius_px / sample.stride).max(2))
+            .collect();
+        radii.dedup();
+        let mask = ImageBuf {
+            width: w,
+            height: h,
+            data: obs.data.iter().map(|o| o.is_some()).collect(),
         };
-        let mut points = ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN));
-        let mut xs = vec![f64::NAN; w * h];
-        let mut pinned = 0usize;
-        let mut eq12 = 0.0;
-        let mut fit = TruthFit::default();
-        let estimates = if usage == ProfileUse::Calibration {
+        let observed: Vec<(usize, PixelObservation)> = (0..w * h).filter_map(|i| obs.data[i].map(|o| (i, o))).collect();
+        let observations = observed.iter().map(|&(_, o)| o).collect();
+        // Pixels whose reading gives no usable normal (a surface seen nearly edge-on, a
+        // silhouette against the background, a mixed edge) carry no albedo at any ξ: left out
+        // of the albedo statistics at every ξ alike (so no ξ wins by it), rather than censored
+        // (a censored share that grows as an object turns a face edge-on moves its groups'
+        // medians with its pose: an opaque box carried and turning through a video was taken
+        // for a layer by it).
+        let reading = reading_planes(sample, &mask, &radii, settings.normal_block_steps);
+        let readable = readable_normals(sample, &reading);
+        Self {
+            model,
+            bounds,
+            sample,
+            settings,
+            usage,
+            observed,
+            observations,
+            mask,
+            radii,
+            reading,
+            readable,
+            smooth,
+            edges,
+            distances,
+        }
+    }
+
+    fn group_of(&self, i: usize) -> usize {
+        self.edges.iter().filter(|&&e| self.smooth[i] >= e).count()
+    }
+
+    /// The frame's statistics at one ξ: the groups' albedos, the share pinned, Eq. 12's
+    /// residual and the error at the known distances.
+    fn at(&self, xi: f64) -> (Vec<GroupStat>, f64, f64, TruthFit) {
+        // Albedos are known up to Lin's scale: the bound on X (1 with a calibrated Lin) sets
+        // both. Opaque (xi 0) is judged by its albedos' consistency alone: the bound on X
+        // comes from `Lin`, which rests on an assumed background albedo, and an opaque object
+        // brighter than its background exceeds it (such an object is not a layer, whatever the
+        // bound).
+        let unbounded = InversionBounds {
+            max_albedo_cos: OPAQUE_ALBEDO_BOUND,
+            ..*self.bounds
+        };
+        let bounds = if xi == 0.0 { &unbounded } else { self.bounds };
+        let layer = self.layer_at(xi, bounds);
+        let (stats, pinned) = self.albedo_groups(xi, bounds.max_albedo_cos, &layer);
+        (
+            stats,
+            pinned as f64 / self.distances.len().max(1) as f64,
+            layer.eq12,
+            layer.fit,
+        )
+    }
+
+    /// Every observed pixel inverted at ξ: its layer's point and `X` (NaN where pinned or
+    /// without a root), with the pinned count, Eq. 12's residual and the truth's error.
+    fn layer_at(&self, xi: f64, bounds: &InversionBounds) -> LayerAt {
+        let obs = &self.sample.observations;
+        let (w, h) = (obs.width, obs.height);
+        let mut layer = LayerAt {
+            points: ImageBuf::filled(w, h, Vector3::new(f64::NAN, f64::NAN, f64::NAN)),
+            xs: vec![f64::NAN; w * h],
+            pinned: 0,
+            eq12: 0.0,
+            fit: TruthFit::default(),
+        };
+        let calibration = self.usage == ProfileUse::Calibration;
+        let estimates = if calibration {
             vec![]
         } else {
-            foreground_distances(model, &observations, xi, bounds, false)
+            foreground_distances(self.model, &self.observations, xi, bounds, false)
         };
-        for (k, &(i, o)) in observed.iter().enumerate() {
-            if let Some(t) = sample.truth_mm.as_ref().map(|t| t.data[i]).filter(|t| t.is_finite()) {
-                add_truth_error(model, &o, t, xi, bounds, &mut fit);
+        for (k, &(i, o)) in self.observed.iter().enumerate() {
+            if let Some(t) = self
+                .sample
+                .truth_mm
+                .as_ref()
+                .map(|t| t.data[i])
+                .filter(|t| t.is_finite())
+            {
+                add_truth_error(self.model, &o, t, xi, bounds, &mut layer.fit);
             }
-            if usage == ProfileUse::Calibration {
+            if calibration {
                 continue;
             }
             match estimates[k] {
                 Some(est) => {
-                    eq12 += est.residual_mm * est.residual_mm;
+                    layer.eq12 += est.residual_mm * est.residual_mm;
                     if est.pinned {
-                        pinned += 1;
+                        layer.pinned += 1;
                     } else {
-                        points.data[i] = sample.rays.data[i] * est.foreground_distance_mm;
-                        xs[i] = est.albedo_cos;
+                        layer.points.data[i] = self.sample.rays.data[i] * est.foreground_distance_mm;
+                        layer.xs[i] = est.albedo_cos;
                     }
                 }
                 None => {
-                    pinned += 1;
-                    eq12 += model
+                    layer.pinned += 1;
+                    layer.eq12 += self
+                        .model
                         .sensor
                         .wrapped_difference_mm(o.distance_mm, o.background_distance_mm)
                         .powi(2);
                 }
             }
         }
+        layer
+    }
+
+    /// The groups' albedo statistics at ξ (the bound on `X` `x_bound`) from the layer's `X`
+    /// and the normals of its local planes, and the pixels pinned in all.
+    fn albedo_groups(&self, xi: f64, x_bound: f64, layer: &LayerAt) -> (Vec<GroupStat>, usize) {
+        let (max_albedo, censored_albedo) = (MAX_ALBEDO * x_bound, CENSORED_ALBEDO * x_bound);
+        let rays = &self.sample.rays;
         // Normals from the smooth-surface prior: local planes over the recovered layer (at
         // ξ = 0 the layer is the reading, whose planes are known).
         let computed;
         let planes = if xi == 0.0 {
-            &reading
+            &self.reading
         } else {
             computed = local_planes_adaptive(
-                &points,
-                &sample.rays,
-                &mask,
-                &radii,
+                &layer.points,
+                rays,
+                &self.mask,
+                &self.radii,
                 12,
                 0.05,
-                settings.normal_block_steps,
+                self.settings.normal_block_steps,
             );
             &computed
         };
-        let mut per_group: Vec<Vec<f64>> = vec![vec![]; n_groups];
-        for i in 0..w * h {
-            if obs.data[i].is_none() || !readable[i] {
+        let mut pinned = layer.pinned;
+        let mut per_group: Vec<Vec<f64>> = vec![vec![]; self.edges.len() + 1];
+        for (i, o) in self.sample.observations.data.iter().enumerate() {
+            if o.is_none() || !self.readable[i] {
                 continue;
             }
-            if !xs[i].is_finite() {
-                // Pinned by the inversion (counted above): censored too.
-                per_group[group_of(i)].push(censored_albedo.ln());
+            if !layer.xs[i].is_finite() {
+                // Pinned by the inversion (counted already): censored too.
+                per_group[self.group_of(i)].push(censored_albedo.ln());
                 continue;
             }
             // Every pixel stays in its group at every ξ (so no ξ wins by dropping pixels): one
             // without a usable normal, seen too obliquely or implying an albedo above 1 enters
             // as a censored value above any physical albedo. Above 1 also counts as pinned.
-            let cos = planes.data[i]
-                .map(|p| p.incidence_cos(&sample.rays.data[i]))
-                .unwrap_or(0.0);
+            let cos = planes.data[i].map(|p| p.incidence_cos(&rays.data[i])).unwrap_or(0.0);
             let rho = if cos > MIN_INCIDENCE_COS {
-                xs[i] / cos
+                layer.xs[i] / cos
             } else {
                 censored_albedo
             };
             if rho > max_albedo && cos > MIN_INCIDENCE_COS {
                 pinned += 1;
             }
-            per_group[group_of(i)].push(rho.min(censored_albedo).ln());
+            per_group[self.group_of(i)].push(rho.min(censored_albedo).ln());
         }
         // A group whose median is censored carries no albedo at this ξ: out of the objective
         // (with its pixels counted as pinned, so such a ξ cannot win by it).
-        let stats: Vec<GroupStat> = per_group
+        let stats = per_group
             .into_iter()
             .map(|v| {
-                let g = group_stat(v, settings.min_group_pixels);
+                let g = group_stat(v, self.settings.min_group_pixels);
                 if g.median >= max_albedo.ln() {
                     pinned += g.count;
                     GroupStat {
@@ -498,16 +588,17 @@ pub fn frame_profile(
                 }
             })
             .collect();
-        (stats, pinned as f64 / ds.len().max(1) as f64, eq12, fit)
-    };
-    let rows: Vec<_> = grid.par_iter().map(|&xi| per_xi(xi)).collect();
-    for (stats, pinned_fraction, eq12, fit) in rows {
-        out.groups.push(stats);
-        out.pinned_fraction.push(pinned_fraction);
-        out.eq12.push(eq12);
-        out.truth.push(fit);
+        (stats, pinned)
     }
-    out
+}
+
+/// One frame's layer at one ξ ([`ProfileFrame::layer_at`]).
+struct LayerAt {
+    points: ImageBuf<Vector3<f64>>,
+    xs: Vec<f64>,
+    pinned: usize,
+    eq12: f64,
+    fit: TruthFit,
 }
 
 /// Mean reading over the observed pixels within `radius` (lattice steps) of each pixel.
