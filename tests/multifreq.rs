@@ -620,22 +620,11 @@ fn the_node_takes_the_multi_frequency_path_over_dds() {
         .build()
         .expect("runtime");
     let (checks, latch_reply) = rt.block_on(async {
-        let ctx = translucent_tof::node::context(0, false).expect("DDS context");
-        let mut peer = Peer::new(
-            &ctx,
-            "mf_driver",
-            "/tof",
-            "/tof/translucent_tof",
-            ros2_client::ServiceMapping::Enhanced,
-        )
-        .expect("peer");
-        peer.wait_for_node(Duration::from_secs(30))
-            .await
-            .expect("the node on DDS");
-        // A participant of its own: one node per context sees the match events.
-        let ctx2 = translucent_tof::node::context(0, false).expect("DDS context");
-        let mut phasors = PhasorPeer::new(&ctx2, 3);
-        phasors.wait_for_node().await;
+        let (ctx, ctx2) = (
+            translucent_tof::node::context(0, false).expect("DDS context"),
+            translucent_tof::node::context(0, false).expect("DDS context"),
+        );
+        let (mut peer, mut phasors) = drivers(&ctx, &ctx2).await;
         let info = camera_info(&Header::new(0, "tof_optical_frame"), &k);
         let send =
             |peer: &Peer, phasors: &PhasorPeer, f: &Published, stamp: u64| send_frame(peer, phasors, &info, f, stamp);
@@ -714,23 +703,23 @@ fn the_node_corrects_every_frame_with_no_latch_over_dds() {
         .build()
         .expect("runtime");
     let checks = rt.block_on(async {
-        let ctx = translucent_tof::node::context(0, false).expect("DDS context");
-        let mut peer = Peer::new(
-            &ctx,
-            "mf_driver",
-            "/tof",
-            "/tof/translucent_tof",
-            ros2_client::ServiceMapping::Enhanced,
-        )
-        .expect("peer");
-        peer.wait_for_node(Duration::from_secs(30))
-            .await
-            .expect("the node on DDS");
-        let ctx2 = translucent_tof::node::context(0, false).expect("DDS context");
-        let mut phasors = PhasorPeer::new(&ctx2, 3);
-        phasors.wait_for_node().await;
+        let (ctx, ctx2) = (
+            translucent_tof::node::context(0, false).expect("DDS context"),
+            translucent_tof::node::context(0, false).expect("DDS context"),
+        );
+        let (mut peer, mut phasors) = drivers(&ctx, &ctx2).await;
         let info = camera_info(&Header::new(0, "tof_optical_frame"), &k);
         let mut stamp = 1_000_000_000u64;
+        // A driver streams: a frame sent before the node has matched every publisher is
+        // dropped unpaired, so the first frame is streamed until the node answers one.
+        let until = Instant::now() + Duration::from_secs(20);
+        loop {
+            stamp += 33_000_000;
+            send_frame(&peer, &phasors, &info, &objects[0], stamp);
+            if peer.wait_for(stamp, Duration::from_millis(500)).await || Instant::now() > until {
+                break;
+            }
+        }
         let mut checks = vec![];
         for f in objects {
             stamp += 33_000_000;
@@ -748,6 +737,26 @@ fn the_node_corrects_every_frame_with_no_latch_over_dds() {
         assert!(c.box_pixels > 500 && c.box_in_mask * 20 <= c.box_pixels, "{c:?}");
     }
     assert!(stats["published"].as_u64() >= Some(objects.len() as u64), "{stats}");
+}
+
+/// The driver (depth, IR, camera_info, the latch service) on `ctx` and the phasor publisher on
+/// a participant of its own (`ctx2`: one node per context sees the match events), once the
+/// node is up.
+async fn drivers(ctx: &ros2_client::Context, ctx2: &ros2_client::Context) -> (Peer, PhasorPeer) {
+    let peer = Peer::new(
+        ctx,
+        "mf_driver",
+        "/tof",
+        "/tof/translucent_tof",
+        ros2_client::ServiceMapping::Enhanced,
+    )
+    .expect("peer");
+    peer.wait_for_node(Duration::from_secs(30))
+        .await
+        .expect("the node on DDS");
+    let phasors = PhasorPeer::new(ctx2, 3);
+    phasors.wait_for_node().await;
+    (peer, phasors)
 }
 
 /// Publishes `f` restamped at `stamp`: its phasors on `phasors`, depth, IR and `info` on `peer`.

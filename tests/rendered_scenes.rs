@@ -41,6 +41,16 @@ fn replay(dir: &Path, bag: &str, extra: &[&str]) -> Value {
     run(dir, &args)
 }
 
+/// The Python with the checkers (`TTOF_PYTHON`, else the project's `.venv`).
+fn python() -> String {
+    std::env::var("TTOF_PYTHON").unwrap_or_else(|_| {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join(".venv/bin/python")
+            .display()
+            .to_string()
+    })
+}
+
 fn num(v: &Value, key: &str) -> f64 {
     v[key].as_f64().unwrap_or_else(|| panic!("{key} missing in {v}"))
 }
@@ -172,12 +182,7 @@ fn the_audits_loop_closes_on_a_rendered_calibration_sequence() {
 /// reading kept; ξ is reported as not measured, not guessed.
 #[test]
 fn a_moving_camera_is_corrected_with_no_latch() {
-    let python = std::env::var("TTOF_PYTHON").unwrap_or_else(|_| {
-        Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join(".venv/bin/python")
-            .display()
-            .to_string()
-    });
+    let python = python();
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().expect("temp dir");
     let json = dir.path().join("rows.json");
@@ -216,12 +221,7 @@ fn a_moving_camera_is_corrected_with_no_latch() {
 /// script (`scripts/results --markdown`).
 #[test]
 fn the_rendered_set_holds_its_baseline() {
-    let python = std::env::var("TTOF_PYTHON").unwrap_or_else(|_| {
-        Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join(".venv/bin/python")
-            .display()
-            .to_string()
-    });
+    let python = python();
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let out = Command::new(&python)
         .arg(root.join("scripts/results.py"))
