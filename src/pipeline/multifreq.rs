@@ -496,6 +496,11 @@ struct PixelResult {
     xi_sigma: f64,
     /// The standard deviation of ξ² (what bounds an opaque region's ξ).
     xi_squared_sigma: f64,
+    /// The layer's own return against the background's, at equal distance:
+    /// `(1 - ξ) X / Xb` (NaN where not a layer with a background).
+    layer_to_background: f64,
+    /// The background's distance beyond the layer, mm (NaN where not known).
+    gap_mm: f64,
 }
 
 impl PixelResult {
@@ -507,6 +512,8 @@ impl PixelResult {
             xi: f64::NAN,
             xi_sigma: f64::NAN,
             xi_squared_sigma: f64::NAN,
+            layer_to_background: f64::NAN,
+            gap_mm: f64::NAN,
         }
     }
 }
@@ -714,6 +721,8 @@ impl MultiFrequencyStage {
             xi: f64::NAN,
             xi_sigma: f64::NAN,
             xi_squared_sigma: f64::NAN,
+            layer_to_background: f64::NAN,
+            gap_mm: f64::NAN,
         }
     }
 
@@ -778,13 +787,13 @@ impl MultiFrequencyStage {
             Ok(est) if unclaimed(&est, &inputs, self.config.opacity_threshold) => {
                 PixelResult::only(PixelClass::Unclaimed)
             }
-            Ok(est) => self.classify(&est),
+            Ok(est) => self.classify(&est, &inputs),
             Err(_) => PixelResult::only(PixelClass::Failed),
         }
     }
 
     /// A layer when its opacity statistic passes the configured level, else opaque.
-    fn classify(&self, est: &MultiFrequencyEstimate) -> PixelResult {
+    fn classify(&self, est: &MultiFrequencyEstimate, inputs: &PixelInputs) -> PixelResult {
         let layer = !est.opaque && est.opacity_statistic > self.config.opacity_threshold;
         // `translucency_sigma` is sigma(ξ²) / (2 ξ) for a layer, sqrt(sigma(ξ²)) when opaque.
         let xi_squared_sigma = if est.opaque {
@@ -799,6 +808,8 @@ impl MultiFrequencyStage {
             xi: if layer { est.translucency } else { 0.0 },
             xi_sigma: est.translucency_sigma,
             xi_squared_sigma,
+            layer_to_background: layer_to_background(est, inputs),
+            gap_mm: inputs.background_distance_mm - est.foreground_distance_mm,
         }
     }
 
@@ -813,7 +824,12 @@ impl MultiFrequencyStage {
         let count = |c: PixelClass| results.iter().filter(|r| r.class == c).count();
         let (mask, opaque) = self.masks(results, !latched);
         let (labels, layers) = self.labels(results, &mask, &opaque);
-        let regions = regions(&labels, layers, results);
+        let regions = regions(
+            &labels,
+            layers,
+            results,
+            1.0 / (self.intrinsics.fx * self.intrinsics.fy),
+        );
         let layer = self.surface_prior(&labels, layers, results);
         let filled = self.fill(depth, &mask, results, &layer);
         let xi = frame_estimate(&regions, layers as usize);
@@ -1027,7 +1043,7 @@ struct Filled {
 }
 
 /// Every region's estimate, in the order of their labels (`layers` layer regions first).
-fn regions(labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> Vec<RegionOutput> {
+fn regions(labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult], pixel_sr: f64) -> Vec<RegionOutput> {
     let count = labels.data.iter().copied().max().unwrap_or(0) as usize;
     let mut members: Vec<Vec<usize>> = vec![vec![]; count];
     for (i, &l) in labels.data.iter().enumerate() {
@@ -1041,7 +1057,7 @@ fn regions(labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> Vec<
         .map(|(r, px)| {
             let id = r as u32 + 1;
             if id <= layers {
-                layer_region(id, px, labels.width, results)
+                layer_region(id, px, (labels.width, pixel_sr), results)
             } else {
                 opaque_region(id, px, results)
             }
@@ -1070,7 +1086,7 @@ fn region_estimate(xi: f64, interval: [f64; 2], pixels: usize, note: String) -> 
 /// pixels over the square root of their number: what the model leaves out
 /// (light between the layer and a near wall, a mixed edge) is shared by
 /// neighbouring pixels and does not average out over them.
-fn layer_region(id: u32, pixels: &[usize], width: usize, results: &[PixelResult]) -> RegionOutput {
+fn layer_region(id: u32, pixels: &[usize], (width, pixel_sr): (usize, f64), results: &[PixelResult]) -> RegionOutput {
     if pixels.iter().all(|&i| results[i].xi.is_nan()) {
         let note = format!(
             "{} pixels, each two returns; no background latched, so xi (the far return against the background's own) is not measured",
@@ -1100,11 +1116,16 @@ fn layer_region(id: u32, pixels: &[usize], width: usize, results: &[PixelResult]
         0.0
     };
     let half = pixel_half.max(block_half);
-    let interval = [(median - half).max(0.0), (median + half).min(1.0)];
+    // Light between the layer's back and the background (not in the model) only adds to the
+    // far return: ξ² comes out up to a factor 1 + gain too high.
+    let gain = interreflection_bound(pixels, results, pixel_sr);
+    let lower = (median - half) / (1.0 + gain.max(0.0)).sqrt();
+    let interval = [lower.max(0.0), (median + half).min(1.0)];
     let note = format!(
-        "median of {} pixels' xi, each from its own phasors; spread {spread:.4}, stated sigma {stated:.4} per pixel; {} blocks, half width {block_half:.4} from their scatter",
+        "median of {} pixels' xi, each from its own phasors; spread {spread:.4}, stated sigma {stated:.4} per pixel; {} blocks, half width {block_half:.4} from their scatter; the lower end allows light between the layer and the background to raise xi^2 by up to {:.1} %",
         pixels.len(),
-        blocks.len()
+        blocks.len(),
+        100.0 * gain.max(0.0)
     );
     RegionOutput {
         id,
@@ -1113,6 +1134,47 @@ fn layer_region(id: u32, pixels: &[usize], width: usize, results: &[PixelResult]
         opaque: false,
         class: None,
     }
+}
+
+/// An upper bound on the share that light between a layer's back and the background adds
+/// to the far return (Eq. 3's first inter-reflection, weighted by the background's view of
+/// the layer): `(1 - ξ) X Xb F <= (1 - ξ) X / Xb · F` (`Xb <= 1`), with `F` the view factor
+/// of the region, taken as a square of its area at its median distance, from the background
+/// point behind its centre at the median gap (physics.md §5, "What a sheet lets through").
+/// NaN where the region's pixels do not say.
+fn interreflection_bound(pixels: &[usize], results: &[PixelResult], pixel_sr: f64) -> f64 {
+    let median_of = |f: &dyn Fn(&PixelResult) -> f64| {
+        let mut v: Vec<f64> = pixels
+            .iter()
+            .map(|&i| f(&results[i]))
+            .filter(|v| v.is_finite())
+            .collect();
+        median_select(&mut v)
+    };
+    let ratio = median_of(&|r| r.layer_to_background);
+    let gap = median_of(&|r| r.gap_mm);
+    let distance = median_of(&|r| r.distance_mm);
+    let half_side = 0.5 * distance * (pixels.len() as f64 * pixel_sr).sqrt();
+    ratio * 4.0 * corner_view_factor(half_side, half_side, gap)
+}
+
+/// The view factor from a point to an `a` x `b` rectangle parallel to it at distance `c`,
+/// the point on the normal through one of its corners.
+fn corner_view_factor(a: f64, b: f64, c: f64) -> f64 {
+    let (x, y) = (a / c, b / c);
+    let (sx, sy) = ((1.0 + x * x).sqrt(), (1.0 + y * y).sqrt());
+    (x / sx * (y / sx).atan() + y / sy * (x / sy).atan()) / std::f64::consts::TAU
+}
+
+/// The layer's own return against the background's at equal distance, `(1 - ξ) X / Xb`:
+/// the returns' strengths scaled by the square of their distances.
+fn layer_to_background(est: &MultiFrequencyEstimate, inputs: &PixelInputs) -> f64 {
+    let background = inputs.background.iter().map(|b| b.a.hypot(b.b)).fold(0.0, f64::max);
+    let (d1, db) = (est.foreground_distance_mm, inputs.background_distance_mm);
+    if est.opaque || !(background > 0.0 && d1 > 0.0 && db > 0.0) {
+        return f64::NAN;
+    }
+    est.first_return / background * (d1 / db).powi(2)
 }
 
 /// Side of the square blocks whose medians measure a region's shared error, pixels.
@@ -1273,6 +1335,19 @@ albedo = 0.7
             c.rms_mm = (err2 / c.in_mask.max(1) as f64).sqrt();
             c
         }
+    }
+
+    #[test]
+    fn view_factors_of_a_rectangle() {
+        // An infinite plane: a quarter from each corner's rectangle.
+        assert!((corner_view_factor(1e9, 1e9, 1.0) - 0.25).abs() < 1e-6);
+        // The paper's 24 x 31 cm sheet 250 mm before the wall, seen from behind its centre:
+        // about 0.27 (physics.md §5).
+        let f = 4.0 * corner_view_factor(120.0, 155.0, 250.0);
+        assert!((f - 0.27).abs() < 0.005, "{f}");
+        // Far away, the solid angle over pi: a / c * b / c / pi per corner.
+        let far = corner_view_factor(1.0, 1.0, 1000.0);
+        assert!((far - 1e-6 / std::f64::consts::PI).abs() < 1e-9, "{far}");
     }
 
     #[test]
