@@ -371,7 +371,7 @@ impl PhasorLatch {
             b.push(mean);
             sigma.push(var.sqrt());
         }
-        let peak = b.iter().map(|p| p.a.hypot(p.b)).fold(0.0, f64::max);
+        let peak = peak_amplitude(&b);
         if !(peak > 0.0) {
             return None;
         }
@@ -680,7 +680,7 @@ impl MultiFrequencyStage {
             let [a, b] = p.data.get(i)?.map(f64::from);
             *m = Phasor { a, b };
         }
-        let peak = measured[..k].iter().map(|m| m.a.hypot(m.b)).fold(0.0, f64::max);
+        let peak = peak_amplitude(&measured[..k]);
         if !(peak.is_finite() && peak > 0.0) {
             return None;
         }
@@ -747,8 +747,7 @@ impl MultiFrequencyStage {
             return None;
         }
         let background = &bg.phasors[i * k..(i + 1) * k];
-        let amplitude = |p: &[Phasor]| p.iter().map(|q| q.a.hypot(q.b)).fold(0.0, f64::max);
-        let light = (amplitude(&measured[..k]) / amplitude(background)).max(1.0);
+        let light = (peak_amplitude(&measured[..k]) / peak_amplitude(background)).max(1.0);
         let grow = (light * (1.0 + 1.0 / bg.frames as f64)).sqrt();
         let mut noise_sigma = [0.0; MAX_FREQUENCIES];
         for (s, s0) in noise_sigma.iter_mut().zip(&bg.noise_sigma[i * k..(i + 1) * k]) {
@@ -1008,6 +1007,11 @@ impl MultiFrequencyStage {
     }
 }
 
+/// The largest amplitude among a pixel's phasors (one return's strength, for the sinusoid).
+fn peak_amplitude(phasors: &[Phasor]) -> f64 {
+    phasors.iter().map(|p| p.a.hypot(p.b)).fold(0.0, f64::max)
+}
+
 /// Farthest from the background's distance, beyond three of its own standard deviations,
 /// that one return still counts as the background's ([`PixelClass::Unclaimed`]), mm.
 const DIMMED_TOLERANCE_MM: f64 = 30.0;
@@ -1021,7 +1025,7 @@ fn unclaimed(est: &MultiFrequencyEstimate, inputs: &PixelInputs, level: f64) -> 
     if !est.opaque {
         return est.opacity_statistic <= level;
     }
-    let background = inputs.background.iter().map(|b| b.a.hypot(b.b)).fold(0.0, f64::max);
+    let background = peak_amplitude(inputs.background);
     let tolerance = (3.0 * est.foreground_distance_sigma_mm).max(DIMMED_TOLERANCE_MM);
     (est.foreground_distance_mm - inputs.background_distance_mm).abs() <= tolerance && est.first_return < background
 }
@@ -1169,7 +1173,7 @@ fn corner_view_factor(a: f64, b: f64, c: f64) -> f64 {
 /// The layer's own return against the background's at equal distance, `(1 - ξ) X / Xb`:
 /// the returns' strengths scaled by the square of their distances.
 fn layer_to_background(est: &MultiFrequencyEstimate, inputs: &PixelInputs) -> f64 {
-    let background = inputs.background.iter().map(|b| b.a.hypot(b.b)).fold(0.0, f64::max);
+    let background = peak_amplitude(inputs.background);
     let (d1, db) = (est.foreground_distance_mm, inputs.background_distance_mm);
     if est.opaque || !(background > 0.0 && d1 > 0.0 && db > 0.0) {
         return f64::NAN;
