@@ -34,8 +34,8 @@ use crate::physics::catalog::{AlbedoReference, AlbedoScale, Catalog, Class, Clas
 use crate::physics::emitted_light::EmittedLightError;
 use crate::physics::materials::{Material, Materials, RegionEvidence};
 use crate::physics::segmentation::{
-    change_threshold_mm, changed_pixels, label_regions, remove_small_regions, wrapped_difference, DEFAULT_THRESHOLD_MM,
-    NOISE_SIGMAS,
+    change_threshold_mm, changed_pixels, label_regions, remove_small_regions, split_reading_modes, wrapped_difference,
+    DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,
 };
 use crate::physics::translucency::{self, FrameProfile, FrameSample, XiSettings};
 use crate::physics::{

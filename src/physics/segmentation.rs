@@ -274,6 +274,177 @@ pub fn label_regions(
     renumber(labels, &sizes)
 }
 
+/// Least gap between the readings of two objects that one region chained together, mm.
+pub const SPLIT_GAP_FLOOR_MM: f64 = 150.0;
+
+/// Largest share of a region's pixels whose readings lie in the middle third between two
+/// modes, for the modes to be two objects: a tilted surface spreads its readings evenly.
+pub const SPLIT_VALLEY_SHARE: f64 = 0.05;
+
+/// Splits regions whose readings form two modes far apart while the background behind both
+/// is at one distance: two objects at different depths whose edge pixels ramp from one to
+/// the other chain into one region through [`label_regions`]' neighbour steps. A layer
+/// before a background step (a table's edge behind a sheet) shows two modes too, but there
+/// the background steps with the reading, and it stays whole. `background_mm`: the latched
+/// background's distance per pixel. Returns the labels and sizes with the far modes as
+/// regions of their own.
+pub fn split_reading_modes(
+    labels: ImageBuf<u32>,
+    sizes: Vec<usize>,
+    distance_mm: &ImageBuf<f64>,
+    background_mm: &ImageBuf<f64>,
+    range_mm: f64,
+    min_pixels: usize,
+) -> (ImageBuf<u32>, Vec<usize>) {
+    let (mut labels, mut sizes) = (labels, sizes);
+    // A region may chain more than two objects: split the pieces again, a few times.
+    for _ in 0..3 {
+        let mut members: Vec<Vec<usize>> = vec![vec![]; sizes.len() + 1];
+        for (i, &l) in labels.data.iter().enumerate() {
+            if l != 0 {
+                members[l as usize].push(i);
+            }
+        }
+        let mut split_any = false;
+        for pixels in members.iter().skip(1) {
+            let Some(far) = far_mode(pixels, distance_mm, background_mm, range_mm, min_pixels) else {
+                continue;
+            };
+            sizes.push(far.len());
+            let id = sizes.len() as u32;
+            let old = labels.data[pixels[0]] as usize;
+            sizes[old - 1] -= far.len();
+            for i in far {
+                labels.data[i] = id;
+            }
+            split_any = true;
+        }
+        if !split_any {
+            break;
+        }
+    }
+    (labels, sizes)
+}
+
+/// Width of the reading histogram's bins that [`far_mode`] splits, mm.
+const SPLIT_BIN_MM: f64 = 5.0;
+
+/// The pixels of a region's far reading mode, when its readings form two modes that are two
+/// objects ([`split_reading_modes`]); `None` when they are one. The modes are found on a
+/// histogram of the readings (Otsu's split), so a region costs one pass over its pixels.
+fn far_mode(
+    pixels: &[usize],
+    distance_mm: &ImageBuf<f64>,
+    background_mm: &ImageBuf<f64>,
+    range_mm: f64,
+    min_pixels: usize,
+) -> Option<Vec<usize>> {
+    let n = pixels.len();
+    if n < 2 * min_pixels.max(2) {
+        return None;
+    }
+    let centre = distance_mm.data[pixels[n / 2]];
+    let unwrapped = |i: usize| centre + wrapped_difference(distance_mm.data[i], centre, range_mm);
+    let (lo, hi) = pixels
+        .iter()
+        .map(|&i| unwrapped(i))
+        .filter(|x| x.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |a, x| (a.0.min(x), a.1.max(x)));
+    if hi - lo < SPLIT_GAP_FLOOR_MM {
+        return None;
+    }
+    let bin = SPLIT_BIN_MM.max((hi - lo) / 4096.0);
+    let mut hist = vec![0usize; ((hi - lo) / bin) as usize + 1];
+    for &i in pixels {
+        let x = unwrapped(i);
+        if x.is_finite() {
+            hist[((x - lo) / bin) as usize] += 1;
+        }
+    }
+    let at = |k: f64| lo + (k + 0.5) * bin;
+    let k = otsu_split(&hist)?;
+    let (near, far) = hist.split_at(k);
+    let (n_near, n_far) = (near.iter().sum::<usize>(), far.iter().sum::<usize>());
+    let least = min_pixels.max((FRINGE_SHARE * n as f64).ceil() as usize);
+    if n_near < least || n_far < least {
+        return None;
+    }
+    let (m_near, s_near) = histogram_centre_spread(near)?;
+    let (m_far, s_far) = histogram_centre_spread(far)?;
+    let (m_near, m_far) = (at(m_near), at(k as f64 + m_far));
+    let gap = m_far - m_near;
+    if gap < SPLIT_GAP_FLOOR_MM.max(3.0 * bin * s_near.max(s_far)) {
+        return None;
+    }
+    let (v_lo, v_hi) = (m_near + gap / 3.0, m_far - gap / 3.0);
+    let valley: usize = (0..hist.len())
+        .filter(|&j| at(j as f64) > v_lo && at(j as f64) < v_hi)
+        .map(|j| hist[j])
+        .sum();
+    if valley as f64 > SPLIT_VALLEY_SHARE * n as f64 {
+        return None;
+    }
+    let split = lo + k as f64 * bin;
+    let (near_px, far_px): (Vec<usize>, Vec<usize>) = pixels.iter().partition(|&&i| !(unwrapped(i) >= split));
+    let behind = |side: &[usize]| median(side.iter().map(|&i| background_mm.data[i]).collect());
+    let (b_near, b_far) = (behind(&near_px)?, behind(&far_px)?);
+    if wrapped_difference(b_far, b_near, range_mm).abs() > 0.5 * gap {
+        return None;
+    }
+    Some(far_px)
+}
+
+/// Where a histogram splits best into two classes (Otsu: the largest between-class
+/// variance); the first bin of the far class.
+fn otsu_split(hist: &[usize]) -> Option<usize> {
+    let total: f64 = hist.iter().map(|&c| c as f64).sum();
+    let moment: f64 = hist.iter().enumerate().map(|(j, &c)| j as f64 * c as f64).sum();
+    let (mut best, mut best_k, mut count, mut sum) = (0.0, None, 0.0, 0.0);
+    for k in 1..hist.len() {
+        count += hist[k - 1] as f64;
+        sum += (k - 1) as f64 * hist[k - 1] as f64;
+        let rest = total - count;
+        if count == 0.0 || rest == 0.0 {
+            continue;
+        }
+        let between = count * rest * (sum / count - (moment - sum) / rest).powi(2);
+        if between > best {
+            (best, best_k) = (between, Some(k));
+        }
+    }
+    best_k
+}
+
+/// A histogram's median bin and its spread (the interquartile range as a normal sigma), in
+/// bins.
+fn histogram_centre_spread(hist: &[usize]) -> Option<(f64, f64)> {
+    let total: usize = hist.iter().sum();
+    if total == 0 {
+        return None;
+    }
+    let quantile = |q: f64| {
+        let target = q * total as f64;
+        let mut seen = 0.0;
+        for (j, &c) in hist.iter().enumerate() {
+            seen += c as f64;
+            if seen >= target {
+                return j as f64;
+            }
+        }
+        (hist.len() - 1) as f64
+    };
+    Some((quantile(0.5), (quantile(0.75) - quantile(0.25)) / 1.349))
+}
+
+fn median(mut v: Vec<f64>) -> Option<f64> {
+    v.retain(|x| x.is_finite());
+    if v.is_empty() {
+        return None;
+    }
+    let m = v.len() / 2;
+    Some(*v.select_nth_unstable_by(m, f64::total_cmp).1)
+}
+
 /// A piece this small beside a region (a share of that region's pixels) is its fringe: the
 /// pixels at a layer's edge mix the layer with what is behind it and step away from it.
 pub const FRINGE_SHARE: f64 = 0.1;
@@ -553,5 +724,36 @@ mod tests {
         m.data[0] = false;
         let (labels, _) = label_regions(&m, &d, |_| 5.0, 4996.5, 3);
         assert_eq!(labels.data[0], 0);
+    }
+
+    /// A 40 x 20 mask, all one region, with readings and background per column.
+    fn one_region(reading: impl Fn(usize) -> f64, background: impl Fn(usize) -> f64) -> Vec<usize> {
+        let (w, h) = (40, 20);
+        let d = ImageBuf::from_vec(w, h, (0..w * h).map(|i| reading(i % w)).collect()).unwrap();
+        let b = ImageBuf::from_vec(w, h, (0..w * h).map(|i| background(i % w)).collect()).unwrap();
+        let labels = ImageBuf::filled(w, h, 1u32);
+        let (labels, sizes) = split_reading_modes(labels, vec![w * h], &d, &b, 4996.5, 10);
+        assert_eq!(sizes.iter().sum::<usize>(), w * h);
+        assert_eq!(sizes.len(), labels.data.iter().copied().max().unwrap() as usize);
+        sizes
+    }
+
+    #[test]
+    fn two_objects_chained_by_a_ramp_split_and_one_surface_does_not() {
+        // A near sheet (columns 0-27) and a far one (30-39) before one wall, their edge
+        // pixels ramping between them: two objects.
+        let ramp = |c: usize| match c {
+            0..28 => 1030.0 + (c % 3) as f64 * 5.0,
+            28 => 1200.0,
+            29 => 1500.0,
+            _ => 1800.0 + (c % 4) as f64 * 40.0,
+        };
+        assert_eq!(one_region(ramp, |_| 3390.0), vec![580, 220]);
+        // A surface tilted steeply: its readings spread evenly, one object.
+        assert_eq!(one_region(|c| 1000.0 + 25.0 * c as f64, |_| 3390.0), vec![800]);
+        // A layer before a background step (a table's edge behind it): its reading steps with
+        // the background, one object.
+        let step = |c: usize| if c < 20 { 2000.0 } else { 3400.0 };
+        assert_eq!(one_region(|c| 0.9 * step(c) + 100.0, step), vec![800]);
     }
 }

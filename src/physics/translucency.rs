@@ -890,6 +890,65 @@ fn pose_labels<P: Borrow<FrameProfile>>(profiles: &[P]) -> (Vec<usize>, usize) {
 /// measured one frame of one tilted plane: a profile that falls through the truth), the
 /// interval is every ξ.
 pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
+    let pooled = one_material_pooled(profiles)?;
+    Some(across_distance(profiles, pooled))
+}
+
+/// Fewest poses an object needs before its near and far poses are compared
+/// ([`across_distance`]): two on each side, as each side must determine ξ by itself.
+pub const POSES_TO_COMPARE: usize = 4;
+
+/// The pooled estimate checked against the object's near poses and its far poses, each
+/// estimated alone. The model's misfit between poses enters the pooled interval as a random
+/// offset per pose; a misfit that grows with distance (light between a layer and a near wall,
+/// a layer that scatters what it passes) is not random, and there the two sides' intervals
+/// part. Then what the data cannot tell is which side is right: the interval spans both
+/// sides' and the pooled one (objects.md, "Intervals that hold").
+fn across_distance(profiles: &[FrameProfile], pooled: XiEstimate) -> XiEstimate {
+    let (pose, poses) = pose_labels(profiles);
+    let determined = pooled.interval != [0.0, 1.0];
+    if poses < POSES_TO_COMPARE || !determined {
+        return pooled;
+    }
+    let side = |far: bool| -> Option<XiEstimate> {
+        let frames: Vec<&FrameProfile> = profiles
+            .iter()
+            .zip(&pose)
+            .filter(|(_, &k)| k != usize::MAX && (k >= poses / 2) == far)
+            .map(|(p, _)| p)
+            .collect();
+        one_material_pooled(&frames).filter(|e| e.interval != [0.0, 1.0])
+    };
+    let (Some(near), Some(far)) = (side(false), side(true)) else {
+        return pooled;
+    };
+    let apart = near.interval[1] < far.interval[0] || far.interval[1] < near.interval[0];
+    if !apart {
+        return pooled;
+    }
+    let lo = pooled.interval[0].min(near.interval[0]).min(far.interval[0]);
+    let hi = pooled.interval[1].max(near.interval[1]).max(far.interval[1]);
+    let disagreement = format!(
+        "the near poses alone give xi {:.3} [{:.3}, {:.3}] and the far ones {:.3} [{:.3}, {:.3}]: a misfit that changes with distance, so the interval spans both",
+        near.xi, near.interval[0], near.interval[1], far.xi, far.interval[0], far.interval[1]
+    );
+    if lo <= OPAQUE_XI {
+        return XiEstimate {
+            xi: 0.0,
+            interval: [0.0, hi],
+            note: format!("taken as opaque: {disagreement} and 0 ({})", pooled.note),
+            ..pooled
+        };
+    }
+    XiEstimate {
+        interval: [lo, hi],
+        note: format!("{}; {disagreement}", pooled.note),
+        ..pooled
+    }
+}
+
+/// [`one_material`] over the frames given, without the near-and-far check.
+fn one_material_pooled<P: Borrow<FrameProfile>>(profiles: &[P]) -> Option<XiEstimate> {
     let grid = xi_grid();
     let ok = eligible(profiles);
     let (pose, poses) = pose_labels(profiles);
@@ -909,7 +968,7 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
         interval,
         method: XiMethod::OneMaterial,
         frames: profiles.len(),
-        pixels: profiles.iter().map(|p| p.pixels).sum(),
+        pixels: profiles.iter().map(|p| p.borrow().pixels).sum(),
         profile: grid.iter().copied().zip(q.iter().copied()).collect(),
         note,
     };

@@ -62,6 +62,8 @@ impl Pipeline {
             }
         };
         let (labels, sizes) = label_regions(&mask, &d, noise, range, self.config.min_region_pixels);
+        let (labels, sizes) =
+            split_reading_modes(labels, sizes, &d, &bg.distance_mm, range, self.config.min_region_pixels);
         let regions = sizes
             .into_iter()
             .map(|pixels| ObservedRegion { pixels, material: None })
