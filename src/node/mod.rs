@@ -14,6 +14,7 @@ pub mod peer;
 pub mod qos_overrides;
 pub mod rlog;
 pub mod ros_args;
+mod worker;
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -37,7 +38,7 @@ use crate::pipeline::PipelineConfig;
 use crate::viz::{FrameViz, RerunTarget, VizSink};
 
 use self::core::{DropCause, NodeCore};
-use self::inbox::{Command, FramePairer, Inbox, Intake, Next, StampPairer};
+use self::inbox::{Command, FramePairer, Inbox, Intake, Next, PairedFrame, StampPairer};
 use self::multifreq::{MultiFrequencyNode, MultiFrequencyResult};
 use self::ros_args::{NameResolver, ParamValue};
 
@@ -542,9 +543,94 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     // Rerun first: a bad target is an error before anything appears on DDS.
     let viz = VizSink::start(&s.rerun, "translucent_tof", 2).map_err(|e| anyhow::anyhow!(e))?;
     let ctx = context(s.domain_id, s.localhost_only)?;
-    let r = |n: &str| s.names.resolve(n);
-    // Each output's QoS: the default, changed by `qos_overrides./TOPIC.publisher.*`.
     let given: BTreeMap<String, ParamValue> = s.params.iter().cloned().collect();
+    let outputs_qos = output_qos(&s, &given)?;
+    let inbox: Arc<Inbox<Token>> = Arc::new(Inbox::new(s.queue_depth));
+    let gate = ParamGate::new(&s, inbox.clone());
+    let node_name = NodeName::new(&s.names.namespace, &s.names.node)
+        .map_err(|e| anyhow::anyhow!("node name {}: {e:?}", s.names.node_fqn()))?;
+    let mut node = ctx
+        .new_node(node_name.clone(), node_options(&s, &outputs_qos, &gate))
+        .map_err(|e| anyhow::anyhow!("creating node {}: {e:?}", s.names.node_fqn()))?;
+    gate.start();
+    rlog::attach_rosout(node.logging_handle());
+    let spinner = node.spinner().map_err(|e| anyhow::anyhow!("node spinner: {e:?}"))?;
+    let spin_task = tokio::spawn(spinner.spin());
+
+    let topics = Topics {
+        ctx: &ctx,
+        node_name: &node_name,
+        outputs_qos: &outputs_qos,
+    };
+    let inputs = subscribe(&mut node, &topics, &s)?;
+    let (outputs, diagnostics, published) = advertise(&mut node, &topics, &s)?;
+    let services = Services::create(&mut node, &s)?;
+    announce(&s, &inputs, &published, &services)?;
+
+    let live = Arc::new(Mutex::new(Live::default()));
+    let (reply_tx, reply_rx) = tokio::sync::mpsc::unbounded_channel::<(Token, TriggerResponse)>();
+    let (done_tx, done_rx) = tokio::sync::mpsc::unbounded_channel::<NodeStats>();
+    let worker = {
+        let inbox = inbox.clone();
+        let settings = s.clone();
+        let live = live.clone();
+        std::thread::Builder::new()
+            .name("pipeline".into())
+            .spawn(move || worker::worker(settings, inbox, outputs, viz, reply_tx, done_tx, live))?
+    };
+    if s.latch_on_start {
+        info!(
+            "latch_on_start: the background is latched from the first {} frames",
+            s.background_frames
+        );
+        inbox.push_command(Command::Latch((Service::OnStart, Default::default())));
+    }
+    let mut events = Events {
+        s: &s,
+        inbox: &inbox,
+        live: &live,
+        node: &node,
+        diagnostics,
+        multi: !inputs.phasor_t.is_empty(),
+        pairer: StampPairer::new(s.queue_depth.max(4) * 2),
+        frame_pairer: FramePairer::new(inputs.phasor_t.len(), s.queue_depth.max(4) * 2),
+        counts: NodeStats::default(),
+        last_info: None,
+        intake: Intake::default(),
+    };
+    let mut done_rx = done_rx;
+    let final_stats = events.serve(&inputs, &services, reply_rx, &mut done_rx).await?;
+    inbox.push_command(Command::Shutdown);
+    let stats = match final_stats {
+        Some(st) => st,
+        None => done_rx.recv().await.unwrap_or_default(),
+    };
+    let _ = worker.join();
+    let Events {
+        counts,
+        pairer,
+        frame_pairer,
+        intake,
+        ..
+    } = events;
+    // The spinner's entities (parameter services, /rosout, /clock) go before the
+    // participant: dropped after it, RustDDS logs an error for each of them.
+    drop(node);
+    if tokio::time::timeout(Duration::from_secs(2), spin_task).await.is_err() {
+        warn!("the node's spinner did not stop within 2 s");
+    }
+    let stats = with_intake_counts(stats, &counts, pairer.unpaired + frame_pairer.unpaired, &inbox, intake);
+    info!("{}", summary(&stats));
+    if let Some(p) = &s.stats_json {
+        let text = serde_json::to_string_pretty(&stats)?;
+        crate::files::write_atomic(p, text.as_bytes())?;
+    }
+    Ok(stats)
+}
+
+/// Each output's full name and QoS: the default, changed by `qos_overrides./TOPIC.publisher.*`
+/// (an override for a topic the node does not publish is an error).
+fn output_qos(s: &NodeSettings, given: &BTreeMap<String, ParamValue>) -> anyhow::Result<Vec<(String, QosProfile)>> {
     let multi_outputs = s
         .multi_frequency
         .as_ref()
@@ -560,52 +646,48 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     .into_iter()
     .chain(multi_outputs)
     .map(|(n, base)| {
-        let full = r(n)?;
-        let q = qos_overrides::apply(&base, &full, &given)?;
+        let full = s.names.resolve(n)?;
+        let q = qos_overrides::apply(&base, &full, given)?;
         Ok((full, q))
     })
     .collect::<anyhow::Result<_>>()?;
     let topics: Vec<String> = outputs_qos.iter().map(|(t, _)| t.clone()).collect();
     qos_overrides::check_names(given.keys(), &topics)?;
-    let qos_of = |full: &str| {
-        outputs_qos
-            .iter()
-            .find(|(t, _)| t == full)
-            .map(|(_, q)| q.clone())
-            .unwrap_or_else(qos_outputs)
-    };
+    Ok(outputs_qos)
+}
 
-    let inbox: Arc<Inbox<Token>> = Arc::new(Inbox::new(s.queue_depth));
-    let gate = ParamGate::new(&s, inbox.clone());
+/// The node's options: its parameters declared (the outputs' QoS overrides among them, read
+/// only), checked and applied through `gate`.
+fn node_options(s: &NodeSettings, outputs_qos: &[(String, QosProfile)], gate: &ParamGate) -> NodeOptions {
     let mut options = NodeOptions::new().enable_rosout(true);
     for (k, v) in &s.declared {
         options = options.declare_parameter(k, v.as_ref().map(to_parameter).unwrap_or(ParameterValue::NotSet));
     }
-    for (t, q) in &outputs_qos {
+    for (t, q) in outputs_qos {
         for (k, v) in qos_overrides::describe(t, q) {
             options = options.declare_parameter(&k, to_parameter(&v));
         }
     }
     let (g1, g2) = (gate.clone(), gate.clone());
-    options = options
+    options
         .parameter_validator(Box::new(move |n, v| g1.check(n, v)))
-        .parameter_set_action(Box::new(move |n, v| g2.apply(n, v)));
-    let node_name = NodeName::new(&s.names.namespace, &s.names.node)
-        .map_err(|e| anyhow::anyhow!("node name {}: {e:?}", s.names.node_fqn()))?;
-    let mut node = ctx
-        .new_node(node_name.clone(), options)
-        .map_err(|e| anyhow::anyhow!("creating node {}: {e:?}", s.names.node_fqn()))?;
-    gate.start();
-    rlog::attach_rosout(node.logging_handle());
-    let spinner = node.spinner().map_err(|e| anyhow::anyhow!("node spinner: {e:?}"))?;
-    let spin_task = tokio::spawn(spinner.spin());
+        .parameter_set_action(Box::new(move |n, v| g2.apply(n, v)))
+}
 
-    // Every topic straight on the participant (as ros2-client's create_topic does), with
-    // resource limits equal to its KeepLast depth: RustDDS otherwise keeps 64 whole messages
-    // in each reader's cache, and up to 8192 not yet acknowledged in each writer's (a
-    // KeepLast writer of the DDS spec keeps its depth; RustDDS keeps what a reliable reader
-    // has not acknowledged). Readers and writers inherit the limits from the topic.
-    let topic = |name: &str, pkg: &str, ty: &str, qos: &QosProfile| -> anyhow::Result<rustdds::Topic> {
+/// What the node's topics are made with.
+struct Topics<'a> {
+    ctx: &'a Context,
+    node_name: &'a NodeName,
+    outputs_qos: &'a [(String, QosProfile)],
+}
+
+impl Topics<'_> {
+    /// A topic straight on the participant (as ros2-client's create_topic does), with
+    /// resource limits equal to its KeepLast depth: RustDDS otherwise keeps 64 whole messages
+    /// in each reader's cache, and up to 8192 not yet acknowledged in each writer's (a
+    /// KeepLast writer of the DDS spec keeps its depth; RustDDS keeps what a reliable reader
+    /// has not acknowledged). Readers and writers inherit the limits from the topic.
+    fn topic(&self, name: &str, pkg: &str, ty: &str, qos: &QosProfile) -> anyhow::Result<rustdds::Topic> {
         let depth = match qos.history {
             History::KeepLast { depth } => i32::try_from(depth).unwrap_or(i32::MAX).max(1),
             History::KeepAll => 64, // RustDDS's own default (no topic of this node keeps all)
@@ -617,76 +699,114 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         };
         let qos = rustdds::QosPolicies::from(qos)
             .modify_by(&rustdds::QosPolicyBuilder::new().resource_limits(limits).build());
-        ctx.domain_participant()
+        self.ctx
+            .domain_participant()
             .create_topic(
-                ros_name(name)?.to_dds_name("rt", &node_name, ""),
+                ros_name(name)?.to_dds_name("rt", self.node_name, ""),
                 MessageTypeName::new(pkg, ty).dds_msg_type(),
                 &qos,
                 rustdds::TopicKind::NoKey,
             )
             .map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))
-    };
-    let (depth_t, ir_t, info_t) = (r(names::DEPTH)?, r(names::IR)?, r(names::INFO)?);
-    let sensor = qos_sensor();
-    let t = topic(&depth_t, "sensor_msgs", "Image", &sensor)?;
-    let depth_sub = node
-        .create_subscription::<Image>(&t, Some(sensor.clone()))
-        .map_err(|e| anyhow::anyhow!("subscribing {depth_t}: {e:?}"))?;
-    let t = topic(&ir_t, "sensor_msgs", "Image", &sensor)?;
-    let ir_sub = node
-        .create_subscription::<Image>(&t, Some(sensor.clone()))
-        .map_err(|e| anyhow::anyhow!("subscribing {ir_t}: {e:?}"))?;
-    let t = topic(&info_t, "sensor_msgs", "CameraInfo", &sensor)?;
-    let info_sub = node
-        .create_subscription::<CameraInfo>(&t, Some(sensor.clone()))
-        .map_err(|e| anyhow::anyhow!("subscribing {info_t}: {e:?}"))?;
-    // A multi-frequency camera's phasor images, one topic per frequency.
+    }
+
+    /// An output's QoS (its overrides applied).
+    fn qos_of(&self, full: &str) -> QosProfile {
+        self.outputs_qos
+            .iter()
+            .find(|(t, _)| t == full)
+            .map(|(_, q)| q.clone())
+            .unwrap_or_else(qos_outputs)
+    }
+
+    /// A publisher of an output; its full name.
+    fn publisher<M: ros2_client::Message>(
+        &self,
+        node: &mut ros2_client::Node,
+        s: &NodeSettings,
+        name: &str,
+        (pkg, ty): (&str, &str),
+    ) -> anyhow::Result<(Publisher<M>, String)> {
+        let full = s.names.resolve(name)?;
+        let q = self.qos_of(&full);
+        let t = self.topic(&full, pkg, ty, &q)?;
+        let p = node
+            .create_publisher(&t, Some(q))
+            .map_err(|e| anyhow::anyhow!("publisher {full}: {e:?}"))?;
+        Ok((p, full))
+    }
+
+    /// A subscription with the sensor-data QoS; its full name.
+    fn subscription<M: 'static>(
+        &self,
+        node: &mut ros2_client::Node,
+        full: &str,
+        (pkg, ty): (&str, &str),
+    ) -> anyhow::Result<ros2_client::Subscription<M>> {
+        let sensor = qos_sensor();
+        let t = self.topic(full, pkg, ty, &sensor)?;
+        node.create_subscription::<M>(&t, Some(sensor))
+            .map_err(|e| anyhow::anyhow!("subscribing {full}: {e:?}"))
+    }
+}
+
+/// The node's subscriptions and their full names.
+struct Subscribed {
+    depth_t: String,
+    ir_t: String,
+    info_t: String,
+    /// A multi-frequency camera's phasor images, one topic per frequency.
+    phasor_t: Vec<String>,
+    depth: ros2_client::Subscription<Image>,
+    ir: ros2_client::Subscription<Image>,
+    info: ros2_client::Subscription<CameraInfo>,
+    phasors: Vec<ros2_client::Subscription<Image>>,
+}
+
+fn subscribe(node: &mut ros2_client::Node, topics: &Topics, s: &NodeSettings) -> anyhow::Result<Subscribed> {
+    const IMAGE: (&str, &str) = ("sensor_msgs", "Image");
+    let (depth_t, ir_t, info_t) = (
+        s.names.resolve(names::DEPTH)?,
+        s.names.resolve(names::IR)?,
+        s.names.resolve(names::INFO)?,
+    );
     let frequencies = s.multi_frequency.as_ref().map_or(0, |f| f.len());
     let phasor_t: Vec<String> = (0..frequencies)
-        .map(|k| r(&names::phasor(k)))
+        .map(|k| s.names.resolve(&names::phasor(k)))
         .collect::<Result<_, _>>()?;
-    let phasor_subs = phasor_t
-        .iter()
-        .map(|name| {
-            let t = topic(name, "sensor_msgs", "Image", &sensor)?;
-            node.create_subscription::<Image>(&t, Some(sensor.clone()))
-                .map_err(|e| anyhow::anyhow!("subscribing {name}: {e:?}"))
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
+    Ok(Subscribed {
+        depth: topics.subscription(node, &depth_t, IMAGE)?,
+        ir: topics.subscription(node, &ir_t, IMAGE)?,
+        info: topics.subscription(node, &info_t, ("sensor_msgs", "CameraInfo"))?,
+        phasors: phasor_t
+            .iter()
+            .map(|name| topics.subscription(node, name, IMAGE))
+            .collect::<anyhow::Result<_>>()?,
+        depth_t,
+        ir_t,
+        info_t,
+        phasor_t,
+    })
+}
 
-    let publisher = |name: &str, pkg: &str, ty: &str| -> anyhow::Result<_> {
-        let full = r(name)?;
-        let q = qos_of(&full);
-        let t = topic(&full, pkg, ty, &q)?;
-        Ok((full, t, q))
-    };
-    let pe = |n: &str| {
-        let n = n.to_string();
-        move |e| anyhow::anyhow!("publisher {n}: {e:?}")
-    };
-    let (corrected_n, t, q) = publisher(names::CORRECTED, "sensor_msgs", "Image")?;
-    let corrected = node.create_publisher(&t, Some(q)).map_err(pe(&corrected_n))?;
-    let (cinfo_n, t, q) = publisher(names::CORRECTED_INFO, "sensor_msgs", "CameraInfo")?;
-    let corrected_info = node.create_publisher(&t, Some(q)).map_err(pe(&cinfo_n))?;
-    let (sigma_n, t, q) = publisher(names::CORRECTED_SIGMA, "sensor_msgs", "Image")?;
-    let sigma = node.create_publisher(&t, Some(q)).map_err(pe(&sigma_n))?;
-    let (mask_n, t, q) = publisher(names::MASK, "sensor_msgs", "Image")?;
-    let mask = node.create_publisher(&t, Some(q)).map_err(pe(&mask_n))?;
-    let (points_n, t, q) = publisher(names::POINTS, "sensor_msgs", "PointCloud2")?;
-    let points = node.create_publisher(&t, Some(q)).map_err(pe(&points_n))?;
-    let (est_n, t, q) = publisher(
-        names::TRANSLUCENCY,
-        crate::msgs::translucent_tof::PACKAGE,
-        "TranslucencyEstimate",
-    )?;
-    let estimate = node.create_publisher(&t, Some(q)).map_err(pe(&est_n))?;
-    let (diag_n, t, q) = publisher(names::DIAGNOSTICS, "diagnostic_msgs", "DiagnosticArray")?;
-    let diagnostics: Publisher<DiagnosticArray> = node.create_publisher(&t, Some(q)).map_err(pe(&diag_n))?;
+/// The output publishers, /diagnostics's, and the outputs' full names (for the log).
+fn advertise(
+    node: &mut ros2_client::Node,
+    topics: &Topics,
+    s: &NodeSettings,
+) -> anyhow::Result<(Outputs, Publisher<DiagnosticArray>, Vec<String>)> {
+    const IMAGE: (&str, &str) = ("sensor_msgs", "Image");
+    let (corrected, corrected_n) = topics.publisher(node, s, names::CORRECTED, IMAGE)?;
+    let (corrected_info, cinfo_n) = topics.publisher(node, s, names::CORRECTED_INFO, ("sensor_msgs", "CameraInfo"))?;
+    let (sigma, _) = topics.publisher(node, s, names::CORRECTED_SIGMA, IMAGE)?;
+    let (mask, mask_n) = topics.publisher(node, s, names::MASK, IMAGE)?;
+    let (points, points_n) = topics.publisher(node, s, names::POINTS, ("sensor_msgs", "PointCloud2"))?;
+    let estimate_type = (crate::msgs::translucent_tof::PACKAGE, "TranslucencyEstimate");
+    let (estimate, est_n) = topics.publisher(node, s, names::TRANSLUCENCY, estimate_type)?;
+    let (diagnostics, diag_n) =
+        topics.publisher(node, s, names::DIAGNOSTICS, ("diagnostic_msgs", "DiagnosticArray"))?;
     let translucency_image = match s.multi_frequency {
-        Some(_) => {
-            let (n, t, q) = publisher(names::TRANSLUCENCY_IMAGE, "sensor_msgs", "Image")?;
-            Some(node.create_publisher(&t, Some(q)).map_err(pe(&n))?)
-        }
+        Some(_) => Some(topics.publisher(node, s, names::TRANSLUCENCY_IMAGE, IMAGE)?.0),
         None => None,
     };
     let outputs = Outputs {
@@ -698,33 +818,81 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         estimate,
         translucency_image,
     };
+    Ok((
+        outputs,
+        diagnostics,
+        vec![corrected_n, cinfo_n, points_n, mask_n, est_n, diag_n],
+    ))
+}
 
-    let trigger = ServiceTypeName::new("std_srvs", "Trigger");
-    let (latch_n, clear_n) = (r(names::LATCH)?, r(names::CLEAR)?);
-    let latch_srv = node
-        .create_server::<TriggerRequest, TriggerResponse>(
-            s.service_mapping,
-            &ros_name(&latch_n)?,
-            &trigger,
-            qos_service(),
-            qos_service(),
-        )
-        .map_err(|e| anyhow::anyhow!("service {latch_n}: {e:?}"))?;
-    let clear_srv = node
-        .create_server::<TriggerRequest, TriggerResponse>(
-            s.service_mapping,
-            &ros_name(&clear_n)?,
-            &trigger,
-            qos_service(),
-            qos_service(),
-        )
-        .map_err(|e| anyhow::anyhow!("service {clear_n}: {e:?}"))?;
+/// The latch and clear services and their full names.
+struct Services {
+    latch_n: String,
+    clear_n: String,
+    latch: ros2_client::Server<TriggerRequest, TriggerResponse>,
+    clear: ros2_client::Server<TriggerRequest, TriggerResponse>,
+}
 
+impl Services {
+    fn create(node: &mut ros2_client::Node, s: &NodeSettings) -> anyhow::Result<Self> {
+        let trigger = ServiceTypeName::new("std_srvs", "Trigger");
+        let mut server = |full: &str| {
+            node.create_server::<TriggerRequest, TriggerResponse>(
+                s.service_mapping,
+                &ros_name(full)?,
+                &trigger,
+                qos_service(),
+                qos_service(),
+            )
+            .map_err(|e| anyhow::anyhow!("service {full}: {e:?}"))
+        };
+        let (latch_n, clear_n) = (s.names.resolve(names::LATCH)?, s.names.resolve(names::CLEAR)?);
+        Ok(Self {
+            latch: server(&latch_n)?,
+            clear: server(&clear_n)?,
+            latch_n,
+            clear_n,
+        })
+    }
+
+    /// Sends a service's reply (the latch on start has no caller: its outcome is logged).
+    async fn reply(&self, (which, id): Token, resp: TriggerResponse) {
+        let (srv, name) = match which {
+            Service::Latch => (&self.latch, &self.latch_n),
+            Service::Clear => (&self.clear, &self.clear_n),
+            Service::OnStart => {
+                if resp.success {
+                    info!("latch_on_start: {}", resp.message);
+                } else {
+                    warn!("latch_on_start: {}", resp.message);
+                }
+                return;
+            }
+        };
+        if resp.success {
+            info!("{name}: {}", resp.message);
+        } else {
+            warn!("{name}: {}", resp.message);
+        }
+        if let Err(e) = srv.async_send_response(id, resp).await {
+            warn!("sending a service reply: {e:?}");
+        }
+    }
+}
+
+/// The node's first log line: what it reads, publishes and serves.
+fn announce(s: &NodeSettings, i: &Subscribed, published: &[String], services: &Services) -> anyhow::Result<()> {
     info!(
-        "{} up on domain {}{}: depth {depth_t}, IR {ir_t}, camera_info {info_t}; publishes {corrected_n}, {cinfo_n}, {points_n}, {mask_n}, {est_n}, {diag_n}; services {latch_n}, {clear_n} ({:?} mapping); background_frames {}, xi {}",
+        "{} up on domain {}{}: depth {}, IR {}, camera_info {}; publishes {}; services {}, {} ({:?} mapping); background_frames {}, xi {}",
         s.names.node_fqn(),
         s.domain_id,
         if s.localhost_only { " (localhost only)" } else { "" },
+        i.depth_t,
+        i.ir_t,
+        i.info_t,
+        published.join(", "),
+        services.latch_n,
+        services.clear_n,
         s.service_mapping,
         s.background_frames,
         match s.config.xi {
@@ -735,8 +903,8 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     if let Some(f) = &s.multi_frequency {
         info!(
             "multi-frequency path: phasors at {f:?} Hz on {}; publishes {}{}",
-            phasor_t.join(", "),
-            r(names::TRANSLUCENCY_IMAGE)?,
+            i.phasor_t.join(", "),
+            s.names.resolve(names::TRANSLUCENCY_IMAGE)?,
             if s.no_latch {
                 "; no latch: every frame from two free returns per pixel, xi not measured"
             } else {
@@ -744,154 +912,178 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
             }
         );
     }
+    Ok(())
+}
 
-    let live = Arc::new(Mutex::new(Live::default()));
-    let (reply_tx, mut reply_rx) = tokio::sync::mpsc::unbounded_channel::<(Token, TriggerResponse)>();
-    let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<NodeStats>();
-    let worker = {
-        let inbox = inbox.clone();
-        let settings = s.clone();
-        let live = live.clone();
-        std::thread::Builder::new()
-            .name("pipeline".into())
-            .spawn(move || worker(settings, inbox, outputs, viz, reply_tx, done_tx, live))?
-    };
-    if s.latch_on_start {
-        info!(
-            "latch_on_start: the background is latched from the first {} frames",
-            s.background_frames
+/// The DDS side of the node: pairs what arrives, queues it for the worker, answers the
+/// services and publishes /diagnostics.
+struct Events<'a> {
+    s: &'a NodeSettings,
+    inbox: &'a Arc<Inbox<Token>>,
+    live: &'a Arc<Mutex<Live>>,
+    node: &'a ros2_client::Node,
+    diagnostics: Publisher<DiagnosticArray>,
+    /// A multi-frequency camera: frames are completed by [`FramePairer`].
+    multi: bool,
+    pairer: StampPairer,
+    frame_pairer: FramePairer,
+    counts: NodeStats,
+    last_info: Option<CameraInfo>,
+    intake: Intake,
+}
+
+/// Where an image arrived: depth, IR, or frequency `k`'s phasors.
+#[derive(Clone, Copy)]
+enum Slot {
+    Depth,
+    Ir,
+    Phasor(usize),
+}
+
+impl Events<'_> {
+    /// Serves until the inputs end, a signal, or the worker is done (its counters then).
+    async fn serve(
+        &mut self,
+        i: &Subscribed,
+        services: &Services,
+        mut replies: tokio::sync::mpsc::UnboundedReceiver<(Token, TriggerResponse)>,
+        done: &mut tokio::sync::mpsc::UnboundedReceiver<NodeStats>,
+    ) -> anyhow::Result<Option<NodeStats>> {
+        let s = self.s;
+        let mut diag_tick = tokio::time::interval(if s.diagnostics_period.is_zero() {
+            Duration::from_secs(3600 * 24 * 365)
+        } else {
+            s.diagnostics_period
+        });
+        diag_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut depth_stream = std::pin::pin!(i.depth.async_stream());
+        let mut ir_stream = std::pin::pin!(i.ir.async_stream());
+        let mut info_stream = std::pin::pin!(i.info.async_stream());
+        let mut latch_stream = std::pin::pin!(services.latch.receive_request_stream());
+        let mut clear_stream = std::pin::pin!(services.clear.receive_request_stream());
+        let multi = !i.phasors.is_empty();
+        let mut phasor_stream = futures::stream::select_all(
+            i.phasors
+                .iter()
+                .enumerate()
+                .map(|(k, sub)| Box::pin(sub.async_stream().map(move |m| (k, m)))),
         );
-        inbox.push_command(Command::Latch((Service::OnStart, Default::default())));
-    }
-    let mut diag_tick = tokio::time::interval(if s.diagnostics_period.is_zero() {
-        Duration::from_secs(3600 * 24 * 365)
-    } else {
-        s.diagnostics_period
-    });
-    diag_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-
-    let mut depth_stream = std::pin::pin!(depth_sub.async_stream());
-    let mut ir_stream = std::pin::pin!(ir_sub.async_stream());
-    let mut info_stream = std::pin::pin!(info_sub.async_stream());
-    let mut latch_stream = std::pin::pin!(latch_srv.receive_request_stream());
-    let mut clear_stream = std::pin::pin!(clear_srv.receive_request_stream());
-    let mut pairer = StampPairer::new(s.queue_depth.max(4) * 2);
-    let mut frame_pairer = FramePairer::new(frequencies, s.queue_depth.max(4) * 2);
-    let multi = frequencies > 0;
-    let mut phasor_stream = futures::stream::select_all(
-        phasor_subs
-            .iter()
-            .enumerate()
-            .map(|(k, sub)| Box::pin(sub.async_stream().map(move |m| (k, m)))),
-    );
-    let mut counts = NodeStats::default();
-    let mut last_info: Option<CameraInfo> = None;
-    let mut intake = Intake::default();
-    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
-    let mut final_stats = None;
-    loop {
-        tokio::select! {
-            m = depth_stream.next() => match m {
-                Some(Ok((img, _))) => {
-                    counts.depth_received += 1;
-                    let img = intake.image(&depth_t, img, last_info.as_ref());
-                    if multi {
-                        if let Some(f) = img.and_then(|img| frame_pairer.offer(0, img)) { counts.pairs += 1; inbox.push_frame(f); }
-                    } else if let Some(pair) = img.and_then(|img| pairer.depth(img)) { counts.pairs += 1; inbox.push_frame(pair); }
-                }
-                Some(Err(e)) => intake.unreadable(&depth_t, &e),
-                None => break,
-            },
-            m = ir_stream.next() => match m {
-                Some(Ok((img, _))) => {
-                    counts.ir_received += 1;
-                    let img = intake.image(&ir_t, img, last_info.as_ref());
-                    if multi {
-                        if let Some(f) = img.and_then(|img| frame_pairer.offer(1, img)) { counts.pairs += 1; inbox.push_frame(f); }
-                    } else if let Some(pair) = img.and_then(|img| pairer.ir(img)) { counts.pairs += 1; inbox.push_frame(pair); }
-                }
-                Some(Err(e)) => intake.unreadable(&ir_t, &e),
-                None => break,
-            },
-            m = phasor_stream.next(), if multi => match m {
-                Some((k, Ok((img, _)))) => {
-                    let img = intake.image(&phasor_t[k], img, last_info.as_ref());
-                    if let Some(f) = img.and_then(|img| frame_pairer.offer(2 + k, img)) { counts.pairs += 1; inbox.push_frame(f); }
-                }
-                Some((k, Err(e))) => intake.unreadable(&phasor_t[k], &e),
-                None => break,
-            },
-            m = info_stream.next() => match m {
-                Some(Ok((ci, _))) => {
-                    counts.info_received += 1;
-                    let Some(ci) = intake.camera_info(&info_t, ci) else { continue };
-                    // Only a change of the camera concerns the pipeline.
-                    let changed = last_info.as_ref().is_none_or(|l| l.k != ci.k || l.width != ci.width || l.height != ci.height || l.d != ci.d);
-                    if changed {
-                        inbox.push_command(Command::CameraInfo(Box::new(ci.clone())));
-                        last_info = Some(ci);
-                    }
-                }
-                Some(Err(e)) => intake.unreadable(&info_t, &e),
-                None => break,
-            },
-            m = latch_stream.next() => match m {
-                Some(Ok((id, _))) => { counts.services[0] += 1; inbox.push_command(Command::Latch((Service::Latch, id))); }
-                Some(Err(e)) => warn!("{latch_n}: unreadable request ({e:?})"),
-                None => break,
-            },
-            m = clear_stream.next() => match m {
-                Some(Ok((id, _))) => { counts.services[1] += 1; inbox.push_command(Command::Clear((Service::Clear, id))); }
-                Some(Err(e)) => warn!("{clear_n}: unreadable request ({e:?})"),
-                None => break,
-            },
-            Some(((which, id), resp)) = reply_rx.recv() => {
-                let (srv, name) = match which {
-                    Service::Latch => (&latch_srv, &latch_n),
-                    Service::Clear => (&clear_srv, &clear_n),
-                    Service::OnStart => {
-                        if resp.success { info!("latch_on_start: {}", resp.message); } else { warn!("latch_on_start: {}", resp.message); }
-                        continue;
-                    }
-                };
-                if resp.success { info!("{name}: {}", resp.message); } else { warn!("{name}: {}", resp.message); }
-                if let Err(e) = srv.async_send_response(id, resp).await { warn!("sending a service reply: {e:?}"); }
-            },
-            _ = diag_tick.tick(), if !s.diagnostics_period.is_zero() => {
-                let inputs = Inputs {
-                    counts: &counts,
-                    unpaired: pairer.unpaired + frame_pairer.unpaired,
-                    queue_full: inbox.dropped(),
-                    intake: &intake.drops.by_cause,
-                };
-                let snapshot = live.lock().map(|l| l.clone()).unwrap_or_default();
-                let stamp = node.time_now().to_nanos();
-                let msg = diagnostics_message(&s.names.node_fqn(), u64::try_from(stamp).unwrap_or(0), &inputs, &snapshot);
-                if let Err(e) = diagnostics.publish(msg) { warn!("publishing {diag_n}: {e:?}"); }
-            },
-            st = done_rx.recv() => { final_stats = st; break; },
-            _ = tokio::signal::ctrl_c() => { info!("SIGINT: shutting down"); break; },
-            _ = sigterm.recv() => { info!("SIGTERM: shutting down"); break; },
+        let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+        loop {
+            tokio::select! {
+                m = depth_stream.next() => match m {
+                    Some(Ok((img, _))) => self.on_image(Slot::Depth, &i.depth_t, img),
+                    Some(Err(e)) => self.intake.unreadable(&i.depth_t, &e),
+                    None => return Ok(None),
+                },
+                m = ir_stream.next() => match m {
+                    Some(Ok((img, _))) => self.on_image(Slot::Ir, &i.ir_t, img),
+                    Some(Err(e)) => self.intake.unreadable(&i.ir_t, &e),
+                    None => return Ok(None),
+                },
+                m = phasor_stream.next(), if multi => match m {
+                    Some((k, Ok((img, _)))) => self.on_image(Slot::Phasor(k), &i.phasor_t[k], img),
+                    Some((k, Err(e))) => self.intake.unreadable(&i.phasor_t[k], &e),
+                    None => return Ok(None),
+                },
+                m = info_stream.next() => match m {
+                    Some(Ok((ci, _))) => self.on_camera_info(&i.info_t, ci),
+                    Some(Err(e)) => self.intake.unreadable(&i.info_t, &e),
+                    None => return Ok(None),
+                },
+                m = latch_stream.next() => match m {
+                    Some(Ok((id, _))) => { self.counts.services[0] += 1; self.inbox.push_command(Command::Latch((Service::Latch, id))); }
+                    Some(Err(e)) => warn!("{}: unreadable request ({e:?})", services.latch_n),
+                    None => return Ok(None),
+                },
+                m = clear_stream.next() => match m {
+                    Some(Ok((id, _))) => { self.counts.services[1] += 1; self.inbox.push_command(Command::Clear((Service::Clear, id))); }
+                    Some(Err(e)) => warn!("{}: unreadable request ({e:?})", services.clear_n),
+                    None => return Ok(None),
+                },
+                Some((token, resp)) = replies.recv() => services.reply(token, resp).await,
+                _ = diag_tick.tick(), if !s.diagnostics_period.is_zero() => self.publish_diagnostics(),
+                st = done.recv() => return Ok(st),
+                _ = tokio::signal::ctrl_c() => { info!("SIGINT: shutting down"); return Ok(None); },
+                _ = sigterm.recv() => { info!("SIGTERM: shutting down"); return Ok(None); },
+            }
         }
     }
-    inbox.push_command(Command::Shutdown);
-    let mut stats = match final_stats {
-        Some(st) => st,
-        None => done_rx.recv().await.unwrap_or_default(),
-    };
-    let _ = worker.join();
-    // The spinner's entities (parameter services, /rosout, /clock) go before the
-    // participant: dropped after it, RustDDS logs an error for each of them.
-    drop(node);
-    if tokio::time::timeout(Duration::from_secs(2), spin_task).await.is_err() {
-        warn!("the node's spinner did not stop within 2 s");
+
+    /// Takes an image in and queues the frame it completes, if any.
+    fn on_image(&mut self, slot: Slot, topic: &str, img: Image) {
+        match slot {
+            Slot::Depth => self.counts.depth_received += 1,
+            Slot::Ir => self.counts.ir_received += 1,
+            Slot::Phasor(_) => {}
+        }
+        let Some(img) = self.intake.image(topic, img, self.last_info.as_ref()) else {
+            return;
+        };
+        let frame = match (slot, self.multi) {
+            (Slot::Depth, false) => self.pairer.depth(img).map(PairedFrame::from),
+            (Slot::Ir, false) => self.pairer.ir(img).map(PairedFrame::from),
+            (Slot::Depth, true) => self.frame_pairer.offer(0, img),
+            (Slot::Ir, true) => self.frame_pairer.offer(1, img),
+            (Slot::Phasor(k), _) => self.frame_pairer.offer(2 + k, img),
+        };
+        if let Some(f) = frame {
+            self.counts.pairs += 1;
+            self.inbox.push_frame(f);
+        }
     }
+
+    /// Takes a camera_info in; only a change of the camera concerns the pipeline.
+    fn on_camera_info(&mut self, topic: &str, ci: CameraInfo) {
+        self.counts.info_received += 1;
+        let Some(ci) = self.intake.camera_info(topic, ci) else {
+            return;
+        };
+        let changed = self
+            .last_info
+            .as_ref()
+            .is_none_or(|l| l.k != ci.k || l.width != ci.width || l.height != ci.height || l.d != ci.d);
+        if changed {
+            self.inbox.push_command(Command::CameraInfo(Box::new(ci.clone())));
+            self.last_info = Some(ci);
+        }
+    }
+
+    fn publish_diagnostics(&self) {
+        let inputs = Inputs {
+            counts: &self.counts,
+            unpaired: self.pairer.unpaired + self.frame_pairer.unpaired,
+            queue_full: self.inbox.dropped(),
+            intake: &self.intake.drops.by_cause,
+        };
+        let snapshot = self.live.lock().map(|l| l.clone()).unwrap_or_default();
+        let stamp = self.node.time_now().to_nanos();
+        let msg = diagnostics_message(
+            &self.s.names.node_fqn(),
+            u64::try_from(stamp).unwrap_or(0),
+            &inputs,
+            &snapshot,
+        );
+        if let Err(e) = self.diagnostics.publish(msg) {
+            warn!("publishing {}: {e:?}", names::DIAGNOSTICS);
+        }
+    }
+}
+
+/// The worker's counters with what the DDS side counted: inputs received, pairs, service
+/// calls, and the frames dropped before the worker saw them.
+fn with_intake_counts(
+    mut stats: NodeStats,
+    counts: &NodeStats,
+    unpaired: u64,
+    inbox: &Inbox<Token>,
+    intake: Intake,
+) -> NodeStats {
     stats.depth_received = counts.depth_received;
     stats.ir_received = counts.ir_received;
     stats.info_received = counts.info_received;
     stats.pairs = counts.pairs;
     stats.services = counts.services;
-    let unpaired = pairer.unpaired + frame_pairer.unpaired;
     if unpaired > 0 {
         stats.dropped.insert(DropCause::Unpaired, unpaired);
     }
@@ -902,12 +1094,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
     for (cause, n) in intake.drops.by_cause {
         *stats.dropped.entry(cause).or_insert(0) += n;
     }
-    info!("{}", summary(&stats));
-    if let Some(p) = &s.stats_json {
-        let text = serde_json::to_string_pretty(&stats)?;
-        crate::files::write_atomic(p, text.as_bytes())?;
-    }
-    Ok(stats)
+    stats
 }
 
 /// One line of counters.
@@ -925,261 +1112,6 @@ pub fn summary(st: &NodeStats) -> String {
         st.added_latency_ms[0],
         st.added_latency_ms[1]
     )
-}
-
-const LATENCY_WINDOW: usize = 8192;
-
-fn worker(
-    s: NodeSettings,
-    inbox: Arc<Inbox<Token>>,
-    out: Outputs,
-    viz: Option<VizSink>,
-    replies: tokio::sync::mpsc::UnboundedSender<(Token, TriggerResponse)>,
-    done: tokio::sync::mpsc::UnboundedSender<NodeStats>,
-    live: Arc<Mutex<Live>>,
-) {
-    let mut stats = NodeStats::default();
-    // The processing pool, this thread its first worker (see `pool_on_current_thread`).
-    let _pool = match crate::affinity::pool_on_current_thread(0, s.pin_threads) {
-        Ok((pool, cpus)) => {
-            if s.pin_threads {
-                info!("pin_threads: the processing pool's workers pinned to CPUs {cpus:?}");
-            }
-            stats.pinned_cpus = cpus;
-            Some(pool)
-        }
-        Err(e) => {
-            warn!("the processing pool could not be built on the pipeline thread; rayon's global pool does the work ({e})");
-            None
-        }
-    };
-    let mut core: NodeCore<Token> = NodeCore::new(s.config.clone(), s.background_frames, s.latch_timeout)
-        .with_watch(s.passthrough, s.relatch_on_move);
-    let mut multi = s
-        .multi_frequency
-        .clone()
-        .map(|f| MultiFrequencyNode::new(f, &s.config, s.no_latch));
-    let mut latencies: Vec<f64> = Vec::with_capacity(LATENCY_WINDOW);
-    let mut last_report = Instant::now();
-    let (mut last_sample, mut last_trim) = (Instant::now(), Instant::now());
-    sample_memory(&mut stats);
-    let mut reported_drops = 0u64;
-    let reply = |t: Token, r: TriggerResponse| {
-        let _ = replies.send((t, r));
-    };
-    let mut last_live = Instant::now() - Duration::from_secs(1);
-    loop {
-        if last_live.elapsed() >= Duration::from_millis(250) {
-            if let Ok(mut l) = live.lock() {
-                *l = Live {
-                    published: stats.published,
-                    latched_frames: stats.latched_frames,
-                    dropped: core.drops.by_cause.clone(),
-                    passed: core.passed.clone(),
-                    camera_moved: core.camera_moved(),
-                    latch: if core.latching() {
-                        "latching"
-                    } else if core.background().is_some() && multi.as_ref().is_none_or(|m| m.latched()) {
-                        "latched"
-                    } else {
-                        "none"
-                    },
-                    xi: stats.xi,
-                    xi_method: match multi {
-                        Some(_) => crate::physics::XiMethod::MultiFrequency.as_str().to_string(),
-                        None => core.xi_method().to_string(),
-                    },
-                    processing_ms: percentiles(&mut latencies.clone()),
-                };
-            }
-            last_live = Instant::now();
-        }
-        if let Some((t, r)) = core.check_latch_timeout() {
-            reply(t, r);
-        }
-        match inbox.next(Duration::from_millis(100)) {
-            Next::Idle => {}
-            Next::Command(Command::Shutdown) => break,
-            Next::Command(Command::CameraInfo(ci)) => match core.on_camera_info(&ci) {
-                Ok(note) => {
-                    if let Some(note) = note {
-                        warn!("{note}");
-                    }
-                    if let Some(Err(e)) = multi.as_mut().map(|m| m.on_camera_info(&core)) {
-                        warn!("camera_info {}x{}: {e}", ci.width, ci.height);
-                    }
-                }
-                Err((cause, why)) => {
-                    if core.drops.record(cause) {
-                        warn!(
-                            "camera_info {}x{} K {:?} not usable: {why} ({})",
-                            ci.width,
-                            ci.height,
-                            ci.k,
-                            cause.advice()
-                        );
-                    }
-                }
-            },
-            Next::Command(Command::Latch(t)) => {
-                info!(
-                    "latch requested: averaging the next {} frames",
-                    core.background_frames()
-                );
-                let started = if t.0 == Service::OnStart {
-                    core.start_latch_waiting(t)
-                } else {
-                    core.start_latch(t)
-                };
-                match started {
-                    Err((t, r)) => reply(t, r),
-                    Ok(()) => {
-                        if let Some(m) = &mut multi {
-                            m.on_latch_started();
-                        }
-                    }
-                }
-            }
-            Next::Command(Command::Reconfigure(r, forget_evidence)) => {
-                let RuntimeSettings {
-                    config,
-                    background_frames,
-                    latch_timeout,
-                } = *r;
-                core.reconfigure(config, background_frames, latch_timeout, forget_evidence);
-            }
-            Next::Command(Command::Clear(t)) => {
-                let (r, cancelled) = core.clear();
-                if let Some(m) = &mut multi {
-                    m.clear();
-                }
-                if let Some((t2, r2)) = cancelled {
-                    reply(t2, r2);
-                }
-                reply(t, r);
-            }
-            Next::Frame(frame) => {
-                let start = Instant::now();
-                let latching = core.latching();
-                let MultiFrequencyResult {
-                    frame: res,
-                    translucency,
-                } = match &mut multi {
-                    Some(m) => m.on_frame(&mut core, &frame),
-                    None => MultiFrequencyResult {
-                        frame: core.on_frame(&frame.depth, &frame.ir),
-                        translucency: None,
-                    },
-                };
-                let depth = frame.depth;
-                for (t, r) in res.replies {
-                    reply(t, r);
-                }
-                for (level, note) in &res.notes {
-                    log::log!(*level, "{note}");
-                }
-                if let Some((cause, first)) = res.dropped {
-                    if let Some(msg) = first {
-                        warn!("{msg}; further {cause:?} drops are counted");
-                    }
-                } else if latching {
-                    stats.latched_frames += 1;
-                }
-                let passed = res.outputs.as_ref().and_then(|o| o.frame.passthrough);
-                if let Some(mut o) = res.outputs {
-                    // The corrected depth first (most consumers wait for it alone), then the
-                    // rest is made and published.
-                    let first = out.corrected.publish(std::mem::take(&mut o.corrected)).err();
-                    let info = o.camera_info.take().and_then(|ci| out.corrected_info.publish(ci).err());
-                    let mut results = vec![first.map(|e| format!("{e:?}")), info.map(|e| format!("{e:?}"))];
-                    match o.companions() {
-                        Ok(c) => {
-                            results.push(out.sigma.publish(c.sigma).err().map(|e| format!("{e:?}")));
-                            results.push(out.mask.publish(c.mask).err().map(|e| format!("{e:?}")));
-                            if let Some(points) = c.points {
-                                results.push(out.points.publish(points).err().map(|e| format!("{e:?}")));
-                            }
-                            for e in c.estimates {
-                                results.push(out.estimate.publish(e).err().map(|e| format!("{e:?}")));
-                            }
-                            if let (Some(p), Some(t)) = (&out.translucency_image, translucency) {
-                                results.push(p.publish(t).err().map(|e| format!("{e:?}")));
-                            }
-                        }
-                        Err(e) => results.push(Some(format!("Companions {e}"))),
-                    }
-                    if let Some(e) = results.into_iter().flatten().next() {
-                        // The error's kind only: its Debug form carries the whole message.
-                        let kind = e.split([' ', '{', '(']).next().unwrap_or("").to_string();
-                        stats.publish_failures += 1;
-                        if stats.publish_failures == 1 {
-                            warn!("publishing an output failed ({kind}; a reliable reader is not keeping up?); further failures are counted (publish_failures)");
-                        }
-                    }
-                    // A frame passed through is not a recovered one.
-                    if passed.is_none() {
-                        stats.published += 1;
-                        let xi = &o.frame.xi;
-                        stats.xi = Some([xi.xi, xi.interval[0], xi.interval[1]]);
-                        if latencies.len() == LATENCY_WINDOW {
-                            latencies.remove(0);
-                        }
-                        latencies.push(start.elapsed().as_secs_f64() * 1e3);
-                        if let (Some(v), Some(rays)) = (&viz, core.shared_rays()) {
-                            let raw = crate::image::depth_mm(&depth).ok();
-                            if let Some(raw) = raw {
-                                v.log(FrameViz {
-                                    stamp_ns: o.frame.stamp_ns,
-                                    frame: stats.published,
-                                    rays,
-                                    raw_z_mm: raw,
-                                    recovered_z_mm: o.frame.corrected_z_mm,
-                                    mask: o.frame.mask,
-                                    xi: Some((o.frame.xi.xi, o.frame.xi.interval)),
-                                    objects: FrameViz::objects_of(&o.frame.regions),
-                                });
-                            }
-                        }
-                        if s.max_frames.is_some_and(|m| stats.published >= m) {
-                            break;
-                        }
-                    }
-                }
-            }
-        }
-        // Memory sampled every second: the DDS writers' samples are freed every 6 s, and a
-        // coarser sampling would alias that sawtooth. Free heap handed back every 5 s.
-        if last_sample.elapsed() >= Duration::from_secs(1) {
-            if last_trim.elapsed() >= Duration::from_secs(5) {
-                release_free_heap();
-                last_trim = Instant::now();
-            }
-            sample_memory(&mut stats);
-            last_sample = Instant::now();
-        }
-        let drops = core.drops.total();
-        if drops != reported_drops && last_report.elapsed() > Duration::from_secs(5) {
-            let by: Vec<String> = core.drops.by_cause.iter().map(|(c, n)| format!("{c:?} {n}")).collect();
-            info!(
-                "{} frames published; dropped so far: {}",
-                stats.published,
-                by.join(", ")
-            );
-            reported_drops = drops;
-            last_report = Instant::now();
-        }
-    }
-    sample_memory(&mut stats);
-    stats.dropped = core.drops.by_cause.clone();
-    stats.passed_through = core.passed.clone();
-    stats.added_latency_ms = percentiles(&mut latencies);
-    if let Some(v) = viz {
-        stats.rerun_dropped = v.dropped();
-        if let Err(e) = v.finish() {
-            error!("{e}");
-        }
-    }
-    let _ = done.send(stats);
 }
 
 /// Median, 95th percentile and maximum (NaN for none).
