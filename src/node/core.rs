@@ -462,31 +462,8 @@ impl<T> NodeCore<T> {
     }
 
     fn frame(&mut self, depth: &Image, ir: &Image, result: &mut FrameResult<T>) -> Result<(), (DropCause, String)> {
-        let stamp = depth.header.stamp.as_log_time_ns();
-        let z_mm =
-            depth_mm(depth).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
-        let ir_buf =
-            ir_counts(ir).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
-        // Both images the camera's size; before any camera_info, the depth's.
-        let (want_w, want_h, by) = self
-            .info
-            .as_ref()
-            .map_or((z_mm.width, z_mm.height, "the depth image"), |(_, k)| {
-                (k.width, k.height, "camera_info (with its ROI and binning)")
-            });
-        for (what, w, h) in [("depth", z_mm.width, z_mm.height), ("IR", ir_buf.width, ir_buf.height)] {
-            if (w, h) != (want_w, want_h) {
-                return Err((
-                    DropCause::SizeMismatch,
-                    format!("frame at stamp {stamp} ns dropped: {what} is {w}x{h} but {by} gives {want_w}x{want_h}"),
-                ));
-            }
-        }
-        let frame = DepthFrame {
-            stamp_ns: stamp,
-            z_mm,
-            ir: ir_buf,
-        };
+        let frame = self.decode(depth, ir)?;
+        let stamp = frame.stamp_ns;
         let Some((_, k)) = &self.info else {
             let why = (
                 DropCause::NoCameraInfo,
@@ -495,31 +472,8 @@ impl<T> NodeCore<T> {
             return self.pass_or_drop(Passthrough::NoCameraInfo, why, depth, frame, result);
         };
         let k = *k;
-        if let Some(l) = &mut self.latch {
-            if let Some((latch, k)) = &mut l.latch {
-                latch.push(&frame, k).map_err(|e| {
-                    (
-                        DropCause::Pipeline,
-                        format!("background frame at stamp {stamp} ns: {e}"),
-                    )
-                })?;
-            }
-            if l.frames() >= self.background_frames {
-                if let Some(l) = self.latch.take() {
-                    let (reply, note) = self.finish_latch(l);
-                    result.replies.extend(reply);
-                    result.notes.extend(note.map(|n| (log::Level::Info, n)));
-                }
-            }
-            if self.passthrough {
-                self.publish(
-                    depth,
-                    FrameOutput::passed_through(&frame, Passthrough::Latching),
-                    frame,
-                    result,
-                )?;
-            }
-            return Ok(());
+        if self.latch.is_some() {
+            return self.latching_frame(depth, frame, result);
         }
         let Some(pipe) = &mut self.pipeline else {
             return Err((
@@ -561,6 +515,72 @@ impl<T> NodeCore<T> {
             return self.pass_or_drop(Passthrough::NoXiYet, why, depth, frame, result);
         };
         self.publish(depth, out, frame, result)
+    }
+
+    /// The depth and IR images as a frame, both of the camera's size (before any
+    /// camera_info, the depth's).
+    fn decode(&self, depth: &Image, ir: &Image) -> Result<DepthFrame, (DropCause, String)> {
+        let stamp = depth.header.stamp.as_log_time_ns();
+        let z_mm =
+            depth_mm(depth).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
+        let ir_buf =
+            ir_counts(ir).map_err(|e| (DropCause::BadImage, format!("frame at stamp {stamp} ns dropped: {e}")))?;
+        let (want_w, want_h, by) = self
+            .info
+            .as_ref()
+            .map_or((z_mm.width, z_mm.height, "the depth image"), |(_, k)| {
+                (k.width, k.height, "camera_info (with its ROI and binning)")
+            });
+        for (what, w, h) in [("depth", z_mm.width, z_mm.height), ("IR", ir_buf.width, ir_buf.height)] {
+            if (w, h) != (want_w, want_h) {
+                return Err((
+                    DropCause::SizeMismatch,
+                    format!("frame at stamp {stamp} ns dropped: {what} is {w}x{h} but {by} gives {want_w}x{want_h}"),
+                ));
+            }
+        }
+        Ok(DepthFrame {
+            stamp_ns: stamp,
+            z_mm,
+            ir: ir_buf,
+        })
+    }
+
+    /// A frame while the background is latched: averaged into it, the latch finished once
+    /// it has its frames, and the frame passed through if the node does that.
+    fn latching_frame(
+        &mut self,
+        depth: &Image,
+        frame: DepthFrame,
+        result: &mut FrameResult<T>,
+    ) -> Result<(), (DropCause, String)> {
+        let Some(l) = &mut self.latch else {
+            return Ok(());
+        };
+        if let Some((latch, k)) = &mut l.latch {
+            latch.push(&frame, k).map_err(|e| {
+                (
+                    DropCause::Pipeline,
+                    format!("background frame at stamp {} ns: {e}", frame.stamp_ns),
+                )
+            })?;
+        }
+        if l.frames() >= self.background_frames {
+            if let Some(l) = self.latch.take() {
+                let (reply, note) = self.finish_latch(l);
+                result.replies.extend(reply);
+                result.notes.extend(note.map(|n| (log::Level::Info, n)));
+            }
+        }
+        if self.passthrough {
+            self.publish(
+                depth,
+                FrameOutput::passed_through(&frame, Passthrough::Latching),
+                frame,
+                result,
+            )?;
+        }
+        Ok(())
     }
 
     /// The outputs of `out` (recovered or passed through) into `result`.

@@ -378,7 +378,6 @@ fn foreground_distance_generic(
     Search { lo, hi, slopes }: Search,
 ) -> Option<LayerEstimate> {
     let sensor = &model.sensor;
-    let range = sensor.unambiguous_range_mm();
     let eval = |df: f64| -> Option<Sample> {
         let x = albedo_cos(model, obs, df, xi, bounds.max_albedo_cos)?;
         if x <= 0.0 {
@@ -394,11 +393,30 @@ fn foreground_distance_generic(
             x,
         })
     };
-    let n = ((hi - lo) / bounds.scan_step_mm).ceil().max(2.0) as usize;
+    let samples = scan(&eval, lo, hi, bounds.scan_step_mm);
+    let (pick, best) = roots_of(&samples, &eval, sensor, obs, prefer_mm);
+    let (s, pinned) = match pick.chosen {
+        Some((root, _)) => (root, false),
+        None => (best?, true),
+    };
+    let reading_per_ir = if slopes {
+        reading_sensitivity_to_ir(model, obs, s.df, xi, bounds.max_albedo_cos)
+    } else {
+        f64::NAN
+    };
+    Some(LayerEstimate {
+        reading_per_ir,
+        ..estimate_at(sensor, s, pick.roots, pinned, slopes, eval)
+    })
+}
+
+/// The residual sampled from `lo` to `hi` in steps of about `step_mm`, with the edge of the
+/// admissible region (where X reaches its bound) added as a sample wherever the scan crosses
+/// it, so a root between the last admissible sample and that edge is bracketed too; a NaN
+/// sample marks a gap between admissible stretches.
+fn scan(eval: &impl Fn(f64) -> Option<Sample>, lo: f64, hi: f64, step_mm: f64) -> Vec<Sample> {
+    let n = ((hi - lo) / step_mm).ceil().max(2.0) as usize;
     let step = (hi - lo) / n as f64;
-    // The scan, with the edge of the admissible region (where X reaches its bound) added as a
-    // sample wherever the scan crosses it, so a root between the last admissible sample and
-    // that edge is bracketed too.
     let mut samples: Vec<Sample> = Vec::with_capacity(n + 3);
     let mut prev: Option<(f64, bool)> = None;
     for k in 0..=n {
@@ -433,6 +451,19 @@ fn foreground_distance_generic(
         }
         prev = Some((df, cur.is_some()));
     }
+    samples
+}
+
+/// The roots the scan brackets, refined and picked among; and the sample of least residual
+/// (the pinned answer where there is no root).
+fn roots_of(
+    samples: &[Sample],
+    eval: &impl Fn(f64) -> Option<Sample>,
+    sensor: &crate::physics::Sensor,
+    obs: &PixelObservation,
+    prefer_mm: Option<f64>,
+) -> (RootPick, Option<Sample>) {
+    let range = sensor.unambiguous_range_mm();
     let mut best: Option<Sample> = None;
     let mut pick = RootPick::new(obs, prefer_mm);
     for w in samples.windows(2) {
@@ -445,7 +476,7 @@ fn foreground_distance_generic(
         }
         let crosses = (p.residual <= 0.0) != (c.residual <= 0.0);
         if crosses && (p.residual - c.residual).abs() < range / 4.0 {
-            if let Some(root) = refine(&eval, p, c) {
+            if let Some(root) = refine(eval, p, c) {
                 pick.offer(sensor, root);
             }
         }
@@ -455,19 +486,7 @@ fn foreground_distance_generic(
             best = Some(*last);
         }
     }
-    let (s, pinned) = match pick.chosen {
-        Some((root, _)) => (root, false),
-        None => (best?, true),
-    };
-    let reading_per_ir = if slopes {
-        reading_sensitivity_to_ir(model, obs, s.df, xi, bounds.max_albedo_cos)
-    } else {
-        f64::NAN
-    };
-    Some(LayerEstimate {
-        reading_per_ir,
-        ..estimate_at(sensor, s, pick.roots, pinned, slopes, eval)
-    })
+    (pick, best)
 }
 
 /// The inversion's evaluations for the paper's two returns on a sinusoidal

@@ -112,28 +112,13 @@ impl BackgroundLatch {
     /// else from the background itself as a plane of `background_albedo`.
     pub fn finish(&self, intrinsics: &Intrinsics, config: &PipelineConfig) -> Result<Background, PipelineError> {
         let total = self.width * self.height;
-        let need = (self.frames as u32).div_ceil(2).max(1);
-        let mut d = ImageBuf::filled(self.width, self.height, f64::NAN);
-        let mut ir = ImageBuf::filled(self.width, self.height, f64::NAN);
-        let mut sd = ImageBuf::filled(self.width, self.height, f64::NAN);
-        let mut ir_sd = ImageBuf::filled(self.width, self.height, f64::NAN);
-        let mut valid = 0;
-        for i in 0..total {
-            let n = self.n[i];
-            if n >= need {
-                let m = self.sum_d[i] / n as f64;
-                d.data[i] = m.rem_euclid(self.range_mm);
-                ir.data[i] = self.sum_ir[i] / n as f64;
-                if n > 1 {
-                    let var = |s: f64, s2: f64| {
-                        ((s2 / n as f64 - (s / n as f64).powi(2)).max(0.0) * n as f64 / (n - 1) as f64).sqrt()
-                    };
-                    sd.data[i] = var(self.sum_d[i], self.sum_d2[i]);
-                    ir_sd.data[i] = var(self.sum_ir[i], self.sum_ir2[i]);
-                }
-                valid += 1;
-            }
-        }
+        let Averages {
+            d,
+            ir,
+            sd,
+            ir_sd,
+            valid,
+        } = self.averages();
         if valid < (total / 20).max(10) {
             return Err(PipelineError::BackgroundInvalid { valid, total });
         }
@@ -154,32 +139,7 @@ impl BackgroundLatch {
                 }
                 (lin.clone(), "calibration file (Eq. 13-14)".to_string())
             }
-            None => {
-                let rays = intrinsics.unit_ray_map();
-                let (mut lin, plane) = emitted_light_from_plane(&d, &ir, &rays, config.background_albedo)?;
-                let on_plane = lin.data.iter().filter(|v| v.is_finite()).count();
-                // Off the plane (a box on the wall, a corner) the emitter's smooth pattern stands in.
-                let filled = fill_off_plane(&mut lin, &rays);
-                // A plane fits a wall to about its noise; far worse, the background is no plane
-                // (or the object was already there) and Lin from it is unreliable.
-                let expected = (5.0 * median_noise_mm).max(20.0);
-                if !(plane.rms_mm <= expected) || on_plane < valid / 2 {
-                    let noise = if median_noise_mm.is_finite() {
-                        format!("{median_noise_mm:.0} mm of noise")
-                    } else {
-                        "noise unknown from one frame".to_string()
-                    };
-                    warnings.push(format!(
-                        "the background is not a plane (fit RMS {:.0} mm against {noise}; {on_plane} of {valid} valid pixels on it): Lin derived from it is unreliable; give --lin-calibration (calibrate-lin), or check that the object was not in the background frames",
-                        plane.rms_mm
-                    ));
-                }
-                let src = format!(
-                    "derived from the latched background as a plane of albedo {} (no calibration file; plane fit RMS {:.1} mm; {filled} pixels off the plane from the emitter's smooth fit); albedos are bounded allowing for a background as dark as {MIN_BACKGROUND_ALBEDO}",
-                    config.background_albedo, plane.rms_mm
-                );
-                (lin, src)
-            }
+            None => lin_from_plane(&d, &ir, intrinsics, config, (valid, median_noise_mm), &mut warnings)?,
         };
         Ok(Background {
             distance_mm: d,
@@ -194,6 +154,37 @@ impl BackgroundLatch {
             valid_pixels: valid,
             median_noise_mm,
         })
+    }
+
+    /// Each pixel's mean reading and IR over the frames that saw it (at least half of them),
+    /// and their standard deviations; NaN elsewhere.
+    fn averages(&self) -> Averages {
+        let need = (self.frames as u32).div_ceil(2).max(1);
+        let filled = || ImageBuf::filled(self.width, self.height, f64::NAN);
+        let mut a = Averages {
+            d: filled(),
+            ir: filled(),
+            sd: filled(),
+            ir_sd: filled(),
+            valid: 0,
+        };
+        for i in 0..self.width * self.height {
+            let n = self.n[i];
+            if n < need {
+                continue;
+            }
+            a.d.data[i] = (self.sum_d[i] / n as f64).rem_euclid(self.range_mm);
+            a.ir.data[i] = self.sum_ir[i] / n as f64;
+            if n > 1 {
+                let sd = |s: f64, s2: f64| {
+                    ((s2 / n as f64 - (s / n as f64).powi(2)).max(0.0) * n as f64 / (n - 1) as f64).sqrt()
+                };
+                a.sd.data[i] = sd(self.sum_d[i], self.sum_d2[i]);
+                a.ir_sd.data[i] = sd(self.sum_ir[i], self.sum_ir2[i]);
+            }
+            a.valid += 1;
+        }
+        a
     }
 }
 
@@ -279,6 +270,52 @@ pub struct SceneChange {
     pub frame: usize,
     /// Pixels that changed in it.
     pub changed_pixels: usize,
+}
+
+/// The latch's per-pixel statistics ([`BackgroundLatch::averages`]).
+struct Averages {
+    d: ImageBuf<f64>,
+    ir: ImageBuf<f64>,
+    sd: ImageBuf<f64>,
+    ir_sd: ImageBuf<f64>,
+    valid: usize,
+}
+
+/// `Lin` from the latched background taken as a plane of the configured albedo, the emitter's
+/// smooth fit off the plane; a warning where the background is no plane. `(valid, noise)`:
+/// the latch's valid pixels and median noise, mm. Returns `Lin` and where it came from.
+fn lin_from_plane(
+    d: &ImageBuf<f64>,
+    ir: &ImageBuf<f64>,
+    intrinsics: &Intrinsics,
+    config: &PipelineConfig,
+    (valid, median_noise_mm): (usize, f64),
+    warnings: &mut Vec<String>,
+) -> Result<(ImageBuf<f64>, String), PipelineError> {
+    let rays = intrinsics.unit_ray_map();
+    let (mut lin, plane) = emitted_light_from_plane(d, ir, &rays, config.background_albedo)?;
+    let on_plane = lin.data.iter().filter(|v| v.is_finite()).count();
+    // Off the plane (a box on the wall, a corner) the emitter's smooth pattern stands in.
+    let filled = fill_off_plane(&mut lin, &rays);
+    // A plane fits a wall to about its noise; far worse, the background is no plane
+    // (or the object was already there) and Lin from it is unreliable.
+    let expected = (5.0 * median_noise_mm).max(20.0);
+    if !(plane.rms_mm <= expected) || on_plane < valid / 2 {
+        let noise = if median_noise_mm.is_finite() {
+            format!("{median_noise_mm:.0} mm of noise")
+        } else {
+            "noise unknown from one frame".to_string()
+        };
+        warnings.push(format!(
+            "the background is not a plane (fit RMS {:.0} mm against {noise}; {on_plane} of {valid} valid pixels on it): Lin derived from it is unreliable; give --lin-calibration (calibrate-lin), or check that the object was not in the background frames",
+            plane.rms_mm
+        ));
+    }
+    let src = format!(
+        "derived from the latched background as a plane of albedo {} (no calibration file; plane fit RMS {:.1} mm; {filled} pixels off the plane from the emitter's smooth fit); albedos are bounded allowing for a background as dark as {MIN_BACKGROUND_ALBEDO}",
+        config.background_albedo, plane.rms_mm
+    );
+    Ok((lin, src))
 }
 
 #[cfg(test)]

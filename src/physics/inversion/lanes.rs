@@ -215,8 +215,21 @@ fn pass_lanes<const P: u8>(
     obs: &[PixelObservation; W],
     slopes: bool,
 ) -> [Lane; W] {
-    use std::f64::consts::{FRAC_1_PI, PI, TAU};
-    let k = fm.k;
+    let (px, mut ok, hi_e) = lane_pixels::<P>(fm, bounds, obs);
+    let h = half_periods(fm, bounds, &px, &hi_e, &mut ok);
+    let mut start = root_starts(&h, &mut ok);
+    newton_lanes(&px, &mut start, ok);
+    lane_results(fm, &px, &start.x, ok, slopes)
+}
+
+/// Each lane's FastPixel and HumpRoots constants, whether its checks (and its range's)
+/// hold, and the upper end of its admissible range.
+#[inline(always)]
+fn lane_pixels<const P: u8>(
+    fm: &FastModel,
+    bounds: &InversionBounds,
+    obs: &[PixelObservation; W],
+) -> (Pixels<P>, [bool; W], V) {
     let lo = bounds.min_distance_mm;
     // invert's range (where there is none the lane is not ok: its upper end NaN).
     let mut hi = [f64::NAN; W];
@@ -234,9 +247,8 @@ fn pass_lanes<const P: u8>(
     for l in 0..W {
         (sb[l], cb[l]) = sin_cos_reduced(angle[l]);
     }
-    // Each lane's FastPixel and HumpRoots constants.
     let mut px = Pixels::<P> {
-        k,
+        k: fm.k,
         mm_per_rad: fm.mm_per_rad,
         x_max: fm.x_max,
         ir: [0.0; W],
@@ -261,9 +273,36 @@ fn pass_lanes<const P: u8>(
         (px.sigma[l], px.s[l], px.c[l]) = (hump.sigma, hump.s, hump.c);
         ok[l] = hi[l] > lo && angle[l].abs() <= ANGLE_LIMIT && hump.holds(&f);
     }
-    let (phi_d, sigma) = (px.phi_d, px.sigma);
     let hi_e = lanes(|l| hi[l].min(admissible_limit(&px.fast(l))));
-    // HumpRoots::roots: the half-periods m and m + 1 (m + 2 must lie beyond the range).
+    (px, ok, hi_e)
+}
+
+/// The two half-periods a lane's root may lie in: their ends in the range, whether each is
+/// active, and e (with its slope) at the ends.
+struct HalfPeriods {
+    l0: V,
+    u0: V,
+    lb1: V,
+    u1: V,
+    act0: [bool; W],
+    act1: [bool; W],
+    ends0: (V, V, V, V),
+    ends1: (V, V, V, V),
+}
+
+/// HumpRoots::roots: the half-periods m and m + 1 (m + 2 must lie beyond the range; a lane
+/// where it does not, or whose ends leave the small-angle series, is not ok).
+#[inline(always)]
+fn half_periods<const P: u8>(
+    fm: &FastModel,
+    bounds: &InversionBounds,
+    px: &Pixels<P>,
+    hi_e: &V,
+    ok: &mut [bool; W],
+) -> HalfPeriods {
+    use std::f64::consts::{FRAC_1_PI, PI, TAU};
+    let (k, lo) = (fm.k, bounds.min_distance_mm);
+    let (phi_d, sigma) = (px.phi_d, px.sigma);
     let a0 = lanes(|l| if sigma[l] > 0.0 { 0.0 } else { PI });
     let m0 = lanes(|l| ((k * lo - phi_d[l] - a0[l]) * (0.5 * FRAC_1_PI)).floor());
     let m1 = lanes(|l| m0[l] + 1.0);
@@ -284,15 +323,42 @@ fn pass_lanes<const P: u8>(
     // e at the half-periods' ends (a half-period no lane needs is skipped).
     // (Plain calls: a closure the compiler does not inline is not built for the pass's
     // target features.)
-    let needed0 = act0.iter().zip(&ok).any(|(&a, &o)| a & o);
-    let needed1 = act1.iter().zip(&ok).any(|(&a, &o)| a & o);
-    let (el0, dl0, eu0, du0) = ends_lanes(needed0, &px, &l0, &u0);
-    let (el1, dl1, eu1, du1) = ends_lanes(needed1, &px, &lb1, &u1);
-    // Each lane's one root: from the end of its half-period where e <= 0.
-    let mut x = [0.0; W];
-    let mut toward = [0.0; W];
-    let mut e = [0.0; W];
-    let mut de = [0.0; W];
+    let needed0 = act0.iter().zip(ok.iter()).any(|(&a, &o)| a & o);
+    let needed1 = act1.iter().zip(ok.iter()).any(|(&a, &o)| a & o);
+    let ends0 = ends_lanes(needed0, px, &l0, &u0);
+    let ends1 = ends_lanes(needed1, px, &lb1, &u1);
+    HalfPeriods {
+        l0,
+        u0,
+        lb1,
+        u1,
+        act0,
+        act1,
+        ends0,
+        ends1,
+    }
+}
+
+/// Where each lane's Newton iteration starts and what bounds it.
+struct RootStart {
+    x: V,
+    toward: V,
+    e: V,
+    de: V,
+}
+
+/// Each lane's one root: from the end of its half-period where e <= 0 (a lane with none, or
+/// two, is not ok).
+#[inline(always)]
+fn root_starts(h: &HalfPeriods, ok: &mut [bool; W]) -> RootStart {
+    let (el0, dl0, eu0, du0) = h.ends0;
+    let (el1, dl1, eu1, du1) = h.ends1;
+    let mut r = RootStart {
+        x: [0.0; W],
+        toward: [0.0; W],
+        e: [0.0; W],
+        de: [0.0; W],
+    };
     for l in 0..W {
         // 0: no root; 1: from the lower end; 2: from the upper; 3: two or none (the maximum).
         let kind = |act: bool, el: f64, eu: f64| -> u8 {
@@ -303,29 +369,35 @@ fn pass_lanes<const P: u8>(
                 (true, false, false) => 3,
             }
         };
-        let k0 = kind(act0[l], el0[l], eu0[l]);
-        let k1 = kind(act1[l], el1[l], eu1[l]);
+        let k0 = kind(h.act0[l], el0[l], eu0[l]);
+        let k1 = kind(h.act1[l], el1[l], eu1[l]);
         ok[l] &= (k0 == 0) != (k1 == 0) && k0 != 3 && k1 != 3;
-        (x[l], toward[l], e[l], de[l]) = match (k0, k1) {
-            (1, _) => (l0[l], u0[l], el0[l], dl0[l]),
-            (2, _) => (u0[l], l0[l], eu0[l], du0[l]),
-            (_, 1) => (lb1[l], u1[l], el1[l], dl1[l]),
-            _ => (u1[l], lb1[l], eu1[l], du1[l]),
+        (r.x[l], r.toward[l], r.e[l], r.de[l]) = match (k0, k1) {
+            (1, _) => (h.l0[l], h.u0[l], el0[l], dl0[l]),
+            (2, _) => (h.u0[l], h.l0[l], eu0[l], du0[l]),
+            (_, 1) => (h.lb1[l], h.u1[l], el1[l], dl1[l]),
+            _ => (h.u1[l], h.lb1[l], eu1[l], du1[l]),
         };
     }
-    // HumpRoots::newton in lockstep.
-    let nlo = lanes(|l| x[l].min(toward[l]));
-    let nhi = lanes(|l| x[l].max(toward[l]));
+    r
+}
+
+/// HumpRoots::newton in lockstep: each running lane's root to 1 µm, within its bracket.
+#[inline(always)]
+fn newton_lanes<const P: u8>(px: &Pixels<P>, r: &mut RootStart, ok: [bool; W]) {
+    let nlo = lanes(|l| r.x[l].min(r.toward[l]));
+    let nhi = lanes(|l| r.x[l].max(r.toward[l]));
     let mut running = ok;
+    let (mut e, mut de) = (r.e, r.de);
     for iteration in 0..50 {
         if iteration > 0 {
-            (e, de) = e_lanes(&px, &x);
+            (e, de) = e_lanes(px, &r.x);
         }
         // Selects, not branches, so the lanes stay in vector registers.
         for l in 0..W {
             let step = -e[l] / de[l];
             // f64::clamp's result without its check (a lane not running may hold NaN).
-            let v = x[l] + step;
+            let v = r.x[l] + step;
             let next = if v < nlo[l] {
                 nlo[l]
             } else if v > nhi[l] {
@@ -333,16 +405,22 @@ fn pass_lanes<const P: u8>(
             } else {
                 v
             };
-            let moved = (next - x[l]).abs();
+            let moved = (next - r.x[l]).abs();
             let go = running[l] & (step.abs() < f64::INFINITY);
-            x[l] = if go { next } else { x[l] };
+            r.x[l] = if go { next } else { r.x[l] };
             running[l] = go & !((moved < 1e-3) | (e[l] == 0.0));
         }
         if !running.iter().any(|&r| r) {
             break;
         }
     }
-    // The root's sample (FastPixel::eval) and slopes (FastPixel::derivatives).
+}
+
+/// The roots' samples (FastPixel::eval) and slopes (FastPixel::derivatives): a lane done
+/// where it is the common case, alone (for the scalar path) otherwise.
+#[inline(always)]
+fn lane_results<const P: u8>(fm: &FastModel, px: &Pixels<P>, x: &V, ok: [bool; W], slopes: bool) -> [Lane; W] {
+    let (k, phi_d) = (fm.k, px.phi_d);
     let mut sn = [0.0; W];
     let mut cs = [0.0; W];
     for l in 0..W {
