@@ -620,6 +620,11 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         warn!("the node's spinner did not stop within 2 s");
     }
     let stats = with_intake_counts(stats, &counts, pairer.unpaired + frame_pairer.unpaired, &inbox, intake);
+    report(&s, stats)
+}
+
+/// The final counters in the log and, if asked, in a JSON file.
+fn report(s: &NodeSettings, stats: NodeStats) -> anyhow::Result<NodeStats> {
     info!("{}", summary(&stats));
     if let Some(p) = &s.stats_json {
         let text = serde_json::to_string_pretty(&stats)?;
