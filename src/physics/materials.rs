@@ -346,10 +346,16 @@ impl Materials {
                 }
             }
         }
-        // A cut: a region where objects were, farther from each than it can have moved.
+        // A cut: a region where objects were, farther from each than it can have moved, and
+        // at least one of them continued by no other region (it may be that object, moved
+        // away). A region beside an object that another region continues is a new object
+        // entering its outline, not a cut.
+        let continued = |object: usize| pairs.iter().any(|p| p.object == object && p.motion != Motion::Jumped);
         let cut = (0..regions.len()).any(|k| {
-            let mut of_region = pairs.iter().filter(|p| p.region == k).peekable();
-            of_region.peek().is_some() && of_region.all(|p| p.motion == Motion::Jumped)
+            let of_region: Vec<&Pair> = pairs.iter().filter(|p| p.region == k).collect();
+            !of_region.is_empty()
+                && of_region.iter().all(|p| p.motion == Motion::Jumped)
+                && of_region.iter().any(|p| !continued(p.object))
         });
         let beyond_doubt = regions.len() == 1 && self.seen_in_latest_frame(frame) == 1;
         pairs.retain(|p| match p.motion {
@@ -497,6 +503,23 @@ mod tests {
         // The one object continues into one of them only, the other is new.
         assert_eq!(ids.iter().filter(|&&id| id == first[0]).count(), 1);
         assert_eq!(objects.iter().count(), 2);
+    }
+
+    #[test]
+    fn an_object_entering_another_ones_outline_is_no_cut() {
+        let mut objects = Materials::default();
+        let (a, b): (Vec<u32>, Vec<u32>) = ((0..400).collect(), (1000..1400).collect());
+        let first = add(&mut objects, 1, vec![region(&a, 1000.0), region(&b, 2000.0)]);
+        // `a` is carried 100 mm nearer; a box enters at 2500 mm over part of `b`'s outline
+        // while `b` stays: the box is a new object, and `a` and `b` continue.
+        let (b_now, entering): (Vec<u32>, Vec<u32>) = ((1000..1300).collect(), (1300..1400).collect());
+        let second = add(
+            &mut objects,
+            2,
+            vec![region(&a, 1100.0), region(&b_now, 2000.0), region(&entering, 2500.0)],
+        );
+        assert_eq!(second[..2], first[..]);
+        assert!(second[2].is_some() && !first.contains(&second[2]));
     }
 
     #[test]
