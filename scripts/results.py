@@ -25,7 +25,9 @@ Per bag it reports:
   reading's over the same pixels (`all_pixels_rms_raw_mm`): the figure that
   says whether a scene came out worse than raw;
 - per translucent material: the ξ estimate of the region its pixels mostly
-  fell in, its interval, whether the truth lies inside, and the poses seen;
+  fell in, its interval, whether the truth lies inside, the poses seen, and
+  the every-pixel figure over its own pixels (`rms_mm` beside `rms_raw_mm`:
+  whether that object came out worse than raw);
 - per opaque material: the share of its pixels not in the mask, the
   median |z error| (mm) of the published depth there beside the reading's, and whether the
   interval of the region it fell in holds 0 (opaque);
@@ -35,7 +37,7 @@ Per bag it reports:
 
 `--check BASELINE` compares the run with a committed baseline (the rows of an
 earlier run and the failures known then) and exits 1 on a failure that is
-not known: a scene worse than raw, an opaque object flagged or moved, a
+not known: a scene or a translucent object worse than raw, an opaque object flagged or moved, a
 paper setup above the paper's figure, coverage or σ below their stated
 levels, or a scene or object worse than the baseline beyond noise.
 `--write-baseline OUT` writes this run as a baseline, its failures as the
@@ -121,6 +123,8 @@ def evaluate(bag, replay_args, exe):
     region_votes = defaultdict(Counter)
     opaque_flagged, opaque_total, opaque_err = defaultdict(int), defaultdict(int), defaultdict(list)
     opaque_raw_err = defaultdict(list)
+    # Each translucent material's per-frame RMS over its pixels with truth: published, raw.
+    object_rms, object_raw = defaultdict(list), defaultdict(list)
     stages = defaultdict(set)
     for stamp, truth_msg in sorted(inp["ground_truth/depth"].items()):
         if stamp not in inp["ground_truth/material"] or stamp not in inp["depth/image_raw"]:
@@ -138,6 +142,7 @@ def evaluate(bag, replay_args, exe):
         sigma = z_mm(res["depth/corrected_sigma"][stamp]) if stamp in res["depth/corrected_sigma"] else [math.nan] * len(z)
         xi_img = image_values(res["translucency_image"][stamp]) if stamp in res["translucency_image"] else None
         frame_xi = defaultdict(list)
+        obj_sq = defaultdict(lambda: [0.0, 0.0, 0])
         e2, r2, n = 0.0, 0.0, 0
         a2, ar2, an = 0.0, 0.0, 0
         for i, m in enumerate(mat):
@@ -162,6 +167,10 @@ def evaluate(bag, replay_args, exe):
                 a2 += (z[i] - truth[i]) ** 2
                 ar2 += (raw[i] - truth[i]) ** 2
                 an += 1
+                o = obj_sq[m]
+                o[0] += (z[i] - truth[i]) ** 2
+                o[1] += (raw[i] - truth[i]) ** 2
+                o[2] += 1
             if corr is not None and mask[i] and math.isfinite(z[i]):
                 covered += 1
                 if math.isfinite(sigma[i]):
@@ -178,6 +187,9 @@ def evaluate(bag, replay_args, exe):
         for m, v in frame_xi.items():
             if not materials[m].get("opaque"):
                 pixel_xi[m].append(statistics.median(v))
+        for m, (e, r_, k) in obj_sq.items():
+            object_rms[m].append(math.sqrt(e / k))
+            object_raw[m].append(math.sqrt(r_ / k))
         if n:
             frame_rms.append(math.sqrt(e2 / n))
             frame_raw.append(math.sqrt(r2 / n))
@@ -236,6 +248,10 @@ def evaluate(bag, replay_args, exe):
                 out["opaque"].append(row)
             continue
         row = {"id": mid, "xi_true": info["xi"], "poses": len(stages[mid]), "region": rid}
+        if object_rms.get(mid):
+            # every pixel of the object with truth: the mean over frames of each frame's RMS
+            row["rms_mm"] = statistics.fmean(object_rms[mid])
+            row["rms_raw_mm"] = statistics.fmean(object_raw[mid])
         if not xi_measured:
             row["xi_not_measured"] = True
         if e:
@@ -307,6 +323,10 @@ def failures(rows):
             out[f"{b}:worse_than_raw"] = f"{now:.1f} mm against raw {raw:.1f} mm over every pixel"
         if b in PAPER_MM and (r.get("mean_frame_rms_mm") or math.inf) > PAPER_MM[b]:
             out[f"{b}:paper"] = f"{fmt(r.get('mean_frame_rms_mm'))} mm against the paper's {PAPER_MM[b]}"
+        for m in r.get("materials", []):
+            now, raw = m.get("rms_mm"), m.get("rms_raw_mm")
+            if now is not None and raw is not None and now > raw * 1.01 + 0.5:
+                out[f"{b}:object_{m['id']}_worse_than_raw"] = f"{now:.1f} mm against raw {raw:.1f} mm over its pixels"
         for o in r.get("opaque", []):
             if o["not_flagged"] < OPAQUE_NOT_FLAGGED_MIN:
                 out[f"{b}:opaque_{o['id']}_flagged"] = f"{100 * o['not_flagged']:.0f} % not flagged"
@@ -357,6 +377,7 @@ def print_row(r):
          f"xi {m['xi_true']:.2f}: not measured (no background latched)" if m.get("xi_not_measured") else
          f"xi {m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.2f')}, "
          f"{fmt((m.get('xi_interval') or [None, None])[1], '.2f')}]{'' if m.get('inside') else ' MISS'}")
+        + (f" ({fmt(m['rms_raw_mm'])} -> {fmt(m['rms_mm'])} mm)" if "rms_mm" in m else "")
         for m in r["materials"]
     )
     opq = "; ".join(
@@ -392,7 +413,7 @@ def print_summary(rows):
 
 
 def markdown(rows):
-    print("| bag | true ξ: estimate [interval] | recovered pixels: raw → recovered, mm (share) | every pixel: raw → published, mm | opaque objects |")
+    print("| bag | true ξ: estimate [interval] (its pixels: raw → published, mm) | recovered pixels: raw → recovered, mm (share) | every pixel: raw → published, mm | opaque objects |")
     print("| --- | --- | --- | --- | --- |")
     for r in rows:
         if "error" in r:
@@ -401,6 +422,7 @@ def markdown(rows):
         mats = "; ".join(
             f"{m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.3f')}, "
             f"{fmt((m.get('xi_interval') or [None, None])[1], '.3f')}]{'' if m.get('inside') else ' ✗'}"
+            + (f" ({fmt(m['rms_raw_mm'])} → {fmt(m['rms_mm'])})" if "rms_mm" in m else "")
             for m in r["materials"]) or "-"
         opq = "; ".join(f"{100 * o['not_flagged']:.0f} % not flagged, median error {fmt(o['median_error_mm'])} mm "
                         f"(reading {fmt(o.get('median_raw_error_mm'))})" for o in r["opaque"]) or "-"
