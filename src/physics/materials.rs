@@ -366,10 +366,17 @@ impl Materials {
         pairs
     }
 
-    /// Each region's pair: most pixels shared first (then least moved), each region and each
-    /// object taken once.
+    /// Each region's pair: the objects seen most recently first (an object lost for a frame
+    /// does not take a region from one that continued it since), then most pixels shared,
+    /// then least moved; each region and each object taken once.
     fn pick(&self, mut pairs: Vec<Pair>, regions: usize) -> Vec<Option<Pair>> {
-        pairs.sort_by(|a, b| b.shared.cmp(&a.shared).then(a.moved.total_cmp(&b.moved)));
+        let seen = |p: &Pair| self.materials[p.object].latest.frame;
+        pairs.sort_by(|a, b| {
+            seen(b)
+                .cmp(&seen(a))
+                .then(b.shared.cmp(&a.shared))
+                .then(a.moved.total_cmp(&b.moved))
+        });
         let mut region_to = vec![None; regions];
         let mut taken = vec![false; self.materials.len()];
         for p in pairs {
@@ -520,6 +527,22 @@ mod tests {
         );
         assert_eq!(second[..2], first[..]);
         assert!(second[2].is_some() && !first.contains(&second[2]));
+    }
+
+    #[test]
+    fn an_object_lost_for_a_frame_does_not_take_a_region_from_the_one_that_continued_it() {
+        let mut objects = Materials::default();
+        let all: Vec<u32> = (0..400).collect();
+        let part: Vec<u32> = (100..400).collect();
+        let other: Vec<u32> = (1000..1400).collect();
+        let first = add(&mut objects, 1, vec![region(&all, 1000.0)]);
+        // A jump of 300 mm in 0.1 s with another object in view: a cut, a new object.
+        let second = add(&mut objects, 2, vec![region(&part, 1300.0), region(&other, 2000.0)]);
+        assert_ne!(first[0], second[0]);
+        // The region grows back over the first object's old outline: it shares more pixels
+        // with that object, seen two frames ago, but continues the one seen in the last.
+        let third = add(&mut objects, 3, vec![region(&all, 1310.0), region(&other, 2000.0)]);
+        assert_eq!(third, second);
     }
 
     #[test]
