@@ -386,7 +386,14 @@ fn far_mode(
     }
     let split = lo + k as f64 * bin;
     let (near_px, far_px): (Vec<usize>, Vec<usize>) = pixels.iter().partition(|&&i| !(unwrapped(i) >= split));
-    let behind = |side: &[usize]| median(side.iter().map(|&i| background_mm.data[i]).collect());
+    let behind = |side: &[usize]| {
+        let mut v: Vec<f64> = side
+            .iter()
+            .map(|&i| background_mm.data[i])
+            .filter(|d| d.is_finite())
+            .collect();
+        Some(crate::physics::stats::median_select(&mut v)).filter(|m| m.is_finite())
+    };
     let (b_near, b_far) = (behind(&near_px)?, behind(&far_px)?);
     if wrapped_difference(b_far, b_near, range_mm).abs() > 0.5 * gap {
         return None;
@@ -434,15 +441,6 @@ fn histogram_centre_spread(hist: &[usize]) -> Option<(f64, f64)> {
         (hist.len() - 1) as f64
     };
     Some((quantile(0.5), (quantile(0.75) - quantile(0.25)) / 1.349))
-}
-
-fn median(mut v: Vec<f64>) -> Option<f64> {
-    v.retain(|x| x.is_finite());
-    if v.is_empty() {
-        return None;
-    }
-    let m = v.len() / 2;
-    Some(*v.select_nth_unstable_by(m, f64::total_cmp).1)
 }
 
 /// A piece this small beside a region (a share of that region's pixels) is its fringe: the
