@@ -7,14 +7,14 @@ mod common;
 use common::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use translucent_tof::physics::{ForwardModel, XiMethod};
+use translucent_tof::physics::{ForwardModel, XiEstimate, XiMethod};
 use translucent_tof::pipeline::{PipelineConfig, XiChoice};
 use translucent_tof::sim::render::scene_sensor;
 use translucent_tof::sim::scene::{ObjectSpec, Scene, StageSpec};
 
 /// The pipeline as the node runs it: each frame pools the evidence so far.
-/// Returns the interval after each object frame.
-fn online_intervals(s: &Scene) -> Vec<(f64, [f64; 2])> {
+/// Returns the estimate after each object frame.
+fn online_estimates(s: &Scene) -> Vec<XiEstimate> {
     let config = PipelineConfig {
         xi: XiChoice::Estimate(XiMethod::OneMaterial),
         model: ForwardModel {
@@ -27,11 +27,13 @@ fn online_intervals(s: &Scene) -> Vec<(f64, [f64; 2])> {
     frames
         .iter()
         .filter(|f| !f.background_only)
-        .map(|f| {
-            let out = pipe.process(&df(f)).unwrap().expect("an estimate");
-            (out.xi.xi, out.xi.interval)
-        })
+        .map(|f| pipe.process(&df(f)).unwrap().expect("an estimate").xi)
         .collect()
+}
+
+/// [`online_estimates`]' ξ and interval after each object frame.
+fn online_intervals(s: &Scene) -> Vec<(f64, [f64; 2])> {
+    online_estimates(s).into_iter().map(|e| (e.xi, e.interval)).collect()
 }
 
 #[test]
@@ -154,20 +156,7 @@ fn a_misfit_that_grows_with_distance_widens_the_interval_to_both_sides() {
         .collect();
     let mut s = scene_with("tilted plane, IR offset".into(), seed, 2200.0, stages);
     s.physics.ambient_offset = 600.0;
-    let config = PipelineConfig {
-        xi: XiChoice::Estimate(XiMethod::OneMaterial),
-        model: ForwardModel {
-            sensor: scene_sensor(&s),
-            options: Default::default(),
-        },
-        ..PipelineConfig::default()
-    };
-    let (mut pipe, frames) = latched(&s, config);
-    let mut last = None;
-    for f in frames.iter().filter(|f| !f.background_only) {
-        last = pipe.process(&df(f)).unwrap();
-    }
-    let est = last.expect("an estimate").xi;
+    let est = online_estimates(&s).pop().expect("an estimate");
     println!("xi {xi:.3}: {:.3} {:?} ({})", est.xi, est.interval, est.note);
     assert!(est.note.contains("the near poses alone give"), "{}", est.note);
     assert!(
