@@ -569,7 +569,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
 
     let live = Arc::new(Mutex::new(Live::default()));
     let (reply_tx, reply_rx) = tokio::sync::mpsc::unbounded_channel::<(Token, TriggerResponse)>();
-    let (done_tx, done_rx) = tokio::sync::mpsc::unbounded_channel::<NodeStats>();
+    let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<NodeStats>();
     let worker = {
         let inbox = inbox.clone();
         let settings = s.clone();
@@ -598,7 +598,6 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         last_info: None,
         intake: Intake::default(),
     };
-    let mut done_rx = done_rx;
     let final_stats = events.serve(&inputs, &services, reply_rx, &mut done_rx).await?;
     inbox.push_command(Command::Shutdown);
     let stats = match final_stats {
@@ -741,7 +740,7 @@ impl Topics<'_> {
         Ok((p, full))
     }
 
-    /// A subscription with the sensor-data QoS; its full name.
+    /// A subscription to `full` with the sensor-data QoS.
     fn subscription<M: 'static>(
         &self,
         node: &mut ros2_client::Node,
