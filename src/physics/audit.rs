@@ -179,10 +179,14 @@ pub struct Fit {
     pub heldout_rmse_mm: f64,
     /// Mean held-out loss per pixel (depth and IR, in units of their noise; Huber).
     pub heldout_score: f64,
-    /// Held-out depth recovery: RMS of the recovered minus the true foreground (ray) distance
-    /// over the pixels of frames left out of the fit, each inverted per pixel with the model
-    /// and ξ fitted without its frame; a pixel the model cannot invert counts as read. mm.
+    /// Held-out depth recovery: RMS over blocks ([`recovery_blocks`]) of the mean recovered
+    /// minus true foreground (ray) distance, over the pixels of frames left out of the fit,
+    /// each inverted per pixel with the model and ξ fitted without its frame; a pixel the
+    /// model cannot invert counts as read. mm.
     pub heldout_recovery_rmse_mm: f64,
+    /// Held-out recovery error per block ([`recovery_blocks`]), mm (for paired comparisons).
+    #[serde(skip)]
+    pub heldout_recovery_blocks_mm: Vec<f64>,
     /// Held-out loss per pixel (for paired comparisons).
     #[serde(skip)]
     pub heldout_loss: Vec<f64>,
@@ -231,7 +235,7 @@ pub struct CandidateScore {
     pub xi: f64,
     /// Accepted.
     pub accepted: bool,
-    /// Why it was not accepted though its loss gain passed (held-out depth error worse);
+    /// Why it was not accepted though its loss gain passed (held-out depth error worse beyond noise);
     /// empty otherwise.
     pub rejected: String,
 }
@@ -433,7 +437,7 @@ pub struct AuditResult {
     /// Effects accepted, in order, each with the model up to it.
     pub steps: Vec<Fit>,
     /// How many of `steps` the model to use keeps: it stops at the last step whose held-out
-    /// recovery is no worse than the one before ([`steps_recovering_no_worse`]).
+    /// recovery is no worse than the one before beyond noise ([`steps_recovering_no_worse`]).
     pub kept_steps: usize,
     /// Every candidate's score in every round.
     pub candidates: Vec<CandidateScore>,
@@ -1007,6 +1011,7 @@ fn score(prep: &Prepared, effects: &[Effect], settings: &AuditSettings) -> Fit {
         .map(|(e, p)| e.res_ir / p.obs.ir.max(1.0)));
     let h = held_out(prep, effects, &theta, bounces, settings);
     let n = h.loss.iter().filter(|v| v.is_finite()).count().max(1);
+    let blocks = recovery_blocks(data, &h.recovery_mm);
     Fit {
         effects: effects.to_vec(),
         xi,
@@ -1018,7 +1023,8 @@ fn score(prep: &Prepared, effects: &[Effect], settings: &AuditSettings) -> Fit {
         ir_rel_rmse,
         heldout_rmse_mm: rms(h.residual_mm.iter().copied()),
         heldout_score: h.loss.iter().filter(|v| v.is_finite()).sum::<f64>() / n as f64,
-        heldout_recovery_rmse_mm: rms(h.recovery_mm.iter().copied()),
+        heldout_recovery_rmse_mm: rms(blocks.iter().copied()),
+        heldout_recovery_blocks_mm: blocks,
         heldout_loss: h.loss,
         heldout_residual_mm: h.residual_mm,
         heldout_ir_residual: h.ir_residual,
@@ -1288,8 +1294,8 @@ pub fn run_audit_with_progress(
         // Mean Huber loss of two unit-noise residuals is about 1 (0.5 each).
         v.iter().sum::<f64>() / v.len().max(1) as f64
     };
-    let recovery: Vec<f64> = steps.iter().map(|s| s.heldout_recovery_rmse_mm).collect();
-    let kept_steps = steps_recovering_no_worse(baseline.heldout_recovery_rmse_mm, &recovery);
+    let recovery: Vec<&[f64]> = steps.iter().map(|s| s.heldout_recovery_blocks_mm.as_slice()).collect();
+    let kept_steps = steps_recovering_no_worse(&baseline.heldout_recovery_blocks_mm, &recovery);
     Ok(AuditResult {
         baseline,
         steps,
@@ -1362,12 +1368,15 @@ fn run_round(
         let threshold = (settings.penalty_per_param_ln_n * e.penalty_params() as f64 * n.ln())
             .max(settings.min_relative_gain * current.heldout_score * n);
         let passes = gain > threshold && z > settings.min_gain_z;
-        // An effect is claimed only where it also predicts the held-out depths no worse;
+        // An effect is claimed only where it also predicts the held-out depths no worse
+        // beyond noise;
         // otherwise the loss gain is the fit bending to something else. Its parameters are
         // inside their physical ranges by construction (bounded fits).
-        let rejected = if passes && !(fit.heldout_rmse_mm <= current.heldout_rmse_mm) {
+        let depth_worse = squared_increase_z(&current.heldout_residual_mm, &fit.heldout_residual_mm)
+            .is_none_or(|z| z > WORSE_BEYOND_NOISE_Z);
+        let rejected = if passes && depth_worse {
             format!(
-                "held-out depth error {:.1} mm against {:.1} without it",
+                "held-out depth error {:.1} mm against {:.1} without it, worse beyond noise",
                 fit.heldout_rmse_mm, current.heldout_rmse_mm
             )
         } else {
@@ -1401,15 +1410,71 @@ fn run_round(
     (scores, best)
 }
 
+/// Side of the square blocks of one frame whose pixels' held-out recovery errors are
+/// averaged, pixels: the smooth-surface prior's window (`prior_radius_px` 4). `replay`
+/// recovers a pixel with its neighbourhood's surface, so a model's recovery is judged by
+/// a neighbourhood's mean error, where a per-pixel inversion's noise averages out and a
+/// bias or a wrong root stays.
+pub const RECOVERY_BLOCK_PX: usize = 9;
+
+/// A model predicts or recovers worse than another beyond noise when the mean increase of
+/// the squared error, paired, exceeds this many of its standard errors ([`squared_increase_z`]).
+pub const WORSE_BEYOND_NOISE_Z: f64 = 2.0;
+
+/// The mean of `recovery_mm` (per pixel, NaN where unknown) over each block of
+/// [`RECOVERY_BLOCK_PX`] pixels of a frame, in one order for every model (by frame, row
+/// block, column block); NaN for a block with no known pixel.
+pub fn recovery_blocks(data: &AuditData, recovery_mm: &[f64]) -> Vec<f64> {
+    let mut sums: std::collections::BTreeMap<(usize, usize, usize), (f64, usize)> = Default::default();
+    for (p, &e) in data.pixels.iter().zip(recovery_mm) {
+        let key = (p.frame, p.row / RECOVERY_BLOCK_PX, p.col / RECOVERY_BLOCK_PX);
+        let s = sums.entry(key).or_insert((0.0, 0));
+        if e.is_finite() {
+            s.0 += e;
+            s.1 += 1;
+        }
+    }
+    sums.values()
+        .map(|&(s, n)| if n == 0 { f64::NAN } else { s / n as f64 })
+        .collect()
+}
+
+/// The mean increase of the squared error from `old` to `new` (paired, entries both
+/// know) in units of its standard error; `None` with fewer than two pairs or where the
+/// two are not paired (lengths differ).
+pub fn squared_increase_z(old: &[f64], new: &[f64]) -> Option<f64> {
+    if old.len() != new.len() {
+        return None;
+    }
+    let d: Vec<f64> = old
+        .iter()
+        .zip(new)
+        .filter(|(a, b)| a.is_finite() && b.is_finite())
+        .map(|(a, b)| b * b - a * a)
+        .collect();
+    if d.len() < 2 {
+        return None;
+    }
+    let n = d.len() as f64;
+    let mean = d.iter().sum::<f64>() / n;
+    let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    Some(mean / (var / n).sqrt().max(1e-12))
+}
+
+/// Whether `new`'s block recovery errors are worse than `old`'s (as [`recovery_blocks`]
+/// orders them) beyond noise ([`WORSE_BEYOND_NOISE_Z`]); unpaired counts as worse.
+pub fn recovers_worse(old: &[f64], new: &[f64]) -> bool {
+    squared_increase_z(old, new).is_none_or(|z| z > WORSE_BEYOND_NOISE_Z)
+}
+
 /// How many of the claimed steps a model keeps when it stops at the last step that
-/// recovers no worse than the one before: `recovery[k]` is step `k + 1`'s held-out
-/// recovery error, `baseline` the baseline's. A step whose recovery is unknown (NaN)
-/// counts as worse. The steps kept recover no worse than the baseline, by construction.
-pub fn steps_recovering_no_worse(baseline: f64, recovery: &[f64]) -> usize {
+/// recovers no worse than the one before beyond noise ([`recovers_worse`]): `steps[k]`
+/// is step `k + 1`'s held-out block recovery errors, `baseline` the baseline's.
+pub fn steps_recovering_no_worse(baseline: &[f64], steps: &[&[f64]]) -> usize {
     let mut prev = baseline;
     let mut kept = 0;
-    for &r in recovery {
-        if !(r <= prev) {
+    for &r in steps {
+        if recovers_worse(prev, r) {
             break;
         }
         prev = r;
@@ -1511,13 +1576,20 @@ mod tests {
     }
 
     #[test]
-    fn the_model_kept_stops_at_the_last_step_that_recovers_no_worse() {
-        assert_eq!(steps_recovering_no_worse(20.0, &[]), 0);
-        assert_eq!(steps_recovering_no_worse(20.0, &[15.0, 15.0, 12.0]), 3);
-        assert_eq!(steps_recovering_no_worse(20.0, &[15.0, 16.0, 10.0]), 1);
-        assert_eq!(steps_recovering_no_worse(20.0, &[25.0, 10.0]), 0);
-        assert_eq!(steps_recovering_no_worse(20.0, &[f64::NAN, 10.0]), 0);
-        assert_eq!(steps_recovering_no_worse(f64::NAN, &[10.0]), 0);
+    fn the_model_kept_stops_at_the_last_step_that_recovers_worse_beyond_noise() {
+        let base = [20.0, -21.0, 19.0, -20.0, 22.0];
+        let better = [10.0, -11.0, 9.0, -10.0, 12.0];
+        let within_noise = [20.5, -20.0, 19.5, -21.0, 21.0];
+        let worse = [30.0, -31.0, 29.0, -30.0, 32.0];
+        assert_eq!(steps_recovering_no_worse(&base, &[]), 0);
+        assert_eq!(steps_recovering_no_worse(&base, &[&better, &better]), 2);
+        assert_eq!(steps_recovering_no_worse(&base, &[&within_noise, &better]), 2);
+        assert_eq!(steps_recovering_no_worse(&base, &[&better, &base, &better]), 1);
+        assert_eq!(steps_recovering_no_worse(&base, &[&worse, &better]), 0);
+        let unknown = [f64::NAN; 5];
+        assert_eq!(steps_recovering_no_worse(&base, &[&unknown, &better]), 0);
+        assert_eq!(steps_recovering_no_worse(&unknown, &[&better]), 0);
+        assert_eq!(steps_recovering_no_worse(&base, &[&better[..4]]), 0);
     }
 
     #[test]
