@@ -598,6 +598,37 @@ impl MultiFrequencyInversion {
         })
     }
 
+    /// [`Self::fit_at_translucency`] with the layer's distance searched only up to
+    /// `max_distance_mm`: whether a layer clear of the background explains the phasors (with
+    /// its distance free up to the background, a share of the background's own return left
+    /// over, as a pixel partly covered shows, fits as a "layer" right at it).
+    pub fn fit_at_translucency_nearer(
+        &self,
+        px: &PixelPhasors,
+        xi: f64,
+        max_distance_mm: f64,
+    ) -> Result<TranslucencyFit, MultiFrequencyError> {
+        if !(0.0..=1.0).contains(&xi) {
+            return Err(MultiFrequencyError::TranslucencyOutOfRange(xi));
+        }
+        let p = self.pixel(px)?;
+        let t = xi * xi;
+        let hi = p.hi.min(max_distance_mm);
+        if !(hi > p.lo) {
+            return Err(MultiFrequencyError::TranslucencyOutOfRange(xi));
+        }
+        let (d1, chi_square) = self.minimise(p.lo, hi, |d| {
+            let g = self.gram(&p, d);
+            g.chi_square(&p.fixed, g.return_at(t), t)
+        });
+        Ok(TranslucencyFit {
+            translucency: xi,
+            foreground_distance_mm: d1,
+            first_return: self.gram(&p, d1).return_at(t),
+            chi_square,
+        })
+    }
+
     /// The frequencies' common unambiguous range, mm.
     pub fn common_unambiguous_range_mm(&self) -> f64 {
         self.common_range_mm
