@@ -393,7 +393,7 @@ fn short(v: f64) -> String {
 /// Settings of the audit.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AuditSettings {
-    /// Folds of frames left out (interleaved by frame index).
+    /// Folds of frames left out (whole poses, or frames interleaved: `frame_folds`).
     pub folds: usize,
     /// Huber threshold of the loss, in noise sigmas.
     pub huber_k: f64,
@@ -1089,9 +1089,9 @@ fn held_out(prep: &Prepared, effects: &[Effect], theta: &[f64], bounces: usize, 
         recovery_mm: vec![f64::NAN; n],
     };
     let displaced = effects.contains(&Effect::RefractionShift);
-    let folds = settings.folds.clamp(2, data.frames.max(2));
+    let (fold_of, folds) = frame_folds(data, settings.folds);
     for f in 0..folds {
-        let (test, train): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| data.pixels[i].frame % folds == f);
+        let (test, train): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| fold_of[data.pixels[i].frame] == f);
         if test.is_empty() || train.is_empty() {
             continue;
         }
@@ -1107,6 +1107,65 @@ fn held_out(prep: &Prepared, effects: &[Effect], theta: &[f64], bounces: usize, 
         }
     }
     h
+}
+
+/// Two frames show the layer in one pose when their median true distances are this close, mm.
+const POSE_TOLERANCE_MM: f64 = 10.0;
+
+/// Each frame's fold, and the number of folds (at most `folds`, at least 2). With two poses or
+/// more (frames whose layer's median true distance agrees within [`POSE_TOLERANCE_MM`]), whole
+/// poses are left out, dealt to the folds in order of distance: an effect must predict a
+/// distance it was not fitted at, not another frame of a pose it has seen (with frames
+/// interleaved, a few parameters can follow each pose's own misfit). With one pose, frames
+/// interleaved.
+fn frame_folds(data: &AuditData, folds: usize) -> (Vec<usize>, usize) {
+    let mut per_frame: Vec<Vec<f64>> = vec![vec![]; data.frames];
+    for p in &data.pixels {
+        if let Some(v) = per_frame.get_mut(p.frame) {
+            v.push(p.truth_mm);
+        }
+    }
+    let mut order: Vec<(f64, usize)> = per_frame
+        .iter_mut()
+        .enumerate()
+        .map(|(f, v)| (super::stats::median_select(v), f))
+        .collect();
+    order.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut pose = vec![0usize; data.frames];
+    let mut poses = 0usize;
+    let mut last = f64::NAN;
+    for &(d, f) in &order {
+        if !(d - last <= POSE_TOLERANCE_MM) {
+            poses += 1;
+            last = d;
+        }
+        pose[f] = poses.saturating_sub(1);
+    }
+    if poses >= 2 {
+        let n = folds.clamp(2, poses);
+        (pose.iter().map(|&p| p % n).collect(), n)
+    } else {
+        let n = folds.clamp(2, data.frames.max(2));
+        ((0..data.frames).map(|f| f % n).collect(), n)
+    }
+}
+
+/// The folds ([`frame_folds`]) and the gain of `new` over `old` in held-out loss from all
+/// but the fold where it gains most: what is left when the one pose (or set of poses) that
+/// shows it best is set aside. A misfit of one pose that any flexible effect takes up gains
+/// in that fold alone; physics shows in every pose.
+fn gain_beyond_best_fold(prep: &Prepared, old: &Fit, new: &Fit, settings: &AuditSettings) -> (usize, f64) {
+    let (fold_of, folds) = frame_folds(prep.data, settings.folds);
+    let mut per_fold = vec![0.0; folds];
+    for (i, p) in prep.data.pixels.iter().enumerate() {
+        let d = old.heldout_loss[i] - new.heldout_loss[i];
+        if d.is_finite() {
+            per_fold[fold_of[p.frame]] += d;
+        }
+    }
+    let total: f64 = per_fold.iter().sum();
+    let best = per_fold.iter().copied().fold(0.0, f64::max);
+    (folds, total - best)
 }
 
 /// Gain of `new` over `old` in summed held-out loss, and its pixel-paired z.
@@ -1368,13 +1427,19 @@ fn run_round(
         let threshold = (settings.penalty_per_param_ln_n * e.penalty_params() as f64 * n.ln())
             .max(settings.min_relative_gain * current.heldout_score * n);
         let passes = gain > threshold && z > settings.min_gain_z;
-        // An effect is claimed only where it also predicts the held-out depths no worse
-        // beyond noise;
-        // otherwise the loss gain is the fit bending to something else. Its parameters are
-        // inside their physical ranges by construction (bounded fits).
+        // An effect is claimed only where more than one fold of poses shows it, and where it
+        // also predicts the held-out depths no worse beyond noise; otherwise the loss gain is
+        // the fit bending to something else. Its parameters are inside their physical ranges
+        // by construction (bounded fits).
+        let (folds, one_fold) = gain_beyond_best_fold(prep, current, &fit, settings);
+        let rest_needed = threshold * (folds as f64 - 1.0) / folds as f64;
         let depth_worse = squared_increase_z(&current.heldout_residual_mm, &fit.heldout_residual_mm)
             .is_none_or(|z| z > WORSE_BEYOND_NOISE_Z);
-        let rejected = if passes && depth_worse {
+        let rejected = if passes && one_fold < rest_needed {
+            format!(
+                "its held-out gain comes from one fold of poses: {one_fold:.0} from the others against {rest_needed:.0} needed"
+            )
+        } else if passes && depth_worse {
             format!(
                 "held-out depth error {:.1} mm against {:.1} without it, worse beyond noise",
                 fit.heldout_rmse_mm, current.heldout_rmse_mm
