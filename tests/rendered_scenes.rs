@@ -309,19 +309,7 @@ fn the_audit_invents_nothing_on_the_rendered_document_holder() {
 /// reading kept; ξ is reported as not measured, not guessed.
 #[test]
 fn a_moving_camera_is_corrected_with_no_latch() {
-    let python = python();
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let dir = tempfile::tempdir().expect("temp dir");
-    let json = dir.path().join("rows.json");
-    let out = Command::new(&python)
-        .arg(root.join("scripts/results.py"))
-        .args(["--exe", exe(), "--json"])
-        .arg(&json)
-        .arg(rendered("mf_moving_camera.mcap"))
-        .output()
-        .unwrap_or_else(|e| panic!("running {python} scripts/results.py: {e} (scripts/setup-python.sh makes .venv)"));
-    println!("{}", String::from_utf8_lossy(&out.stdout));
-    let rows: Value = serde_json::from_str(&std::fs::read_to_string(&json).expect("rows")).expect("json");
+    let rows = results_rows(&["mf_moving_camera.mcap"]);
     let row = &rows[0];
     assert!(row.get("error").is_none(), "{row}");
     let (every, raw) = (num(row, "all_pixels_rms_mm"), num(row, "all_pixels_rms_raw_mm"));

@@ -607,6 +607,9 @@ struct Prepared<'a> {
     huber_k: f64,
     /// Median IR of the pixels, counts (the scale of an IR offset's simplex step).
     ir_level: f64,
+    /// Each pixel's fold of held-out poses ([`frame_folds`]), and the number of folds.
+    fold: Vec<usize>,
+    folds: usize,
 }
 
 /// What a hypothesis knows at a pixel: its observation with the background seen
@@ -668,19 +671,26 @@ struct Eval {
 }
 
 impl<'a> Prepared<'a> {
-    fn new(data: &'a AuditData, base: &ForwardModel, huber_k: f64) -> Self {
+    fn new(data: &'a AuditData, base: &ForwardModel, settings: &AuditSettings) -> Self {
         let sigma_i = data
             .pixels
             .iter()
             .map(|p| (data.ir_noise_coef * p.obs.ir.max(1.0).sqrt()).max(0.5))
             .collect();
+        let (frame_fold, folds) = frame_folds(data, settings.folds);
         Self {
             data,
             base: base.clone(),
             sigma_d: vec![f64::NAN; data.pixels.len()],
             sigma_i,
-            huber_k,
+            huber_k: settings.huber_k,
             ir_level: median(data.pixels.iter().map(|p| p.obs.ir).collect()),
+            fold: data
+                .pixels
+                .iter()
+                .map(|p| frame_fold.get(p.frame).copied().unwrap_or(0))
+                .collect(),
+            folds,
         }
     }
 
@@ -1089,9 +1099,8 @@ fn held_out(prep: &Prepared, effects: &[Effect], theta: &[f64], bounces: usize, 
         recovery_mm: vec![f64::NAN; n],
     };
     let displaced = effects.contains(&Effect::RefractionShift);
-    let (fold_of, folds) = frame_folds(data, settings.folds);
-    for f in 0..folds {
-        let (test, train): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| fold_of[data.pixels[i].frame] == f);
+    for f in 0..prep.folds {
+        let (test, train): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| prep.fold[i] == f);
         if test.is_empty() || train.is_empty() {
             continue;
         }
@@ -1150,22 +1159,21 @@ fn frame_folds(data: &AuditData, folds: usize) -> (Vec<usize>, usize) {
     }
 }
 
-/// The folds ([`frame_folds`]) and the gain of `new` over `old` in held-out loss from all
+/// The folds ([`frame_folds`], as `prep` holds them) and the gain of `new` over `old` in held-out loss from all
 /// but the fold where it gains most: what is left when the one pose (or set of poses) that
 /// shows it best is set aside. A misfit of one pose that any flexible effect takes up gains
 /// in that fold alone; physics shows in every pose.
-fn gain_beyond_best_fold(prep: &Prepared, old: &Fit, new: &Fit, settings: &AuditSettings) -> (usize, f64) {
-    let (fold_of, folds) = frame_folds(prep.data, settings.folds);
-    let mut per_fold = vec![0.0; folds];
-    for (i, p) in prep.data.pixels.iter().enumerate() {
-        let d = old.heldout_loss[i] - new.heldout_loss[i];
+fn gain_beyond_best_fold(prep: &Prepared, old: &Fit, new: &Fit) -> (usize, f64) {
+    let mut per_fold = vec![0.0; prep.folds];
+    for ((a, b), &f) in old.heldout_loss.iter().zip(&new.heldout_loss).zip(&prep.fold) {
+        let d = a - b;
         if d.is_finite() {
-            per_fold[fold_of[p.frame]] += d;
+            per_fold[f] += d;
         }
     }
     let total: f64 = per_fold.iter().sum();
     let best = per_fold.iter().copied().fold(0.0, f64::max);
-    (folds, total - best)
+    (prep.folds, total - best)
 }
 
 /// Gain of `new` over `old` in summed held-out loss, and its pixel-paired z.
@@ -1312,7 +1320,7 @@ pub fn run_audit_with_progress(
 ) -> Result<AuditResult, AuditError> {
     check_inputs(data)?;
     let range_mm = base.sensor.unambiguous_range_mm();
-    let mut prep = Prepared::new(data, base, settings.huber_k);
+    let mut prep = Prepared::new(data, base, settings);
     // Noise weights from a first baseline fit with photon-limited depth noise, then refit.
     prep.sigma_d = data
         .pixels
@@ -1431,7 +1439,7 @@ fn run_round(
         // also predicts the held-out depths no worse beyond noise; otherwise the loss gain is
         // the fit bending to something else. Its parameters are inside their physical ranges
         // by construction (bounded fits).
-        let (folds, one_fold) = gain_beyond_best_fold(prep, current, &fit, settings);
+        let (folds, one_fold) = gain_beyond_best_fold(prep, current, &fit);
         let rest_needed = threshold * (folds as f64 - 1.0) / folds as f64;
         let depth_worse = squared_increase_z(&current.heldout_residual_mm, &fit.heldout_residual_mm)
             .is_none_or(|z| z > WORSE_BEYOND_NOISE_Z);

@@ -581,21 +581,7 @@ impl MultiFrequencyInversion {
     /// in closed form. Over several ξ this is the profile that shows whether
     /// the phasors determine ξ (with one frequency they do not).
     pub fn fit_at_translucency(&self, px: &PixelPhasors, xi: f64) -> Result<TranslucencyFit, MultiFrequencyError> {
-        if !(0.0..=1.0).contains(&xi) {
-            return Err(MultiFrequencyError::TranslucencyOutOfRange(xi));
-        }
-        let p = self.pixel(px)?;
-        let t = xi * xi;
-        let (d1, chi_square) = self.minimise(p.lo, p.hi, |d| {
-            let g = self.gram(&p, d);
-            g.chi_square(&p.fixed, g.return_at(t), t)
-        });
-        Ok(TranslucencyFit {
-            translucency: xi,
-            foreground_distance_mm: d1,
-            first_return: self.gram(&p, d1).return_at(t),
-            chi_square,
-        })
+        self.fit_at_translucency_nearer(px, xi, f64::INFINITY)
     }
 
     /// [`Self::fit_at_translucency`] with the layer's distance searched only up to
@@ -613,10 +599,11 @@ impl MultiFrequencyInversion {
         }
         let p = self.pixel(px)?;
         let t = xi * xi;
-        let hi = p.hi.min(max_distance_mm);
-        if !(hi > p.lo) {
-            return Err(MultiFrequencyError::TranslucencyOutOfRange(xi));
-        }
+        let hi = if max_distance_mm < p.hi {
+            max_distance_mm.max(p.lo)
+        } else {
+            p.hi
+        };
         let (d1, chi_square) = self.minimise(p.lo, hi, |d| {
             let g = self.gram(&p, d);
             g.chi_square(&p.fixed, g.return_at(t), t)

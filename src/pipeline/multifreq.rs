@@ -1585,6 +1585,14 @@ albedo = 0.7
         MultiFrequencyStage::new(config, scene_intrinsics(scene)).expect("stage")
     }
 
+    /// The stage with the background latched from the scene's first six frames.
+    fn latched_stage(scene: &Scene, all: &[(PhasorFrame, DepthFrame, ImageBuf<f32>)]) -> MultiFrequencyStage {
+        let mut s = stage(scene);
+        let latch: Vec<_> = all[..6].iter().map(|(p, d, _)| (p, d)).collect();
+        s.latch(&latch, Sensor::sr4000().unambiguous_range_mm()).expect("latch");
+        s
+    }
+
     /// What a frame of the test scene shows: the sheet's pixels (truth nearer than 1150 mm),
     /// those in the mask, their RMS error and ξ; the box's pixels and those in the mask (every
     /// other box pixel keeps its reading); whether the background stayed out of the mask.
@@ -1682,9 +1690,7 @@ albedo = 0.7
         )
         .expect("scene");
         let all = frames(&scene);
-        let mut s = stage(&scene);
-        let latch: Vec<_> = all[..6].iter().map(|(p, d, _)| (p, d)).collect();
-        s.latch(&latch, Sensor::sr4000().unambiguous_range_mm()).expect("latch");
+        let s = latched_stage(&scene, &all);
         let (p, d, truth) = &all[6];
         let out = s.process(p, d).expect("frame");
         let (mut sheet, mut in_mask, mut err2, mut raw2) = (0, 0, 0.0, 0.0);
@@ -1724,9 +1730,7 @@ albedo = 0.7
     fn a_layer_is_recovered_and_an_opaque_box_kept() {
         let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
         let all = frames(&scene);
-        let mut s = stage(&scene);
-        let latch: Vec<_> = all[..6].iter().map(|(p, d, _)| (p, d)).collect();
-        s.latch(&latch, Sensor::sr4000().unambiguous_range_mm()).expect("latch");
+        let s = latched_stage(&scene, &all);
         let (p, d, truth) = &all[6];
         let out = s.process(p, d).expect("frame");
         let o = &out.frame;
