@@ -1186,14 +1186,23 @@ fn paired_gain(old: &Fit, new: &Fit) -> (f64, f64, usize) {
         .filter(|v| v.is_finite())
         .collect();
     let n = d.len();
-    if n < 2 {
+    let Some((sum, var)) = sum_and_variance(&d) else {
         return (0.0, 0.0, n);
+    };
+    let se_sum = (var * n as f64).sqrt().max(1e-12);
+    (sum, sum / se_sum, n)
+}
+
+/// The sum of paired differences `d` and their sample variance; `None` with fewer than two.
+fn sum_and_variance(d: &[f64]) -> Option<(f64, f64)> {
+    let n = d.len();
+    if n < 2 {
+        return None;
     }
     let sum: f64 = d.iter().sum();
     let mean = sum / n as f64;
     let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
-    let se_sum = (var * n as f64).sqrt().max(1e-12);
-    (sum, sum / se_sum, n)
+    Some((sum, var))
 }
 
 /// Residual trends of a fit's held-out residuals against every quantity.
@@ -1525,13 +1534,9 @@ pub fn squared_increase_z(old: &[f64], new: &[f64]) -> Option<f64> {
         .filter(|(a, b)| a.is_finite() && b.is_finite())
         .map(|(a, b)| b * b - a * a)
         .collect();
-    if d.len() < 2 {
-        return None;
-    }
+    let (sum, var) = sum_and_variance(&d)?;
     let n = d.len() as f64;
-    let mean = d.iter().sum::<f64>() / n;
-    let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
-    Some(mean / (var / n).sqrt().max(1e-12))
+    Some(sum / n / (var / n).sqrt().max(1e-12))
 }
 
 /// Whether `new`'s block recovery errors are worse than `old`'s (as [`recovery_blocks`]
