@@ -157,7 +157,10 @@ impl NodeChild {
             if let Some(s) = self.child.try_wait().unwrap() {
                 break s;
             }
-            assert!(t0.elapsed() < Duration::from_secs(20), "node did not stop on SIGINT");
+            if t0.elapsed() > Duration::from_secs(20) {
+                let log = std::fs::read_to_string(&self.log).unwrap_or_default();
+                panic!("node did not stop within 20 s of SIGINT; its log:\n{log}");
+            }
             std::thread::sleep(Duration::from_millis(20));
         };
         let log = std::fs::read_to_string(&self.log).unwrap_or_default();

@@ -117,6 +117,8 @@ pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
         let mut pairer = StampPairer::new(4);
         let mut latches = std::pin::pin!(latch.receive_request_stream());
         let mut clears = std::pin::pin!(clear.receive_request_stream());
+        // Made once: a `ctrl_c()` made anew each turn misses a signal that arrives mid-turn.
+        let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())?;
         let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
         let ok = || TriggerResponse {
             success: true,
@@ -176,7 +178,7 @@ pub fn run(domain_id: u16, namespace: &str, node_fqn: &str) -> Result<()> {
                 }
                 Some(Ok((id, _))) = latches.next() => { let _ = latch.async_send_response(id, ok()).await; }
                 Some(Ok((id, _))) = clears.next() => { let _ = clear.async_send_response(id, ok()).await; }
-                _ = tokio::signal::ctrl_c() => break,
+                _ = sigint.recv() => break,
                 _ = sigterm.recv() => break,
                 _ = tokio::time::sleep(Duration::from_secs(3600)) => {}
             }

@@ -972,6 +972,9 @@ impl Events<'_> {
                 .enumerate()
                 .map(|(k, sub)| Box::pin(sub.async_stream().map(move |m| (k, m)))),
         );
+        // Both listeners live across the loop: a `ctrl_c()` made anew each turn misses a
+        // signal that arrives while a turn's branch runs.
+        let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())?;
         let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
         loop {
             tokio::select! {
@@ -1008,7 +1011,7 @@ impl Events<'_> {
                 Some((token, resp)) = replies.recv() => services.reply(token, resp).await,
                 _ = diag_tick.tick(), if !s.diagnostics_period.is_zero() => self.publish_diagnostics(),
                 st = done.recv() => return Ok(st),
-                _ = tokio::signal::ctrl_c() => { info!("SIGINT: shutting down"); return Ok(None); },
+                _ = sigint.recv() => { info!("SIGINT: shutting down"); return Ok(None); },
                 _ = sigterm.recv() => { info!("SIGTERM: shutting down"); return Ok(None); },
             }
         }
