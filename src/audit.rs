@@ -9,6 +9,7 @@ use nalgebra::Vector3;
 
 use crate::physics::audit::{AuditData, AuditPixel, Trend};
 use crate::physics::camera::z_to_ray_distance;
+use crate::physics::near_wall;
 use crate::physics::stats::median_sorted;
 use crate::physics::ImageBuf;
 use crate::pipeline::{rmse_against_truth, DepthFrame, Pipeline, PipelineError};
@@ -42,7 +43,7 @@ pub fn gather(
     let scale = k.ray_scale_map();
     let rays = k.unit_ray_map();
     let mut stats = GatherStats::default();
-    let mut per_frame: Vec<Vec<AuditPixel>> = vec![];
+    let mut per_frame: Vec<(Vec<AuditPixel>, ImageBuf<f64>)> = vec![];
     for (frame, truth_z) in frames {
         let obs = pipe.observe(frame)?;
         if !truth_z.same_size(&obs.mask) {
@@ -109,17 +110,19 @@ pub fn gather(
                 });
             }
         }
-        per_frame.push(px);
+        per_frame.push((px, truth));
     }
-    per_frame.retain(|p| p.len() >= MIN_PIXELS_PER_FRAME);
+    per_frame.retain(|(p, _)| p.len() >= MIN_PIXELS_PER_FRAME);
     let nf = per_frame.len().max(1);
     let cap = (max_pixels / nf).max(MIN_PIXELS_PER_FRAME);
     let mut pixels = vec![];
-    for (f, px) in per_frame.iter().enumerate() {
+    for (f, (px, truth)) in per_frame.iter().enumerate() {
         let step = px.len().div_ceil(cap).max(1);
         // An odd step over raster order spreads the pick over rows and columns.
         let step = if step > 1 && step % 2 == 0 { step + 1 } else { step };
-        pixels.extend(px.iter().step_by(step).map(|p| AuditPixel { frame: f, ..*p }));
+        let mut picked: Vec<AuditPixel> = px.iter().step_by(step).map(|p| AuditPixel { frame: f, ..*p }).collect();
+        set_wall_view_factors(&mut picked, truth, &rays);
+        pixels.extend(picked);
     }
     let coef = |f: &dyn Fn(usize) -> f64| {
         let mut v: Vec<f64> = (0..w * h).map(f).filter(|v| v.is_finite() && *v > 0.0).collect();
@@ -151,6 +154,32 @@ pub fn gather(
         stats,
     ))
 }
+
+/// Each pixel's view factor from its background point to the frame's true layer
+/// (`truth`: ray distances, NaN off it), for a near wall's third return.
+fn set_wall_view_factors(px: &mut [AuditPixel], truth: &ImageBuf<f64>, rays: &ImageBuf<Vector3<f64>>) {
+    let layer = ImageBuf {
+        width: truth.width,
+        height: truth.height,
+        data: truth
+            .data
+            .iter()
+            .zip(&rays.data)
+            .map(|(t, r)| t.is_finite().then(|| r * *t))
+            .collect(),
+    };
+    let walls: Vec<Vector3<f64>> = px
+        .iter()
+        .map(|p| rays.data[p.row * truth.width + p.col] * p.obs.background_distance_mm)
+        .collect();
+    let factors = near_wall::view_factors_to_layer(&layer, rays, WALL_PATCH_STRIDE, &walls);
+    for (p, f) in px.iter_mut().zip(factors) {
+        p.obs.wall_view_factor = f;
+    }
+}
+
+/// The layer as one patch per this many pixels square, for the view factors.
+const WALL_PATCH_STRIDE: usize = 3;
 
 /// Mean over the `(2 r + 1)^2` neighbourhood of each pixel, of its finite samples.
 fn box_mean(img: &ImageBuf<f64>, r: usize) -> ImageBuf<f64> {

@@ -259,6 +259,9 @@ fn drawn_scene(seed: u64, effect: Option<Effect>) -> translucent_tof::sim::Scene
         Some(Effect::AmbientOffset) => p.ambient_offset = rng.random_range(80.0..200.0),
         Some(Effect::SubsurfaceDelay) => p.subsurface_delay_mm = rng.random_range(12.0..35.0),
         Some(Effect::TransmissionLaw) => p.transmission_albedo_power = rng.random_range(0.0..1.0),
+        // The sequence's last poses are 250-400 mm before the wall, where the layer's back and
+        // the wall exchange light.
+        Some(Effect::WallInterreflection) => p.wall_interreflection = rng.random_range(0.7..1.3),
         Some(Effect::RefractionShift) => {
             // A displaced background shows only where the background changes along the
             // displacement: the wall is tilted about the axis across it.

@@ -205,6 +205,8 @@ pub struct PhysicsFile {
     pub harmonics: Option<[f64; 2]>,
     /// Displacement of the background seen through the layer, pixels `[columns, rows]`.
     pub refraction_shift_px: Option<[f64; 2]>,
+    /// Gain on the third return of a layer near a diffuse background (0 = none, 1 = its estimate).
+    pub wall_interreflection: Option<f64>,
 }
 
 impl PhysicsFile {
@@ -217,6 +219,11 @@ impl PhysicsFile {
     /// Parses and checks a physics file's text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self> {
         let f: PhysicsFile = toml::from_str(text).with_context(|| origin.to_string())?;
+        if let Some(g) = f.wall_interreflection {
+            if !(0.0..=10.0).contains(&g) {
+                bail!("{origin}: wall_interreflection = {g} is not in 0..=10");
+            }
+        }
         if let Some(b) = f.bounces {
             if !(2..=crate::physics::model::MAX_BOUNCES).contains(&b) {
                 bail!(
@@ -254,6 +261,7 @@ impl PhysicsFile {
             waveform,
             harmonics,
             refraction_shift_px: Some(options.refraction_shift_px),
+            wall_interreflection: Some(options.wall_interreflection),
         }
     }
 
@@ -272,6 +280,7 @@ impl PhysicsFile {
             ambient_offset: self.ambient_offset.unwrap_or(d.ambient_offset),
             subsurface_delay_mm: self.subsurface_delay_mm.unwrap_or(d.subsurface_delay_mm),
             refraction_shift_px: self.refraction_shift_px.unwrap_or(d.refraction_shift_px),
+            wall_interreflection: self.wall_interreflection.unwrap_or(d.wall_interreflection),
         }
     }
 }
@@ -316,6 +325,9 @@ pub fn describe_model(model: &ForwardModel) -> String {
                 "refraction_shift_px = [{}, {}]",
                 o.refraction_shift_px[0], o.refraction_shift_px[1]
             ));
+        }
+        if o.wall_interreflection != p.wall_interreflection {
+            d.push(format!("wall_interreflection = {}", o.wall_interreflection));
         }
         d
     };

@@ -41,11 +41,13 @@ pub enum Effect {
     TransmissionLaw,
     /// The background seen through the layer displaced (refraction).
     RefractionShift,
+    /// Light the layer's back and a near diffuse background exchange (a third return).
+    WallInterreflection,
 }
 
 impl Effect {
     /// Every candidate, in a fixed order.
-    pub const ALL: [Effect; 7] = [
+    pub const ALL: [Effect; 8] = [
         Effect::HigherOrderBounces,
         Effect::WaveformHarmonics,
         Effect::IrAmplitude,
@@ -53,6 +55,7 @@ impl Effect {
         Effect::SubsurfaceDelay,
         Effect::TransmissionLaw,
         Effect::RefractionShift,
+        Effect::WallInterreflection,
     ];
 
     /// The name in reports and physics files.
@@ -65,6 +68,7 @@ impl Effect {
             Effect::SubsurfaceDelay => "subsurface_delay",
             Effect::TransmissionLaw => "transmission_law",
             Effect::RefractionShift => "refraction_shift",
+            Effect::WallInterreflection => "wall_interreflection",
         }
     }
 
@@ -78,6 +82,7 @@ impl Effect {
             Effect::SubsurfaceDelay => &["subsurface_delay_mm"],
             Effect::TransmissionLaw => &["transmission_albedo_power"],
             Effect::RefractionShift => &["shift_columns_px", "shift_rows_px"],
+            Effect::WallInterreflection => &["wall_interreflection"],
         }
     }
 
@@ -506,6 +511,7 @@ fn build_model(base: &ForwardModel, effects: &[Effect], p: &[f64], bounces: usiz
             Effect::SubsurfaceDelay => options.subsurface_delay_mm = p[k],
             Effect::TransmissionLaw => options.transmission_albedo_power = p[k],
             Effect::RefractionShift => options.refraction_shift_px = [p[k], p[k + 1]],
+            Effect::WallInterreflection => options.wall_interreflection = p[k],
         }
         k += e.param_names().len();
     }
@@ -582,6 +588,7 @@ fn param_starts(e: Effect, ir_level: f64) -> (Vec<Vec<f64>>, Vec<f64>) {
         Effect::AmbientOffset => (vec![vec![0.0]], vec![0.03 * ir_level]),
         Effect::SubsurfaceDelay => (vec![vec![0.0], vec![25.0]], vec![8.0]),
         Effect::TransmissionLaw => (vec![vec![2.0], vec![1.0], vec![0.0]], vec![0.4]),
+        Effect::WallInterreflection => (vec![vec![0.0], vec![1.0]], vec![0.3]),
         Effect::RefractionShift => (
             vec![
                 vec![0.0, 0.0],
@@ -1574,6 +1581,7 @@ pub const PHYSICAL_RANGES: &[(&str, f64, f64)] = &[
     ("ambient_offset", 0.0, f64::INFINITY),
     ("shift_columns_px", -20.0, 20.0),
     ("shift_rows_px", -20.0, 20.0),
+    ("wall_interreflection", 0.0, 3.0),
 ];
 
 /// The baseline fitted on all pixels (internal coordinates), for the noise weights.

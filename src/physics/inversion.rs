@@ -26,6 +26,9 @@ pub struct PixelObservation {
     pub background_ir: f64,
     /// `Lin`: emitted light toward this pixel (Eq. 13), counts mm^2.
     pub emitted_light: f64,
+    /// `F`: the view factor from the background point to the layer, where the model's
+    /// [`ModelOptions::wall_interreflection`] asks for it (0 until it is known).
+    pub wall_view_factor: f64,
 }
 
 impl PixelObservation {
@@ -39,6 +42,7 @@ impl PixelObservation {
             foreground_albedo_cos: x,
             background_albedo_cos: self.background_albedo_cos(ambient_offset),
             emitted_light: self.emitted_light,
+            wall_view_factor: self.wall_view_factor,
         }
     }
 
@@ -115,7 +119,7 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
     if let Some(p) = PhasorModel::new(model) {
         return p.albedo_cos(obs, df, xi, x_max);
     }
-    if o.bounces == 2 && o.ir_mode == IrMode::Sum {
+    if o.bounces == 2 && o.ir_mode == IrMode::Sum && o.wall_interreflection == 0.0 {
         // I = b X + a X^p with a = xi^2 Ib, b = (1 - xi) Lin / df^2 (Eq. 7).
         let a = xi * xi * (obs.background_ir - o.ambient_offset).max(0.0);
         let b = (1.0 - xi) * obs.emitted_light / (df * df);
@@ -1191,6 +1195,18 @@ mod tests {
 
     /// A pixel's observation of a layer as `model` renders it (shared with the phasor path's tests).
     pub(super) fn observe(model: &ForwardModel, df: f64, db: f64, xi: f64, x: f64, xb: f64) -> PixelObservation {
+        observe_near_wall(model, [df, db], xi, x, xb, 0.0)
+    }
+
+    /// [`observe`] with the view factor `f` from the background point to the layer.
+    pub(super) fn observe_near_wall(
+        model: &ForwardModel,
+        [df, db]: [f64; 2],
+        xi: f64,
+        x: f64,
+        xb: f64,
+        f: f64,
+    ) -> PixelObservation {
         let lin = 1.5e10;
         let s = LayerScene {
             foreground_distance_mm: df,
@@ -1199,6 +1215,7 @@ mod tests {
             foreground_albedo_cos: x,
             background_albedo_cos: xb,
             emitted_light: lin,
+            wall_view_factor: f,
         };
         let m = model.measure_layer(&s);
         let bg = model.measure(&[ForwardModel::opaque_return(db, xb, lin)]);
@@ -1208,6 +1225,7 @@ mod tests {
             background_distance_mm: db,
             background_ir: bg.ir,
             emitted_light: lin,
+            wall_view_factor: f,
         }
     }
 
@@ -1275,6 +1293,7 @@ mod tests {
             ambient_offset: 30.0,
             subsurface_delay_mm: 5.0,
             refraction_shift_px: [0.0, 0.0],
+            wall_interreflection: 0.0,
         };
         let m = ForwardModel {
             sensor: Sensor::sr4000(),

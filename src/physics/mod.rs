@@ -11,6 +11,7 @@ pub mod buffer;
 pub use buffer::{ImageBuf, Region, SparseImage};
 pub mod model;
 pub mod multifreq;
+pub mod near_wall;
 pub mod sensor;
 
 pub use model::{ForwardModel, IrMode, LayerScene, Measurement, ModelOptions, Preset, Return};

@@ -6,6 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::near_wall::{third_return_distance, third_return_share};
 use super::sensor::{Buckets, Sensor};
 
 /// Most returns the model keeps (L1, L2 and six higher-order bounces).
@@ -48,6 +49,11 @@ pub struct ModelOptions {
     /// Eq. 2-3) is the one a neighbouring ray would see, displaced by this
     /// many pixels `[columns, rows]` in the image. `[0, 0]` is no refraction.
     pub refraction_shift_px: [f64; 2],
+    /// Gain on the light the layer's back and a diffuse background exchange
+    /// ([`super::near_wall`]): a third return of `L2 F (1 - ξ) X Xb (ξ F + 1 - F) / ξ`
+    /// at `db + sqrt(2) (db - df)`, with `F` the view factor from the background point to
+    /// the layer ([`LayerScene::wall_view_factor`]). 0 leaves it out; 1 is its estimate.
+    pub wall_interreflection: f64,
 }
 
 impl Default for ModelOptions {
@@ -106,6 +112,7 @@ impl ModelOptions {
             ambient_offset: 0.0,
             subsurface_delay_mm: 0.0,
             refraction_shift_px: [0.0, 0.0],
+            wall_interreflection: 0.0,
         }
     }
 
@@ -125,6 +132,7 @@ impl ModelOptions {
             && self.ir_mode == IrMode::Sum
             && self.transmission_albedo_power == 2.0
             && self.ambient_offset == 0.0
+            && self.wall_interreflection == 0.0
     }
 
     /// True when the background behind the layer is displaced (refraction).
@@ -203,6 +211,9 @@ pub struct LayerScene {
     pub background_albedo_cos: f64,
     /// `Lin`: emitted light toward this pixel (Eq. 13), counts mm^2.
     pub emitted_light: f64,
+    /// `F`: the view factor from the background point behind the pixel to the layer
+    /// ([`super::near_wall::view_factor`]); 0 where it is not known or not wanted.
+    pub wall_view_factor: f64,
 }
 
 /// What the device reports for one pixel.
@@ -272,6 +283,14 @@ impl ForwardModel {
                 distance_mm: dist,
             };
             fac *= (1.0 - xi) * x * xb;
+        }
+        let share = o.wall_interreflection * third_return_share(xi, x, xb, s.wall_view_factor);
+        if share > 0.0 && n < MAX_BOUNCES {
+            out[n] = Return {
+                strength: share * out[1].strength,
+                distance_mm: third_return_distance(df, db),
+            };
+            return n + 1;
         }
         n
     }
@@ -363,6 +382,7 @@ mod tests {
             foreground_albedo_cos: x,
             background_albedo_cos: 1.0,
             emitted_light: 1.0e10,
+            wall_view_factor: 0.0,
         }
     }
 
@@ -399,6 +419,27 @@ mod tests {
             assert!((got.strength - want).abs() < 1e-9 * want, "term {i}");
             assert_eq!(got.distance_mm, dist);
         }
+    }
+
+    #[test]
+    fn a_near_wall_adds_a_third_return_past_the_background() {
+        let mut m = ForwardModel::physical(Sensor::sr4000());
+        let s = LayerScene {
+            wall_view_factor: 0.27,
+            ..scene(1750.0, 2000.0, 0.65, 0.6)
+        };
+        let mut r = [Return::default(); MAX_BOUNCES];
+        assert_eq!(m.layer_returns(&s, &mut r), 2, "off unless asked for");
+        m.options.wall_interreflection = 1.0;
+        assert_eq!(m.layer_returns(&s, &mut r), 3);
+        let share = 0.27 * 0.35 * 0.6 * (0.65 * 0.27 + 0.73) / 0.65;
+        assert!((r[2].strength - share * r[1].strength).abs() < 1e-9 * r[1].strength);
+        assert!((r[2].distance_mm - (2000.0 + 250.0 * std::f64::consts::SQRT_2)).abs() < 1e-9);
+        let none = LayerScene {
+            wall_view_factor: 0.0,
+            ..s
+        };
+        assert_eq!(m.layer_returns(&none, &mut r), 2, "no view, no third return");
     }
 
     #[test]

@@ -1321,6 +1321,7 @@ mod tests {
             foreground_albedo_cos: X_LAYER,
             background_albedo_cos: X_BACKGROUND,
             emitted_light: LIN,
+            wall_view_factor: 0.0,
         }
     }
 

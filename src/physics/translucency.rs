@@ -1394,6 +1394,7 @@ mod tests {
                         background_distance_mm: 3000.0,
                         background_ir: 800.0,
                         emitted_light: 1e10,
+                        wall_view_factor: 0.0,
                     })
                 })
                 .collect(),

@@ -6,6 +6,7 @@
 use nalgebra::Vector3;
 
 use super::{label_mask, restrict, DepthFrame, FrameOutput, Observed, Pipeline, RegionOutput};
+use crate::physics::near_wall;
 use crate::physics::parallel::{map_chunks_ordered, map_ordered};
 use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::{
@@ -136,6 +137,11 @@ impl Pipeline {
         out: &mut Layer,
     ) {
         let xi = xi_estimate.xi;
+        // With a near wall's third return, each pixel's view factor to the layer first.
+        let walled = (self.config.model.options.wall_interreflection > 0.0)
+            .then(|| self.with_wall_view_factors(observations, xi))
+            .flatten();
+        let observations = walled.as_ref().unwrap_or(observations);
         // The work is done on the rectangle around the translucent pixels (on the prior's
         // block grid, so its windows are those of the whole image): often a small part of it.
         let Some(region) = Region::around(obs_mask, self.config.prior_stride_px) else {
@@ -154,23 +160,7 @@ impl Pipeline {
                 .filter_map(|&(_, fi)| observations.get(fi).copied())
                 .collect()
         };
-        let per_pixel = self.solve_pixels(&observed, &held, xi);
-        let mut roots = Roots::of(
-            region.len(),
-            &observed,
-            &per_pixel,
-            &rays,
-            self.config.max_layer_sigma_mm,
-        );
-        if self.config.prior_radius_px > 0 {
-            self.apply_surface_prior(
-                &mut roots,
-                (&observed, &held, observations),
-                (&rays, &mask),
-                xi,
-                region.width,
-            );
-        }
+        let roots = self.layer_roots((&observed, &held, observations), (&rays, &mask), xi, region.width);
         let xi_share = self.xi_share(&observed, &held, &roots.df, region.width, xi_estimate);
         for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
             let (z, sigma) = if roots.df[i].is_finite() {
@@ -190,6 +180,112 @@ impl Pipeline {
         out.tally.unresolved += roots.unresolved;
         out.tally.res2 += roots.res2;
         out.tally.fitted += roots.fitted;
+    }
+
+    /// `observations` with each pixel's view factor to the layer found at `xi`
+    /// ([`Self::wall_view_factors`]; [`WALL_PASSES`] passes, each from the layer the last
+    /// one's factors give), for recovery and ξ's evidence under a model with a near wall's
+    /// third return. `None` when there is no layer.
+    pub(crate) fn with_wall_view_factors(
+        &self,
+        observations: &SparseImage<PixelObservation>,
+        xi: f64,
+    ) -> Option<SparseImage<PixelObservation>> {
+        let mut obs_mask = ImageBuf::filled(observations.width, observations.height, false);
+        for fi in observations.pixels() {
+            obs_mask.data[fi] = true;
+        }
+        let region = Region::around(&obs_mask, self.config.prior_stride_px)?;
+        let rays = region.crop(&self.rays);
+        let mask = region.crop(&obs_mask);
+        let observed = observed_in(&region, observations);
+        let mut held: Vec<PixelObservation> = observed
+            .iter()
+            .filter_map(|&(_, fi)| observations.get(fi).copied())
+            .collect();
+        let mut walled = None;
+        for _ in 0..WALL_PASSES {
+            let layer_of = walled.as_ref().unwrap_or(observations);
+            let roots = self.layer_roots((&observed, &held, layer_of), (&rays, &mask), xi, region.width);
+            let factors = self.wall_view_factors(&observed, &held, &roots.df, &rays, region.width);
+            walled = Some(with_view_factors(observations, &observed, &factors)?);
+            held = observed
+                .iter()
+                .filter_map(|&(_, fi)| walled.as_ref()?.get(fi).copied())
+                .collect();
+        }
+        walled
+    }
+
+    /// The layer's roots at ξ over a rectangle `width` wide (its `rays` and `mask`): each
+    /// observed pixel inverted, then the smooth-surface prior.
+    fn layer_roots(
+        &self,
+        (observed, held, observations): (&[(usize, usize)], &[PixelObservation], &SparseImage<PixelObservation>),
+        (rays, mask): (&ImageBuf<Vector3<f64>>, &ImageBuf<bool>),
+        xi: f64,
+        width: usize,
+    ) -> Roots {
+        let per_pixel = self.solve_pixels(observed, held, xi);
+        let mut roots = Roots::of(
+            rays.data.len(),
+            observed,
+            &per_pixel,
+            rays,
+            self.config.max_layer_sigma_mm,
+        );
+        if self.config.prior_radius_px > 0 {
+            self.apply_surface_prior(&mut roots, (observed, held, observations), (rays, mask), xi, width);
+        }
+        roots
+    }
+
+    /// Each observed pixel's view factor from its background point to the layer at `df`
+    /// (by the rectangle's index, `width` wide; [`near_wall::view_factor`]): the layer as
+    /// one patch per `prior_stride_px` square block, the factor found at each block's first
+    /// observed pixel and taken by the block's others; 0 where the layer is not known.
+    fn wall_view_factors(
+        &self,
+        observed: &[(usize, usize)],
+        held: &[PixelObservation],
+        df: &[f64],
+        rays: &ImageBuf<Vector3<f64>>,
+        width: usize,
+    ) -> Vec<f64> {
+        let (w, stride) = (width.max(1), self.config.prior_stride_px.max(1));
+        let block = |i: usize| (i / w / stride) * w.div_ceil(stride) + (i % w) / stride;
+        let patches: Vec<near_wall::Patch> = observed
+            .iter()
+            .map(|&(i, _)| i)
+            .filter(|&i| (i / w) % stride == 0 && (i % w) % stride == 0 && df[i].is_finite())
+            .map(|i| near_wall::Patch {
+                point: rays.data[i] * df[i],
+                solid_angle: near_wall::pixel_solid_angle(rays, i) * (stride * stride) as f64,
+            })
+            .collect();
+        let mut first_of_block = vec![usize::MAX; block(df.len().saturating_sub(1)) + 1];
+        let mut items: Vec<(usize, Vector3<f64>)> = vec![];
+        for (&(i, _), o) in observed.iter().zip(held) {
+            if let Some(first) = first_of_block.get_mut(block(i)).filter(|f| **f == usize::MAX) {
+                *first = i;
+                items.push((i, rays.data[i] * o.background_distance_mm));
+            }
+        }
+        let factors = map_ordered(&items, MIN_PARALLEL_PIXELS / 16, 8, |(_, wall)| {
+            near_wall::view_factor(wall, &patches)
+        });
+        let mut by_index = vec![0.0; df.len()];
+        for (&(i, _), f) in items.iter().zip(factors) {
+            by_index[i] = f;
+        }
+        observed
+            .iter()
+            .map(|&(i, _)| {
+                first_of_block
+                    .get(block(i))
+                    .map_or(0.0, |&first| by_index.get(first).copied().unwrap_or(0.0))
+            })
+            .collect()
     }
 
     /// Each observed pixel inverted at ξ (`None` where no root), with the layer's standard
@@ -356,6 +452,38 @@ impl Pipeline {
         }
         share
     }
+}
+
+/// Passes of a near wall's view factors and the layer found with them: the view factor
+/// grows as the layer nears the wall, and the first layer (without the third return) is
+/// too near it.
+const WALL_PASSES: usize = 3;
+
+/// The frame's observations with the `observed` pixels' view factors set (`factors` in
+/// their order); `None` if the copy cannot be made.
+fn with_view_factors(
+    observations: &SparseImage<PixelObservation>,
+    observed: &[(usize, usize)],
+    factors: &[f64],
+) -> Option<SparseImage<PixelObservation>> {
+    let mut by_pixel: std::collections::HashMap<usize, f64> = std::collections::HashMap::with_capacity(observed.len());
+    for (&(_, fi), &f) in observed.iter().zip(factors) {
+        by_pixel.insert(fi, f);
+    }
+    let mask = ImageBuf {
+        width: observations.width,
+        height: observations.height,
+        data: (0..observations.width * observations.height)
+            .map(|fi| observations.get(fi).is_some())
+            .collect(),
+    };
+    SparseImage::from_mask(&mask, |fi| {
+        let o = *observations.get(fi)?;
+        Some(PixelObservation {
+            wall_view_factor: by_pixel.get(&fi).copied().unwrap_or(0.0),
+            ..o
+        })
+    })
 }
 
 /// Where a layer's recovery is written: z and its standard deviation (mm), and the counts.
@@ -539,6 +667,7 @@ mod tests {
             background_distance_mm: 2000.0,
             background_ir: 800.0,
             emitted_light: 1e10,
+            wall_view_factor: 0.0,
         }
     }
 

@@ -4,6 +4,9 @@
 
 use super::*;
 
+/// The ξ a near wall's view factors are found at before any estimate.
+const NOMINAL_XI: f64 = 0.5;
+
 impl Pipeline {
     /// Adds a frame's evidence about ξ (no-op for a fixed ξ), region by region: the objects
     /// stage ([`Materials::add_frame`]) gives each region the object it continues, or starts
@@ -41,11 +44,22 @@ impl Pipeline {
             .needs_evidence(&regions, self.evidence_frames, obs.stamp_ns, &settings);
         let count = needed.iter().filter(|&&n| n).count().max(1);
         let budget = (settings.max_pixels_per_frame / count).max(settings.max_pixels_per_frame / 5);
+        // With a near wall's third return, each pixel's view factor from the layer at the ξ
+        // known so far (the middle of the range before any).
+        let wall_xi =
+            (self.config.model.options.wall_interreflection > 0.0).then(|| self.xi().map_or(NOMINAL_XI, |e| e.xi));
         for (k, region) in regions.iter_mut().enumerate().filter(|&(k, _)| needed[k]) {
             let observations = if single {
                 Some(std::borrow::Cow::Borrowed(&obs.observations))
             } else {
                 region_observations(obs, k as u32 + 1).map(std::borrow::Cow::Owned)
+            };
+            let observations = match (observations, wall_xi) {
+                (Some(o), Some(xi)) => self
+                    .with_wall_view_factors(&o, xi)
+                    .map(std::borrow::Cow::Owned)
+                    .or(Some(o)),
+                (o, _) => o,
             };
             region.profile = observations.and_then(|observations| self.region_profile(&observations, budget));
         }

@@ -37,6 +37,7 @@ impl Pipeline {
                 background_distance_mm: db,
                 background_ir: ib,
                 emitted_light: bg.emitted_light.data[i],
+                wall_view_factor: 0.0,
             };
             let ok = ir.is_finite()
                 && ir > 0.0

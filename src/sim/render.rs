@@ -9,6 +9,7 @@ use rand_distr::StandardNormal;
 use super::scene::{ObjectSpec, Scene};
 use crate::physics::model::MAX_BOUNCES;
 use crate::physics::multifreq::MultiFrequencyModel;
+use crate::physics::near_wall;
 use crate::physics::noise::ShotNoise;
 use crate::physics::{ForwardModel, ImageBuf, Intrinsics, LayerScene, Return, Sensor, Waveform};
 
@@ -136,6 +137,37 @@ fn hit_object(u: &Vector3<f64>, o: &ObjectSpec) -> Option<Hit> {
     }
 }
 
+/// Patches per side of a plane object in its view factors.
+const VIEW_FACTOR_GRID: usize = 16;
+
+/// The view factor from a background point `wall` to a plane object (a grid of
+/// [`VIEW_FACTOR_GRID`] patches a side, each given as the solid angle the camera sees it
+/// fill, as [`near_wall::view_factor`] takes them); 0 for other shapes.
+fn plane_view_factor(wall: &Vector3<f64>, o: &ObjectSpec) -> f64 {
+    if o.shape != "plane" {
+        return 0.0;
+    }
+    const N: usize = VIEW_FACTOR_GRID;
+    let rot = tilt(o.tilt_x_deg, o.tilt_y_deg);
+    let (c, [sx, sy]) = (Vector3::from(o.center_mm), o.size_mm);
+    let area = sx * sy / (N * N) as f64;
+    let patches: [near_wall::Patch; N * N] = std::array::from_fn(|k| {
+        let (i, j) = ((k % N) as f64, (k / N) as f64);
+        let local = Vector3::new(
+            ((i + 0.5) / N as f64 - 0.5) * sx,
+            ((j + 0.5) / N as f64 - 0.5) * sy,
+            0.0,
+        );
+        let point = c + rot * local;
+        let d = point.norm();
+        near_wall::Patch {
+            point,
+            solid_angle: area * point.z / (d * d * d),
+        }
+    });
+    near_wall::view_factor(wall, &patches)
+}
+
 /// The nearest object hit in front of the background along the unit ray `u`.
 fn foreground_hit<'a>(u: &Vector3<f64>, objects: &'a [ObjectSpec], bg: Option<Hit>) -> Option<(Hit, &'a ObjectSpec)> {
     objects
@@ -176,6 +208,11 @@ fn ray_returns(
                     foreground_albedo_cos: o.albedo * h.cos,
                     background_albedo_cos: bg_albedo * bh.cos,
                     emitted_light: lin,
+                    wall_view_factor: if model.options.wall_interreflection > 0.0 {
+                        plane_view_factor(&(u_behind * bh.t), o)
+                    } else {
+                        0.0
+                    },
                 },
                 &mut r,
             );

@@ -503,6 +503,7 @@ mod tests {
                     foreground_albedo_cos: rng.random_range(0.05..1.0),
                     background_albedo_cos: xb,
                     emitted_light: lin,
+                    wall_view_factor: 0.0,
                 };
                 let m = model.measure_layer(&s);
                 let bg = model.measure(&[ForwardModel::opaque_return(db, xb, lin)]);
@@ -513,6 +514,7 @@ mod tests {
                     background_distance_mm: db,
                     background_ir: bg.ir,
                     emitted_light: lin,
+                    wall_view_factor: 0.0,
                 }
             })
             .collect()
@@ -625,6 +627,7 @@ mod tests {
             background_distance_mm: 2000.0,
             background_ir: 200.0,
             emitted_light: 1.5e10,
+            wall_view_factor: 0.0,
         };
         let beyond = PixelObservation {
             distance_mm: 1e12,
