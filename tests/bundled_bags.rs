@@ -136,6 +136,7 @@ fn shipped_physics_files_are_complete() {
             "ambient_offset",
             "subsurface_delay_mm",
             "refraction_shift_px",
+            "wall_interreflection",
         ] {
             assert!(file.contains_key(key), "{}: no {key}", path.display());
         }
