@@ -10,7 +10,7 @@ use super::trig::sin_cos;
 
 mod lanes;
 mod phasor;
-pub use lanes::foreground_distances;
+pub use lanes::{foreground_distances, PixelsOverXi};
 use phasor::PhasorModel;
 
 /// What is known at one translucent pixel (physics.md §3).

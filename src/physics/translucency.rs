@@ -18,9 +18,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::buffer::{ImageBuf, SparseImage};
-use super::inversion::{
-    albedo_cos_clamped, foreground_distances, predicted_reading, InversionBounds, PixelObservation,
-};
+use super::inversion::{albedo_cos_clamped, predicted_reading, InversionBounds, PixelObservation, PixelsOverXi};
 use super::model::ForwardModel;
 use super::stats::{median_and_sigma, student_t975};
 use super::surface::{local_planes_adaptive, Plane};
@@ -364,7 +362,7 @@ struct ProfileFrame<'a> {
     usage: ProfileUse,
     /// The sampled pixels with an observation, in grid order (inverted together at each ξ).
     observed: Vec<(usize, PixelObservation)>,
-    observations: Vec<PixelObservation>,
+    observations: PixelsOverXi<'a>,
     mask: ImageBuf<bool>,
     /// The normals' windows: from `normal_radius_px` up to 6x that, in lattice steps.
     radii: Vec<usize>,
@@ -415,7 +413,7 @@ impl<'a> ProfileFrame<'a> {
             data: obs.data.iter().map(|o| o.is_some()).collect(),
         };
         let observed: Vec<(usize, PixelObservation)> = (0..w * h).filter_map(|i| obs.data[i].map(|o| (i, o))).collect();
-        let observations = observed.iter().map(|&(_, o)| o).collect();
+        let observations = PixelsOverXi::new(model, observed.iter().map(|&(_, o)| o).collect());
         // Pixels whose reading gives no usable normal (a surface seen nearly edge-on, a
         // silhouette against the background, a mixed edge) carry no albedo at any ξ: left out
         // of the albedo statistics at every ξ alike (so no ξ wins by it), rather than censored
@@ -485,7 +483,7 @@ impl<'a> ProfileFrame<'a> {
         let estimates = if calibration {
             vec![]
         } else {
-            foreground_distances(self.model, &self.observations, xi, bounds, false)
+            self.observations.at(xi, bounds, false)
         };
         for (k, &(i, o)) in self.observed.iter().enumerate() {
             if let Some(t) = self

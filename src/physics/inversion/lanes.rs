@@ -54,6 +54,41 @@ fn masks(mut f: impl FnMut(usize) -> bool) -> [bool; W] {
     m
 }
 
+/// Pixels to be inverted at many ξ (a profile over ξ): what does not change with ξ taken
+/// once (the closed form's phases, [`PhasorModel`]); [`Self::at`] gives
+/// [`foreground_distances`]'s estimates, bit for bit.
+pub struct PixelsOverXi<'a> {
+    model: &'a ForwardModel,
+    obs: Vec<PixelObservation>,
+    phasor: Option<(PhasorModel, Vec<phasor::PhaseTrig>)>,
+}
+
+impl<'a> PixelsOverXi<'a> {
+    /// The pixels `obs` under `model`.
+    pub fn new(model: &'a ForwardModel, obs: Vec<PixelObservation>) -> Self {
+        let phasor = PhasorModel::new(model).map(|p| {
+            let trig = obs.iter().map(|o| p.trig(o)).collect();
+            (p, trig)
+        });
+        Self { model, obs, phasor }
+    }
+
+    /// Every pixel's estimate at `xi`, in order ([`foreground_distances`]).
+    pub fn at(&self, xi: f64, bounds: &InversionBounds, slopes: bool) -> Vec<Option<LayerEstimate>> {
+        let Some((p, trig)) = &self.phasor else {
+            return foreground_distances(self.model, &self.obs, xi, bounds, slopes);
+        };
+        self.obs
+            .iter()
+            .zip(trig)
+            .map(|(o, t)| {
+                let (lo, hi) = search_range(o, bounds)?;
+                p.invert_with(self.model, o, t, xi, bounds.max_albedo_cos, Search { lo, hi, slopes })
+            })
+            .collect()
+    }
+}
+
 /// [`foreground_distance`] (`slopes`) or [`foreground_distance_without_slopes`]
 /// of every pixel in `obs` at one ξ, in order, the root nearest each reading
 /// (no preference): the same estimates, bit for bit.
@@ -642,5 +677,37 @@ mod tests {
             assert_eq!(bits(e), bits(&invert(&model, o, 0.65, &bounds, None, true)));
         }
         assert!(out[0].is_none());
+    }
+
+    #[test]
+    fn pixels_over_xi_give_each_xi_what_the_batch_gives() {
+        let sr4000 = Sensor::sr4000();
+        let mut near_wall = ForwardModel::physical(sr4000.clone());
+        near_wall.options.wall_interreflection = 1.0;
+        let bounds = InversionBounds::default();
+        for (seed, model) in [
+            ForwardModel::physical(sr4000.clone()),
+            near_wall,
+            ForwardModel::paper(sr4000),
+        ]
+        .iter()
+        .enumerate()
+        {
+            let mut obs = pixels(model, 40 + seed as u64, 300);
+            for (k, o) in obs.iter_mut().enumerate() {
+                o.wall_view_factor = (k % 4) as f64 * 0.1;
+            }
+            let over = PixelsOverXi::new(model, obs.clone());
+            for xi in [0.0, 0.3, 0.65, 0.9] {
+                for slopes in [true, false] {
+                    let batch = foreground_distances(model, &obs, xi, &bounds, slopes);
+                    let each = over.at(xi, &bounds, slopes);
+                    assert_eq!(batch.len(), each.len());
+                    for (a, b) in batch.iter().zip(&each) {
+                        assert_eq!(bits(a), bits(b), "model {seed}, xi {xi}");
+                    }
+                }
+            }
+        }
     }
 }

@@ -23,6 +23,16 @@ pub(super) struct PhasorModel {
     wall_gain: f64,
 }
 
+/// What the closed form needs of a pixel at every ξ: the sines and cosines of its
+/// reading's and its background's phases.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct PhaseTrig {
+    sd: f64,
+    cd: f64,
+    sb: f64,
+    cb: f64,
+}
+
 /// Fixed-point steps for the layer's distance with a near wall's third return: each
 /// shrinks the error by about `(1 + sqrt 2) L3 / L1`, under 0.3 for any view factor.
 const WALL_STEPS: usize = 12;
@@ -75,14 +85,13 @@ impl PhasorModel {
 
     /// The layer's return `z` for a hypothesised ξ (its real and imaginary parts) and the
     /// measured amplitude `|M|`; `None` where the IR is not above the offset.
-    fn layer_phasor(&self, obs: &PixelObservation, xi: f64) -> Option<(f64, f64, f64)> {
+    fn layer_phasor(&self, obs: &PixelObservation, trig: &PhaseTrig, xi: f64) -> Option<(f64, f64, f64)> {
         let m = obs.ir - self.offset;
         let ib = (obs.background_ir - self.offset).max(0.0);
         if !(m > 0.0) {
             return None;
         }
-        let (sd, cd) = (self.k * obs.distance_mm).sin_cos();
-        let (sb, cb) = (self.k * obs.background_distance_mm).sin_cos();
+        let PhaseTrig { sd, cd, sb, cb } = *trig;
         let l2 = xi * xi * ib;
         Some((m * cd - l2 * cb, m * sd - l2 * sb, m))
     }
@@ -105,6 +114,13 @@ impl PhasorModel {
         (x.is_finite() && x >= 0.0 && x <= x_max).then_some(x)
     }
 
+    /// The sines and cosines of a pixel's reading's and background's phases.
+    pub(super) fn trig(&self, obs: &PixelObservation) -> PhaseTrig {
+        let (sd, cd) = (self.k * obs.distance_mm).sin_cos();
+        let (sb, cb) = (self.k * obs.background_distance_mm).sin_cos();
+        PhaseTrig { sd, cd, sb, cb }
+    }
+
     /// The layer at one pixel for a hypothesised ξ within `[lo, hi]`.
     pub(super) fn invert(
         &self,
@@ -112,9 +128,22 @@ impl PhasorModel {
         obs: &PixelObservation,
         xi: f64,
         x_max: f64,
+        search: Search,
+    ) -> Option<LayerEstimate> {
+        self.invert_with(model, obs, &self.trig(obs), xi, x_max, search)
+    }
+
+    /// [`Self::invert`] with the pixel's [`Self::trig`] given (taken once for every ξ).
+    pub(super) fn invert_with(
+        &self,
+        model: &ForwardModel,
+        obs: &PixelObservation,
+        trig: &PhaseTrig,
+        xi: f64,
+        x_max: f64,
         Search { lo, hi, slopes }: Search,
     ) -> Option<LayerEstimate> {
-        let (re, im, m) = self.layer_phasor(obs, xi)?;
+        let (re, im, m) = self.layer_phasor(obs, trig, xi)?;
         let len = re.hypot(im);
         let x_scale = (1.0 - xi) * obs.emitted_light;
         if !(len > 0.0 && x_scale > 0.0) {
@@ -143,7 +172,7 @@ impl PhasorModel {
         // The slopes as the generic path defines them (the predicted reading per mm of layer, the
         // IR held; per count of IR, the layer held), from the angle psi between M and z.
         let (slope, reading_per_ir) = if slopes {
-            let (sd, cd) = (self.k * obs.distance_mm).sin_cos();
+            let (sd, cd) = (trig.sd, trig.cd);
             let (sin_psi, cos_psi) = ((cd * im - sd * re) / len, (cd * re + sd * im) / len);
             (len / (m * cos_psi), sin_psi / (self.k * m * cos_psi))
         } else {
