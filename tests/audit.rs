@@ -262,6 +262,7 @@ fn drawn_scene(seed: u64, effect: Option<Effect>) -> translucent_tof::sim::Scene
         // The sequence's last poses are 250-400 mm before the wall, where the layer's back and
         // the wall exchange light.
         Some(Effect::WallInterreflection) => p.wall_interreflection = rng.random_range(0.7..1.3),
+        Some(Effect::DiffuseTransmission) => p.diffuse_transmission = rng.random_range(0.5..1.0),
         Some(Effect::RefractionShift) => {
             // A displaced background shows only where the background changes along the
             // displacement: the wall is tilted about the axis across it.

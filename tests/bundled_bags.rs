@@ -137,6 +137,7 @@ fn shipped_physics_files_are_complete() {
             "subsurface_delay_mm",
             "refraction_shift_px",
             "wall_interreflection",
+            "diffuse_transmission",
         ] {
             assert!(file.contains_key(key), "{}: no {key}", path.display());
         }

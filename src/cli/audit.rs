@@ -450,6 +450,7 @@ fn physics_file(fin: &Fit, base: &crate::physics::ForwardModel) -> PhysicsFile {
             Effect::TransmissionLaw => f.transmission_albedo_power = Some(m.options.transmission_albedo_power),
             Effect::RefractionShift => f.refraction_shift_px = Some(m.options.refraction_shift_px),
             Effect::WallInterreflection => f.wall_interreflection = Some(m.options.wall_interreflection),
+            Effect::DiffuseTransmission => f.diffuse_transmission = Some(m.options.diffuse_transmission),
         }
     }
     f

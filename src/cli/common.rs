@@ -207,6 +207,8 @@ pub struct PhysicsFile {
     pub refraction_shift_px: Option<[f64; 2]>,
     /// Gain on the third return of a layer near a diffuse background (0 = none, 1 = its estimate).
     pub wall_interreflection: Option<f64>,
+    /// Share of the light crossing the layer that crosses diffusely (0 = a clear layer).
+    pub diffuse_transmission: Option<f64>,
 }
 
 impl PhysicsFile {
@@ -219,6 +221,11 @@ impl PhysicsFile {
     /// Parses and checks a physics file's text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self> {
         let f: PhysicsFile = toml::from_str(text).with_context(|| origin.to_string())?;
+        if let Some(f) = f.diffuse_transmission {
+            if !(0.0..=1.0).contains(&f) {
+                bail!("{origin}: diffuse_transmission = {f} is not in 0..=1");
+            }
+        }
         if let Some(g) = f.wall_interreflection {
             if !(0.0..=10.0).contains(&g) {
                 bail!("{origin}: wall_interreflection = {g} is not in 0..=10");
@@ -262,6 +269,7 @@ impl PhysicsFile {
             harmonics,
             refraction_shift_px: Some(options.refraction_shift_px),
             wall_interreflection: Some(options.wall_interreflection),
+            diffuse_transmission: Some(options.diffuse_transmission),
         }
     }
 
@@ -281,6 +289,7 @@ impl PhysicsFile {
             subsurface_delay_mm: self.subsurface_delay_mm.unwrap_or(d.subsurface_delay_mm),
             refraction_shift_px: self.refraction_shift_px.unwrap_or(d.refraction_shift_px),
             wall_interreflection: self.wall_interreflection.unwrap_or(d.wall_interreflection),
+            diffuse_transmission: self.diffuse_transmission.unwrap_or(d.diffuse_transmission),
         }
     }
 }
@@ -328,6 +337,9 @@ pub fn describe_model(model: &ForwardModel) -> String {
         }
         if o.wall_interreflection != p.wall_interreflection {
             d.push(format!("wall_interreflection = {}", o.wall_interreflection));
+        }
+        if o.diffuse_transmission != p.diffuse_transmission {
+            d.push(format!("diffuse_transmission = {}", o.diffuse_transmission));
         }
         d
     };

@@ -43,11 +43,13 @@ pub enum Effect {
     RefractionShift,
     /// Light the layer's back and a near diffuse background exchange (a third return).
     WallInterreflection,
+    /// Light crossing the layer diffusely (a frosted layer).
+    DiffuseTransmission,
 }
 
 impl Effect {
     /// Every candidate, in a fixed order.
-    pub const ALL: [Effect; 8] = [
+    pub const ALL: [Effect; 9] = [
         Effect::HigherOrderBounces,
         Effect::WaveformHarmonics,
         Effect::IrAmplitude,
@@ -56,6 +58,7 @@ impl Effect {
         Effect::TransmissionLaw,
         Effect::RefractionShift,
         Effect::WallInterreflection,
+        Effect::DiffuseTransmission,
     ];
 
     /// The name in reports and physics files.
@@ -69,6 +72,7 @@ impl Effect {
             Effect::TransmissionLaw => "transmission_law",
             Effect::RefractionShift => "refraction_shift",
             Effect::WallInterreflection => "wall_interreflection",
+            Effect::DiffuseTransmission => "diffuse_transmission",
         }
     }
 
@@ -83,6 +87,7 @@ impl Effect {
             Effect::TransmissionLaw => &["transmission_albedo_power"],
             Effect::RefractionShift => &["shift_columns_px", "shift_rows_px"],
             Effect::WallInterreflection => &["wall_interreflection"],
+            Effect::DiffuseTransmission => &["diffuse_transmission"],
         }
     }
 
@@ -512,6 +517,7 @@ fn build_model(base: &ForwardModel, effects: &[Effect], p: &[f64], bounces: usiz
             Effect::TransmissionLaw => options.transmission_albedo_power = p[k],
             Effect::RefractionShift => options.refraction_shift_px = [p[k], p[k + 1]],
             Effect::WallInterreflection => options.wall_interreflection = p[k],
+            Effect::DiffuseTransmission => options.diffuse_transmission = p[k],
         }
         k += e.param_names().len();
     }
@@ -589,6 +595,7 @@ fn param_starts(e: Effect, ir_level: f64) -> (Vec<Vec<f64>>, Vec<f64>) {
         Effect::SubsurfaceDelay => (vec![vec![0.0], vec![25.0]], vec![8.0]),
         Effect::TransmissionLaw => (vec![vec![2.0], vec![1.0], vec![0.0]], vec![0.4]),
         Effect::WallInterreflection => (vec![vec![0.0], vec![1.0]], vec![0.3]),
+        Effect::DiffuseTransmission => (vec![vec![0.0], vec![0.5], vec![1.0]], vec![0.2]),
         Effect::RefractionShift => (
             vec![
                 vec![0.0, 0.0],
@@ -1582,6 +1589,7 @@ pub const PHYSICAL_RANGES: &[(&str, f64, f64)] = &[
     ("shift_columns_px", -20.0, 20.0),
     ("shift_rows_px", -20.0, 20.0),
     ("wall_interreflection", 0.0, 3.0),
+    ("diffuse_transmission", 0.0, 1.0),
 ];
 
 /// The baseline fitted on all pixels (internal coordinates), for the noise weights.

@@ -6,6 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::diffuse::diffuse_second_return;
 use super::near_wall::{third_return_distance, third_return_share};
 use super::sensor::{Buckets, Sensor};
 
@@ -54,6 +55,10 @@ pub struct ModelOptions {
     /// at `db + sqrt(2) (db - df)`, with `F` the view factor from the background point to
     /// the layer ([`LayerScene::wall_view_factor`]). 0 leaves it out; 1 is its estimate.
     pub wall_interreflection: f64,
+    /// Share (0..1) of the light crossing the layer that crosses diffusely, through a
+    /// cosine lobe ([`super::diffuse`]; a frosted layer): that share of the second return
+    /// (Eq. 2) comes back over slanted paths, fainter and farther. 0 is a clear layer.
+    pub diffuse_transmission: f64,
 }
 
 impl Default for ModelOptions {
@@ -113,6 +118,7 @@ impl ModelOptions {
             subsurface_delay_mm: 0.0,
             refraction_shift_px: [0.0, 0.0],
             wall_interreflection: 0.0,
+            diffuse_transmission: 0.0,
         }
     }
 
@@ -133,6 +139,7 @@ impl ModelOptions {
             && self.transmission_albedo_power == 2.0
             && self.ambient_offset == 0.0
             && self.wall_interreflection == 0.0
+            && self.diffuse_transmission == 0.0
     }
 
     /// True when the background behind the layer is displaced (refraction).
@@ -284,13 +291,25 @@ impl ForwardModel {
             };
             fac *= (1.0 - xi) * x * xb;
         }
+        let mut n = n;
         let share = o.wall_interreflection * third_return_share(xi, x, xb, s.wall_view_factor);
         if share > 0.0 && n < MAX_BOUNCES {
             out[n] = Return {
                 strength: share * out[1].strength,
                 distance_mm: third_return_distance(df, db),
             };
-            return n + 1;
+            n += 1;
+        }
+        let diffuse = o.diffuse_transmission.clamp(0.0, 1.0);
+        if diffuse > 0.0 && n < MAX_BOUNCES {
+            let k = self.sensor.phase(1.0);
+            let (length, extra_mm) = diffuse_second_return(db - df, k);
+            out[n] = Return {
+                strength: diffuse * length * out[1].strength,
+                distance_mm: df + extra_mm,
+            };
+            out[1].strength *= 1.0 - diffuse;
+            n += 1;
         }
         n
     }
