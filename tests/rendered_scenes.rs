@@ -322,6 +322,46 @@ fn the_audit_names_the_near_wall_on_the_rendered_document_holder_and_its_file_re
     assert!(near.iter().all(|r| *r <= 25.0), "{near:?}");
 }
 
+/// Issue 36, item 2, a frosted layer: the rendered calibration of the diffuse transmitter
+/// (`calib_difftrans_sheet_diffuse_transmitter`: its material alone at four distances before
+/// the calibration wall, one pose tilted) has the audit name diffuse transmission first,
+/// from the default physics; the physics file it writes, given to `replay` on the other
+/// recording of that material (`difftrans_sheet`: another wall, other poses), recovers it
+/// at most 60 mm (the issue's limit; 490 mm as read) with the truth inside ξ's interval.
+#[test]
+fn the_audit_names_diffuse_transmission_on_a_frosted_calibration_and_its_file_recovers_the_scene() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let bag = rendered("calib_difftrans_sheet_diffuse_transmitter.mcap");
+    let a = run(
+        dir.path(),
+        &["audit", bag.to_str().expect("utf-8"), "--physics-out", "physics.toml"],
+    );
+    let (named, _) = named_effects(&a);
+    println!("frosted calibration, default physics: named {named:?}");
+    assert_eq!(
+        named.first().map(String::as_str),
+        Some("diffuse_transmission"),
+        "{named:?}"
+    );
+    let file = dir.path().join("physics.toml");
+    let r = replay(
+        dir.path(),
+        "difftrans_sheet.mcap",
+        &["--physics", file.to_str().expect("utf-8")],
+    );
+    let (xi, iv, rms) = summary(&r);
+    let truth = sidecar_xi("difftrans_sheet.mcap");
+    println!(
+        "difftrans_sheet with its file: xi {xi:.3} [{:.3}, {:.3}] (truth {truth:.3}), mean per-frame RMS {rms:.1} mm (raw {:.1})",
+        iv[0],
+        iv[1],
+        num(&r, "mean_frame_rmse_raw_mm")
+    );
+    assert!(iv[0] <= truth && truth <= iv[1], "{iv:?} against {truth}");
+    assert!(rms <= 60.0, "{rms} mm");
+    assert!(num(&r, "coverage") >= 0.9, "{r}");
+}
+
 /// A camera carried past a tilted sheet and an opaque box before boxes on a wall
 /// (`bags/rendered/mf_moving_camera`: 8 frames, phasors at 20, 50 and 100 MHz, no frame of the
 /// background alone): `replay --no-latch` (the bag's sidecar asks for it) corrects every frame

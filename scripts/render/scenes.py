@@ -395,7 +395,8 @@ def calibration(scene, key, seed, n_stages=4):
 
 def calibration_specs():
     return [calibration(two_materials, "m1", 301), calibration(two_materials, "m2", 302),
-            calibration(two_materials, "m3", 303), calibration(opaque_and_translucent, "sheet", 304)]
+            calibration(two_materials, "m3", 303), calibration(opaque_and_translucent, "sheet", 304),
+            calibration(difftrans_sheet, "sheet", 305)]
 
 
 # ---------------------------------------------------------------- videos ---
