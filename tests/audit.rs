@@ -263,6 +263,7 @@ fn drawn_scene(seed: u64, effect: Option<Effect>) -> translucent_tof::sim::Scene
         // the wall exchange light.
         Some(Effect::WallInterreflection) => p.wall_interreflection = rng.random_range(0.7..1.3),
         Some(Effect::DiffuseTransmission) => p.diffuse_transmission = rng.random_range(0.5..1.0),
+        Some(Effect::ThreeReturns) => p.hollow_depth_mm = rng.random_range(120.0..300.0),
         Some(Effect::RefractionShift) => {
             // A displaced background shows only where the background changes along the
             // displacement: the wall is tilted about the axis across it.

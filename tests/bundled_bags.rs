@@ -138,6 +138,7 @@ fn shipped_physics_files_are_complete() {
             "refraction_shift_px",
             "wall_interreflection",
             "diffuse_transmission",
+            "hollow_depth_mm",
         ] {
             assert!(file.contains_key(key), "{}: no {key}", path.display());
         }

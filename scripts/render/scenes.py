@@ -249,6 +249,37 @@ def difftrans_sheet(seed=91):
                             "not passed straight) before a wall, 3 poses")
 
 
+HOLLOW_SEED = 96
+
+
+def hollow_object():
+    """One hollow bin (a box of a translucent material, open nowhere): its material and size."""
+    rng = np.random.default_rng(HOLLOW_SEED)
+    m = mat(1, "hollow_bin", rng.uniform(0.55, 0.8), rng.uniform(0.4, 0.7), "mask")
+    return m, [float(rng.uniform(250, 350)), float(rng.uniform(220, 320)), float(rng.uniform(150, 300))]
+
+
+def hollow_bin(name, seed, n_poses):
+    """The hollow bin face-on at n_poses distances before a wall: three returns (its front wall,
+    its back wall seen through the front, the wall through both)."""
+    m, size = hollow_object()
+    rng = np.random.default_rng(seed)
+    zw = rng.uniform(2600, 3300)
+    bg, bgm, bgd = bg_wall(zw, rng.uniform(0.6, 1.0))
+    lo, hi = 800.0, zw - size[2] - 500.0
+    stages = []
+    for k in range(n_poses):
+        zf = lo + (hi - lo) * (k + 0.5 + rng.uniform(-0.3, 0.3)) / n_poses
+        o = box([rng.uniform(-60, 60), rng.uniform(-60, 60), zf + size[2] / 2], size,
+                tx=rng.uniform(-3, 3), ty=rng.uniform(-3, 3), tz=rng.uniform(-3, 3), material="bin")
+        stages.append({"frames": 2, "objects": [o]})
+    zs = ", ".join(f"{st['objects'][0]['center_mm'][2] - size[2] / 2:.0f}" for st in stages)
+    return dict(name=name, seed=seed, model="mask", spp=HIGH_SPP, background=bg,
+                background_materials=bgm, background_description=bgd, materials={"bin": m}, stages=stages,
+                description=(f"a hollow bin ({size[0]:.0f} x {size[1]:.0f} x {size[2]:.0f} mm, walls xi "
+                             f"{m['xi']:.4f}, rho {m['albedo']:.4f}) face-on before {bgd}, its front at {zs} mm"))
+
+
 # ---------------------------------------------------------- coverage set ---
 
 def bg_depth(bg):
@@ -601,4 +632,6 @@ def all_specs():
         opaque_and_translucent(),
         corner_background(),
         difftrans_sheet(),
+        hollow_bin("calib_hollow_bin", 97, 4),
+        hollow_bin("hollow_bin", 98, 3),
     ] + [draw(i) for i in range(20)] + calibration_specs() + [video(i) for i in range(3)] + mf_specs() + [mf_moving_camera()]

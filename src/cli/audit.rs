@@ -451,6 +451,7 @@ fn physics_file(fin: &Fit, base: &crate::physics::ForwardModel) -> PhysicsFile {
             Effect::RefractionShift => f.refraction_shift_px = Some(m.options.refraction_shift_px),
             Effect::WallInterreflection => f.wall_interreflection = Some(m.options.wall_interreflection),
             Effect::DiffuseTransmission => f.diffuse_transmission = Some(m.options.diffuse_transmission),
+            Effect::ThreeReturns => f.hollow_depth_mm = Some(m.options.hollow_depth_mm),
         }
     }
     f

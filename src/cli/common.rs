@@ -209,6 +209,8 @@ pub struct PhysicsFile {
     pub wall_interreflection: Option<f64>,
     /// Share of the light crossing the layer that crosses diffusely (0 = a clear layer).
     pub diffuse_transmission: Option<f64>,
+    /// Depth of a hollow object of the layer's material, mm (0 = one layer).
+    pub hollow_depth_mm: Option<f64>,
 }
 
 impl PhysicsFile {
@@ -221,6 +223,11 @@ impl PhysicsFile {
     /// Parses and checks a physics file's text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self> {
         let f: PhysicsFile = toml::from_str(text).with_context(|| origin.to_string())?;
+        if let Some(t) = f.hollow_depth_mm {
+            if !(0.0..=5000.0).contains(&t) {
+                bail!("{origin}: hollow_depth_mm = {t} is not in 0..=5000");
+            }
+        }
         if let Some(f) = f.diffuse_transmission {
             if !(0.0..=1.0).contains(&f) {
                 bail!("{origin}: diffuse_transmission = {f} is not in 0..=1");
@@ -270,6 +277,7 @@ impl PhysicsFile {
             refraction_shift_px: Some(options.refraction_shift_px),
             wall_interreflection: Some(options.wall_interreflection),
             diffuse_transmission: Some(options.diffuse_transmission),
+            hollow_depth_mm: Some(options.hollow_depth_mm),
         }
     }
 
@@ -290,6 +298,7 @@ impl PhysicsFile {
             refraction_shift_px: self.refraction_shift_px.unwrap_or(d.refraction_shift_px),
             wall_interreflection: self.wall_interreflection.unwrap_or(d.wall_interreflection),
             diffuse_transmission: self.diffuse_transmission.unwrap_or(d.diffuse_transmission),
+            hollow_depth_mm: self.hollow_depth_mm.unwrap_or(d.hollow_depth_mm),
         }
     }
 }
@@ -340,6 +349,9 @@ pub fn describe_model(model: &ForwardModel) -> String {
         }
         if o.diffuse_transmission != p.diffuse_transmission {
             d.push(format!("diffuse_transmission = {}", o.diffuse_transmission));
+        }
+        if o.hollow_depth_mm != p.hollow_depth_mm {
+            d.push(format!("hollow_depth_mm = {}", o.hollow_depth_mm));
         }
         d
     };

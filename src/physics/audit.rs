@@ -45,11 +45,13 @@ pub enum Effect {
     WallInterreflection,
     /// Light crossing the layer diffusely (a frosted layer).
     DiffuseTransmission,
+    /// A hollow object's back wall behind its front (three returns).
+    ThreeReturns,
 }
 
 impl Effect {
     /// Every candidate, in a fixed order.
-    pub const ALL: [Effect; 9] = [
+    pub const ALL: [Effect; 10] = [
         Effect::HigherOrderBounces,
         Effect::WaveformHarmonics,
         Effect::IrAmplitude,
@@ -59,6 +61,7 @@ impl Effect {
         Effect::RefractionShift,
         Effect::WallInterreflection,
         Effect::DiffuseTransmission,
+        Effect::ThreeReturns,
     ];
 
     /// The name in reports and physics files.
@@ -73,6 +76,7 @@ impl Effect {
             Effect::RefractionShift => "refraction_shift",
             Effect::WallInterreflection => "wall_interreflection",
             Effect::DiffuseTransmission => "diffuse_transmission",
+            Effect::ThreeReturns => "three_returns",
         }
     }
 
@@ -88,6 +92,7 @@ impl Effect {
             Effect::RefractionShift => &["shift_columns_px", "shift_rows_px"],
             Effect::WallInterreflection => &["wall_interreflection"],
             Effect::DiffuseTransmission => &["diffuse_transmission"],
+            Effect::ThreeReturns => &["hollow_depth_mm"],
         }
     }
 
@@ -518,6 +523,7 @@ fn build_model(base: &ForwardModel, effects: &[Effect], p: &[f64], bounces: usiz
             Effect::RefractionShift => options.refraction_shift_px = [p[k], p[k + 1]],
             Effect::WallInterreflection => options.wall_interreflection = p[k],
             Effect::DiffuseTransmission => options.diffuse_transmission = p[k],
+            Effect::ThreeReturns => options.hollow_depth_mm = p[k],
         }
         k += e.param_names().len();
     }
@@ -596,6 +602,7 @@ fn param_starts(e: Effect, ir_level: f64) -> (Vec<Vec<f64>>, Vec<f64>) {
         Effect::TransmissionLaw => (vec![vec![2.0], vec![1.0], vec![0.0]], vec![0.4]),
         Effect::WallInterreflection => (vec![vec![0.0], vec![1.0]], vec![0.3]),
         Effect::DiffuseTransmission => (vec![vec![0.0], vec![0.5], vec![1.0]], vec![0.2]),
+        Effect::ThreeReturns => (vec![vec![0.0], vec![150.0], vec![350.0]], vec![50.0]),
         Effect::RefractionShift => (
             vec![
                 vec![0.0, 0.0],
@@ -1590,6 +1597,7 @@ pub const PHYSICAL_RANGES: &[(&str, f64, f64)] = &[
     ("shift_rows_px", -20.0, 20.0),
     ("wall_interreflection", 0.0, 3.0),
     ("diffuse_transmission", 0.0, 1.0),
+    ("hollow_depth_mm", 0.0, 1500.0),
 ];
 
 /// The baseline fitted on all pixels (internal coordinates), for the noise weights.

@@ -119,7 +119,8 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
     if let Some(p) = PhasorModel::new(model) {
         return p.albedo_cos(obs, df, xi, x_max);
     }
-    if o.bounces == 2 && o.ir_mode == IrMode::Sum && o.wall_interreflection == 0.0 && o.diffuse_transmission == 0.0 {
+    let one_layer = o.wall_interreflection == 0.0 && o.diffuse_transmission == 0.0 && o.hollow_depth_mm == 0.0;
+    if o.bounces == 2 && o.ir_mode == IrMode::Sum && one_layer {
         // I = b X + a X^p with a = xi^2 Ib, b = (1 - xi) Lin / df^2 (Eq. 7).
         let a = xi * xi * (obs.background_ir - o.ambient_offset).max(0.0);
         let b = (1.0 - xi) * obs.emitted_light / (df * df);
@@ -1295,6 +1296,7 @@ mod tests {
             refraction_shift_px: [0.0, 0.0],
             wall_interreflection: 0.0,
             diffuse_transmission: 0.0,
+            hollow_depth_mm: 0.0,
         };
         let m = ForwardModel {
             sensor: Sensor::sr4000(),

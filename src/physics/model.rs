@@ -59,6 +59,10 @@ pub struct ModelOptions {
     /// cosine lobe ([`super::diffuse`]; a frosted layer): that share of the second return
     /// (Eq. 2) comes back over slanted paths, fainter and farther. 0 is a clear layer.
     pub diffuse_transmission: f64,
+    /// Depth of a hollow object of the layer's material (a bin, a closed box), mm: a back
+    /// wall this far behind the front along the ray, seen through it, and the background
+    /// through both (three returns). 0 is one layer.
+    pub hollow_depth_mm: f64,
 }
 
 impl Default for ModelOptions {
@@ -119,6 +123,7 @@ impl ModelOptions {
             refraction_shift_px: [0.0, 0.0],
             wall_interreflection: 0.0,
             diffuse_transmission: 0.0,
+            hollow_depth_mm: 0.0,
         }
     }
 
@@ -140,6 +145,7 @@ impl ModelOptions {
             && self.ambient_offset == 0.0
             && self.wall_interreflection == 0.0
             && self.diffuse_transmission == 0.0
+            && self.hollow_depth_mm == 0.0
     }
 
     /// True when the background behind the layer is displaced (refraction).
@@ -273,10 +279,14 @@ impl ForwardModel {
             strength: (1.0 - xi) * x * lin / (df * df),
             distance_mm: df + o.subsurface_delay_mm,
         };
-        // Eq. 2: through the layer, off the background, back through the layer.
+        // Eq. 2: through the layer, off the background, back through the layer; for a
+        // hollow object, through its back wall too.
         let x_p = pow(x, o.transmission_albedo_power);
+        let back = df + o.hollow_depth_mm;
+        let hollow = o.hollow_depth_mm > 0.0 && back < db;
+        let walls = if hollow { xi * xi * x_p } else { 1.0 };
         out[1] = Return {
-            strength: xb * xi * xi * x_p * lin / (db * db),
+            strength: xb * xi * xi * x_p * walls * lin / (db * db),
             distance_mm: db,
         };
         // Eq. 3, terms i = 0, 1, ...: inter-reflections between the layers.
@@ -309,6 +319,15 @@ impl ForwardModel {
                 distance_mm: df + extra_mm,
             };
             out[1].strength *= 1.0 - diffuse;
+            n += 1;
+        }
+        // A hollow object's back wall, of the same material, seen through the front (Eq. 1
+        // behind one crossing each way).
+        if hollow && n < MAX_BOUNCES {
+            out[n] = Return {
+                strength: xi * xi * x_p * (1.0 - xi) * x * lin / (back * back),
+                distance_mm: back + o.subsurface_delay_mm,
+            };
             n += 1;
         }
         n
@@ -459,6 +478,27 @@ mod tests {
             ..s
         };
         assert_eq!(m.layer_returns(&none, &mut r), 2, "no view, no third return");
+    }
+
+    #[test]
+    fn a_hollow_object_adds_its_back_wall_and_dims_the_background() {
+        let mut m = ForwardModel::physical(Sensor::sr4000());
+        let s = scene(1000.0, 2500.0, 0.6, 0.5);
+        let mut one = [Return::default(); MAX_BOUNCES];
+        assert_eq!(m.layer_returns(&s, &mut one), 2);
+        m.options.hollow_depth_mm = 300.0;
+        let mut r = [Return::default(); MAX_BOUNCES];
+        assert_eq!(m.layer_returns(&s, &mut r), 3);
+        assert_eq!(r[0], one[0], "the front wall is the layer");
+        assert!(
+            (r[1].strength - 0.36 * one[1].strength).abs() < 1e-9 * one[1].strength,
+            "xi^2 once more"
+        );
+        let back = 0.36 * 0.4 * 0.5 * 1e10 / (1300.0 * 1300.0);
+        assert!((r[2].strength - back).abs() < 1e-9 * back && r[2].distance_mm == 1300.0);
+        // A back wall behind the background is none.
+        let near = scene(2300.0, 2500.0, 0.6, 0.5);
+        assert_eq!(m.layer_returns(&near, &mut r), 2);
     }
 
     #[test]

@@ -21,6 +21,7 @@ pub(super) struct PhasorModel {
     offset: f64,
     delay_mm: f64,
     wall_gain: f64,
+    hollow_mm: f64,
 }
 
 /// What the closed form needs of a pixel at every ξ: the sines and cosines of its
@@ -33,20 +34,22 @@ pub(super) struct PhaseTrig {
     cb: f64,
 }
 
-/// Fixed-point steps for the layer's distance with a near wall's third return: each
-/// shrinks the error by about `(1 + sqrt 2) L3 / L1`, under 0.3 for any view factor.
+/// Fixed-point steps for the layer's distance with a near wall's third return or a hollow
+/// object's back wall: each shrinks the error by about `(1 + sqrt 2) L3 / L1` (under 0.3
+/// for any view factor) or `2 T / df` times the back wall's share.
 const WALL_STEPS: usize = 12;
 
 impl PhasorModel {
     /// `None` unless `model` is two returns, `L2 = Ib xi^2`, amplitude IR, a sinusoid and
-    /// no refraction (an IR offset, a subsurface delay and a near wall's third return are
-    /// allowed).
+    /// no refraction (an IR offset, a subsurface delay, a near wall's third return and a
+    /// hollow object's back wall are allowed).
     pub(super) fn new(model: &ForwardModel) -> Option<Self> {
         let o = &model.options;
         let known = ModelOptions {
             ambient_offset: o.ambient_offset,
             subsurface_delay_mm: o.subsurface_delay_mm,
             wall_interreflection: o.wall_interreflection,
+            hollow_depth_mm: o.hollow_depth_mm,
             ..ModelOptions::physical()
         };
         if *o != known || model.sensor.waveform != Waveform::Sinusoid {
@@ -59,40 +62,58 @@ impl PhasorModel {
             offset: o.ambient_offset,
             delay_mm: o.subsurface_delay_mm,
             wall_gain: o.wall_interreflection,
+            hollow_mm: o.hollow_depth_mm,
         })
     }
 
-    /// The layer's return with a near wall's third return beside it, over the layer's alone
-    /// (X cancels: both carry it), at a layer `df`: `1 + (L3 / L1) e^{i theta}`, `theta` the
-    /// third's phase past the layer's, as its phase and length; `(0, 1)` without a third.
-    fn with_third_return(&self, obs: &PixelObservation, xi: f64, df: f64) -> (f64, f64) {
-        if !(self.wall_gain > 0.0 && obs.wall_view_factor > 0.0) {
+    /// The returns that carry the layer's `X` beside its own, over its own (X cancels), at
+    /// a layer `df`: `1 + sum_j (L_j / L1) e^{i theta_j}`, `theta_j` each one's phase past
+    /// the layer's, for a near wall's third return and, with `walls`, a hollow object's back
+    /// wall; as its phase and length, `(0, 1)` with neither.
+    fn layer_factor(&self, obs: &PixelObservation, xi: f64, df: f64, walls: bool) -> (f64, f64) {
+        let (mut wr, mut wi) = (1.0, 0.0);
+        let mut add = |r: f64, theta: f64| {
+            if r.is_finite() && r > 0.0 {
+                let (s, c) = theta.sin_cos();
+                wr += r * c;
+                wi += r * s;
+            }
+        };
+        if self.wall_gain > 0.0 && obs.wall_view_factor > 0.0 {
+            let ib = (obs.background_ir - self.offset).max(0.0);
+            let xb = obs.background_albedo_cos(self.offset);
+            let third = self.wall_gain * third_return_share(xi, 1.0, xb, obs.wall_view_factor) * xi * xi * ib;
+            let layer = (1.0 - xi) * obs.emitted_light / (df * df);
+            let theta = self.k * (third_return_distance(df, obs.background_distance_mm) - df - self.delay_mm);
+            add(third / layer, theta);
+        }
+        if walls {
+            // The back wall: one crossing of the front each way, at T behind it.
+            let back = df + self.hollow_mm;
+            add(xi * xi * df * df / (back * back), self.k * self.hollow_mm);
+        }
+        if wr == 1.0 && wi == 0.0 {
             return (0.0, 1.0);
         }
-        let ib = (obs.background_ir - self.offset).max(0.0);
-        let xb = obs.background_albedo_cos(self.offset);
-        let third = self.wall_gain * third_return_share(xi, 1.0, xb, obs.wall_view_factor) * xi * xi * ib;
-        let layer = (1.0 - xi) * obs.emitted_light / (df * df);
-        let r = third / layer;
-        if !(r.is_finite() && r > 0.0) {
-            return (0.0, 1.0);
-        }
-        let theta = self.k * (third_return_distance(df, obs.background_distance_mm) - df - self.delay_mm);
-        let (s, c) = theta.sin_cos();
-        let (wr, wi) = (1.0 + r * c, r * s);
         (wi.atan2(wr), wr.hypot(wi))
+    }
+
+    /// Whether a layer at `df` has a hollow object's back wall before the background.
+    fn walls_at(&self, obs: &PixelObservation, df: f64) -> bool {
+        self.hollow_mm > 0.0 && df + self.hollow_mm < obs.background_distance_mm
     }
 
     /// The layer's return `z` for a hypothesised ξ (its real and imaginary parts) and the
     /// measured amplitude `|M|`; `None` where the IR is not above the offset.
-    fn layer_phasor(&self, obs: &PixelObservation, trig: &PhaseTrig, xi: f64) -> Option<(f64, f64, f64)> {
+    fn layer_phasor(&self, obs: &PixelObservation, trig: &PhaseTrig, xi: f64, walls: bool) -> Option<(f64, f64, f64)> {
         let m = obs.ir - self.offset;
         let ib = (obs.background_ir - self.offset).max(0.0);
         if !(m > 0.0) {
             return None;
         }
         let PhaseTrig { sd, cd, sb, cb } = *trig;
-        let l2 = xi * xi * ib;
+        // Through a hollow object's back wall too, each way.
+        let l2 = xi * xi * ib * if walls { xi * xi } else { 1.0 };
         Some((m * cd - l2 * cb, m * sd - l2 * sb, m))
     }
 
@@ -100,11 +121,12 @@ impl PhasorModel {
     /// the generic path finds it): the non-negative root of `|a X e^{i alpha} + c| = I`.
     pub(super) fn albedo_cos(&self, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> Option<f64> {
         let m = obs.ir - self.offset;
-        let c = xi * xi * (obs.background_ir - self.offset).max(0.0);
+        let walls = self.walls_at(obs, df);
+        let c = xi * xi * (obs.background_ir - self.offset).max(0.0) * if walls { xi * xi } else { 1.0 };
         if !(m > 0.0) || c >= m {
             return None;
         }
-        let (lead, length) = self.with_third_return(obs, xi, df);
+        let (lead, length) = self.layer_factor(obs, xi, df, walls);
         let a = length * (1.0 - xi) * obs.emitted_light / (df * df);
         // a^2 X^2 + 2 a c cos(beta) X + c^2 - m^2 = 0, beta the angle between the layer's
         // return (with a near wall's third) and the background's.
@@ -134,6 +156,8 @@ impl PhasorModel {
     }
 
     /// [`Self::invert`] with the pixel's [`Self::trig`] given (taken once for every ξ).
+    /// With a hollow object, the layer with its back wall where that puts the back wall
+    /// before the background, else the layer alone.
     pub(super) fn invert_with(
         &self,
         model: &ForwardModel,
@@ -141,23 +165,42 @@ impl PhasorModel {
         trig: &PhaseTrig,
         xi: f64,
         x_max: f64,
+        search: Search,
+    ) -> Option<LayerEstimate> {
+        if self.hollow_mm > 0.0 {
+            let with_walls = self.solve(model, obs, (trig, true), xi, x_max, search);
+            if with_walls.is_some_and(|e| self.walls_at(obs, e.foreground_distance_mm)) {
+                return with_walls;
+            }
+        }
+        self.solve(model, obs, (trig, false), xi, x_max, search)
+    }
+
+    /// [`Self::invert_with`] with or without a hollow object's back wall (`walls`).
+    fn solve(
+        &self,
+        model: &ForwardModel,
+        obs: &PixelObservation,
+        (trig, walls): (&PhaseTrig, bool),
+        xi: f64,
+        x_max: f64,
         Search { lo, hi, slopes }: Search,
     ) -> Option<LayerEstimate> {
-        let (re, im, m) = self.layer_phasor(obs, trig, xi)?;
+        let (re, im, m) = self.layer_phasor(obs, trig, xi, walls)?;
         let len = re.hypot(im);
         let x_scale = (1.0 - xi) * obs.emitted_light;
         if !(len > 0.0 && x_scale > 0.0) {
             return None;
         }
         // The layer's distance: the phase's, less the delay, in the search range if a period
-        // allows; with a near wall's third return, less that return's lead, found in turn.
+        // allows; with a near wall's third return or a back wall, less their lead, found in turn.
         let phase = im.atan2(re);
         let from_phase = |lead: f64| lo + ((phase - lead) / self.k - self.delay_mm - lo).rem_euclid(self.range_mm);
         let mut df = from_phase(0.0);
         let mut length = 1.0;
-        if self.wall_gain > 0.0 && obs.wall_view_factor > 0.0 {
+        if walls || (self.wall_gain > 0.0 && obs.wall_view_factor > 0.0) {
             for _ in 0..WALL_STEPS {
-                let (lead, l) = self.with_third_return(obs, xi, df);
+                let (lead, l) = self.layer_factor(obs, xi, df, walls);
                 let next = from_phase(lead);
                 length = l;
                 let settled = (next - df).abs() < 1e-6;
@@ -312,6 +355,29 @@ mod tests {
                 .invert(&model, &plain, xi, 1.0, Search { lo, hi, slopes: false })
                 .expect("estimate");
             assert!((off.foreground_distance_mm - df).abs() > 0.2, "{df}: {off:?}");
+        }
+    }
+
+    #[test]
+    fn recovers_the_front_of_a_hollow_object_of_the_forward_model() {
+        let mut model = ForwardModel::physical(Sensor::sr4000());
+        model.options.hollow_depth_mm = 220.0;
+        let p = PhasorModel::new(&model).expect("the closed form takes a back wall");
+        let bounds = InversionBounds::default();
+        for &(df, db, xi, x, xb) in &[
+            (1000.0, 2600.0, 0.65, 0.6, 1.0),
+            (1800.0, 3000.0, 0.8, 0.4, 0.5),
+            // The back wall would lie behind the background: one layer.
+            (2500.0, 2650.0, 0.6, 0.5, 0.8),
+        ] {
+            let o = obs_of(&model, df, db, xi, x, xb);
+            let (lo, hi) = search_range(&o, &bounds).expect("range");
+            let est = p
+                .invert(&model, &o, xi, 1.0, Search { lo, hi, slopes: false })
+                .expect("estimate");
+            assert!(!est.pinned, "{df} {xi}: {est:?}");
+            assert!((est.foreground_distance_mm - df).abs() < 1e-3, "{df}: {est:?}");
+            assert!((est.albedo_cos - x).abs() < 1e-6, "{x}: {est:?}");
         }
     }
 }
