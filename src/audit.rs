@@ -158,23 +158,10 @@ pub fn gather(
 /// Each pixel's view factor from its background point to the frame's true layer
 /// (`truth`: ray distances, NaN off it), for a near wall's third return.
 fn set_wall_view_factors(px: &mut [AuditPixel], truth: &ImageBuf<f64>, rays: &ImageBuf<Vector3<f64>>) {
-    let layer = ImageBuf {
-        width: truth.width,
-        height: truth.height,
-        data: truth
-            .data
-            .iter()
-            .zip(&rays.data)
-            .map(|(t, r)| t.is_finite().then(|| r * *t))
-            .collect(),
-    };
-    let walls: Vec<Vector3<f64>> = px
-        .iter()
-        .map(|p| rays.data[p.row * truth.width + p.col] * p.obs.background_distance_mm)
-        .collect();
-    let factors = near_wall::view_factors_to_layer(&layer, rays, WALL_PATCH_STRIDE, &walls);
-    for (p, f) in px.iter_mut().zip(factors) {
-        p.obs.wall_view_factor = f;
+    let patches = near_wall::layer_patches(&truth.data, rays, WALL_PATCH_STRIDE);
+    for p in px.iter_mut() {
+        let wall = rays.data[p.row * truth.width + p.col] * p.obs.background_distance_mm;
+        p.obs.wall_view_factor = near_wall::view_factor(&wall, &patches);
     }
 }
 

@@ -330,36 +330,39 @@ fn the_audit_names_the_near_wall_on_the_rendered_document_holder_and_its_file_re
 /// at most 60 mm (the issue's limit; 490 mm as read) with the truth inside ξ's interval.
 #[test]
 fn the_audit_names_diffuse_transmission_on_a_frosted_calibration_and_its_file_recovers_the_scene() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let bag = rendered("calib_difftrans_sheet_diffuse_transmitter.mcap");
-    let a = run(
-        dir.path(),
-        &["audit", bag.to_str().expect("utf-8"), "--physics-out", "physics.toml"],
-    );
-    let (named, _) = named_effects(&a);
-    println!("frosted calibration, default physics: named {named:?}");
+    let (named, r) = audit_then_replay("calib_difftrans_sheet_diffuse_transmitter.mcap", "difftrans_sheet.mcap");
     assert_eq!(
         named.first().map(String::as_str),
         Some("diffuse_transmission"),
         "{named:?}"
     );
-    let file = dir.path().join("physics.toml");
-    let r = replay(
-        dir.path(),
-        "difftrans_sheet.mcap",
-        &["--physics", file.to_str().expect("utf-8")],
-    );
-    let (xi, iv, rms) = summary(&r);
-    let truth = sidecar_xi("difftrans_sheet.mcap");
-    println!(
-        "difftrans_sheet with its file: xi {xi:.3} [{:.3}, {:.3}] (truth {truth:.3}), mean per-frame RMS {rms:.1} mm (raw {:.1})",
-        iv[0],
-        iv[1],
-        num(&r, "mean_frame_rmse_raw_mm")
-    );
+    let ((_, iv, rms), truth) = (summary(&r), sidecar_xi("difftrans_sheet.mcap"));
     assert!(iv[0] <= truth && truth <= iv[1], "{iv:?} against {truth}");
     assert!(rms <= 60.0, "{rms} mm");
     assert!(num(&r, "coverage") >= 0.9, "{r}");
+}
+
+/// The audit of `calibration` (from the default physics, `--physics-out`), then `replay` of
+/// `scene` with the physics file it wrote: the effects it named and the replay's report.
+fn audit_then_replay(calibration: &str, scene: &str) -> (Vec<String>, Value) {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let bag = rendered(calibration);
+    let a = run(
+        dir.path(),
+        &["audit", bag.to_str().expect("utf-8"), "--physics-out", "physics.toml"],
+    );
+    let (named, _) = named_effects(&a);
+    let file = dir.path().join("physics.toml");
+    let r = replay(dir.path(), scene, &["--physics", file.to_str().expect("utf-8")]);
+    let (xi, iv, rms) = summary(&r);
+    println!(
+        "{calibration}, default physics: named {named:?}; {scene} with its file: xi {xi:.3} [{:.3}, {:.3}] (truth {:.3}), mean per-frame RMS {rms:.1} mm (raw {:.1})",
+        iv[0],
+        iv[1],
+        sidecar_xi(scene),
+        num(&r, "mean_frame_rmse_raw_mm")
+    );
+    (named, r)
 }
 
 /// Issue 36, item 4, three returns: a hollow bin of one translucent material (front wall, back
@@ -370,29 +373,9 @@ fn the_audit_names_diffuse_transmission_on_a_frosted_calibration_and_its_file_re
 /// limit) with the truth inside ξ's interval.
 #[test]
 fn the_audit_names_three_returns_on_a_hollow_bin_and_its_file_recovers_another_recording() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let bag = rendered("calib_hollow_bin.mcap");
-    let a = run(
-        dir.path(),
-        &["audit", bag.to_str().expect("utf-8"), "--physics-out", "physics.toml"],
-    );
-    let (named, _) = named_effects(&a);
-    println!("hollow bin, default physics: named {named:?}");
+    let (named, r) = audit_then_replay("calib_hollow_bin.mcap", "hollow_bin.mcap");
     assert_eq!(named, vec!["three_returns".to_string()]);
-    let file = dir.path().join("physics.toml");
-    let r = replay(
-        dir.path(),
-        "hollow_bin.mcap",
-        &["--physics", file.to_str().expect("utf-8")],
-    );
-    let (xi, iv, rms) = summary(&r);
-    let truth = sidecar_xi("hollow_bin.mcap");
-    println!(
-        "hollow_bin with its file: xi {xi:.3} [{:.3}, {:.3}] (truth {truth:.3}), mean per-frame RMS {rms:.1} mm (raw {:.1})",
-        iv[0],
-        iv[1],
-        num(&r, "mean_frame_rmse_raw_mm")
-    );
+    let ((_, iv, rms), truth) = (summary(&r), sidecar_xi("hollow_bin.mcap"));
     assert!(iv[0] <= truth && truth <= iv[1], "{iv:?} against {truth}");
     assert!(rms <= 40.0, "{rms} mm");
 }

@@ -223,19 +223,14 @@ impl PhysicsFile {
     /// Parses and checks a physics file's text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self> {
         let f: PhysicsFile = toml::from_str(text).with_context(|| origin.to_string())?;
-        if let Some(t) = f.hollow_depth_mm {
-            if !(0.0..=5000.0).contains(&t) {
-                bail!("{origin}: hollow_depth_mm = {t} is not in 0..=5000");
-            }
-        }
-        if let Some(f) = f.diffuse_transmission {
-            if !(0.0..=1.0).contains(&f) {
-                bail!("{origin}: diffuse_transmission = {f} is not in 0..=1");
-            }
-        }
-        if let Some(g) = f.wall_interreflection {
-            if !(0.0..=10.0).contains(&g) {
-                bail!("{origin}: wall_interreflection = {g} is not in 0..=10");
+        let ranged = [
+            ("hollow_depth_mm", f.hollow_depth_mm, 5000.0),
+            ("diffuse_transmission", f.diffuse_transmission, 1.0),
+            ("wall_interreflection", f.wall_interreflection, 10.0),
+        ];
+        for (name, value, most) in ranged {
+            if let Some(v) = value.filter(|v| !(0.0..=most).contains(v)) {
+                bail!("{origin}: {name} = {v} is not in 0..={most}");
             }
         }
         if let Some(b) = f.bounces {
@@ -344,14 +339,15 @@ pub fn describe_model(model: &ForwardModel) -> String {
                 o.refraction_shift_px[0], o.refraction_shift_px[1]
             ));
         }
-        if o.wall_interreflection != p.wall_interreflection {
-            d.push(format!("wall_interreflection = {}", o.wall_interreflection));
-        }
-        if o.diffuse_transmission != p.diffuse_transmission {
-            d.push(format!("diffuse_transmission = {}", o.diffuse_transmission));
-        }
-        if o.hollow_depth_mm != p.hollow_depth_mm {
-            d.push(format!("hollow_depth_mm = {}", o.hollow_depth_mm));
+        let gains = [
+            ("wall_interreflection", o.wall_interreflection, p.wall_interreflection),
+            ("diffuse_transmission", o.diffuse_transmission, p.diffuse_transmission),
+            ("hollow_depth_mm", o.hollow_depth_mm, p.hollow_depth_mm),
+        ];
+        for (name, mine, preset) in gains {
+            if mine != preset {
+                d.push(format!("{name} = {mine}"));
+            }
         }
         d
     };

@@ -74,28 +74,18 @@ pub fn pixel_solid_angle(rays: &ImageBuf<Vector3<f64>>, i: usize) -> f64 {
     a.cross(&b).norm()
 }
 
-/// The view factor from each of `walls` (background points) to a layer given as its
-/// pixels' points (`None` off it) on `rays`, one patch per `stride` square block.
-pub fn view_factors_to_layer(
-    layer: &ImageBuf<Option<Vector3<f64>>>,
-    rays: &ImageBuf<Vector3<f64>>,
-    stride: usize,
-    walls: &[Vector3<f64>],
-) -> Vec<f64> {
-    let (w, stride) = (layer.width.max(1), stride.max(1));
-    let patches: Vec<Patch> = layer
-        .data
-        .iter()
+/// A layer given as its pixels' ray distances (`df`, mm; not finite off it) on `rays`, as
+/// patches for [`view_factor`]: one per `stride` square block, at the block's first pixel.
+pub fn layer_patches(df: &[f64], rays: &ImageBuf<Vector3<f64>>, stride: usize) -> Vec<Patch> {
+    let (w, stride) = (rays.width.max(1), stride.max(1));
+    df.iter()
         .enumerate()
-        .filter(|(i, _)| (i / w) % stride == 0 && (i % w) % stride == 0)
-        .filter_map(|(i, p)| {
-            p.map(|point| Patch {
-                point,
-                solid_angle: pixel_solid_angle(rays, i) * (stride * stride) as f64,
-            })
+        .filter(|&(i, d)| (i / w) % stride == 0 && (i % w) % stride == 0 && d.is_finite())
+        .map(|(i, &d)| Patch {
+            point: rays.data[i] * d,
+            solid_angle: pixel_solid_angle(rays, i) * (stride * stride) as f64,
         })
-        .collect();
-    walls.iter().map(|wall| view_factor(wall, &patches)).collect()
+        .collect()
 }
 
 #[cfg(test)]

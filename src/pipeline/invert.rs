@@ -254,15 +254,7 @@ impl Pipeline {
     ) -> Vec<f64> {
         let (w, stride) = (width.max(1), self.config.prior_stride_px.max(1));
         let block = |i: usize| (i / w / stride) * w.div_ceil(stride) + (i % w) / stride;
-        let patches: Vec<near_wall::Patch> = observed
-            .iter()
-            .map(|&(i, _)| i)
-            .filter(|&i| (i / w) % stride == 0 && (i % w) % stride == 0 && df[i].is_finite())
-            .map(|i| near_wall::Patch {
-                point: rays.data[i] * df[i],
-                solid_angle: near_wall::pixel_solid_angle(rays, i) * (stride * stride) as f64,
-            })
-            .collect();
+        let patches = near_wall::layer_patches(df, rays, stride);
         let mut first_of_block = vec![usize::MAX; block(df.len().saturating_sub(1)) + 1];
         let mut items: Vec<(usize, Vector3<f64>)> = vec![];
         for (&(i, _), o) in observed.iter().zip(held) {

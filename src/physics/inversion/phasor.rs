@@ -330,17 +330,13 @@ mod tests {
         let mut model = ForwardModel::physical(Sensor::sr4000());
         model.options.wall_interreflection = 1.0;
         let p = PhasorModel::new(&model).expect("the closed form takes the near wall");
-        let bounds = InversionBounds::default();
         for &(df, db, xi, x, xb, f) in &[
             (1750.0, 2000.0, 0.65, 0.6, 1.0, 0.27),
             (2700.0, 3000.0, 0.8, 0.4, 0.5, 0.4),
             (1000.0, 2000.0, 0.3, 0.7, 0.9, 0.05),
         ] {
             let o = super::super::tests::observe_near_wall(&model, [df, db], xi, x, xb, f);
-            let (lo, hi) = search_range(&o, &bounds).expect("range");
-            let est = p
-                .invert(&model, &o, xi, 1.0, Search { lo, hi, slopes: false })
-                .expect("estimate");
+            let est = inverted(&p, &model, &o, xi);
             assert!(!est.pinned, "{df} {xi}: {est:?}");
             assert!((est.foreground_distance_mm - df).abs() < 1e-3, "{df}: {est:?}");
             assert!((est.albedo_cos - x).abs() < 1e-6, "{x}: {est:?}");
@@ -351,9 +347,7 @@ mod tests {
                 wall_view_factor: 0.0,
                 ..o
             };
-            let off = p
-                .invert(&model, &plain, xi, 1.0, Search { lo, hi, slopes: false })
-                .expect("estimate");
+            let off = inverted(&p, &model, &plain, xi);
             assert!((off.foreground_distance_mm - df).abs() > 0.2, "{df}: {off:?}");
         }
     }
@@ -363,21 +357,23 @@ mod tests {
         let mut model = ForwardModel::physical(Sensor::sr4000());
         model.options.hollow_depth_mm = 220.0;
         let p = PhasorModel::new(&model).expect("the closed form takes a back wall");
-        let bounds = InversionBounds::default();
         for &(df, db, xi, x, xb) in &[
             (1000.0, 2600.0, 0.65, 0.6, 1.0),
             (1800.0, 3000.0, 0.8, 0.4, 0.5),
             // The back wall would lie behind the background: one layer.
             (2500.0, 2650.0, 0.6, 0.5, 0.8),
         ] {
-            let o = obs_of(&model, df, db, xi, x, xb);
-            let (lo, hi) = search_range(&o, &bounds).expect("range");
-            let est = p
-                .invert(&model, &o, xi, 1.0, Search { lo, hi, slopes: false })
-                .expect("estimate");
+            let est = inverted(&p, &model, &obs_of(&model, df, db, xi, x, xb), xi);
             assert!(!est.pinned, "{df} {xi}: {est:?}");
             assert!((est.foreground_distance_mm - df).abs() < 1e-3, "{df}: {est:?}");
             assert!((est.albedo_cos - x).abs() < 1e-6, "{x}: {est:?}");
         }
+    }
+
+    /// A pixel inverted by the closed form over the default search range, without slopes.
+    fn inverted(p: &PhasorModel, model: &ForwardModel, o: &PixelObservation, xi: f64) -> LayerEstimate {
+        let (lo, hi) = search_range(o, &InversionBounds::default()).expect("range");
+        p.invert(model, o, xi, 1.0, Search { lo, hi, slopes: false })
+            .expect("estimate")
     }
 }
