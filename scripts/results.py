@@ -19,11 +19,19 @@ Per bag it reports:
   same for the raw reading over those pixels, and the share of the
   translucent materials' pixels that got a recovered depth;
 - the same mean over frames of the per-frame RMS z error over *every* pixel
-  of a translucent material with truth (`all_pixels_rms_mm`): the published
-  depth where it was corrected, the reading where it was left as read (a
-  frame the pipeline passed through counts at its reading), beside the raw
-  reading's over the same pixels (`all_pixels_rms_raw_mm`): the figure that
-  says whether a scene came out worse than raw;
+  of a translucent material with truth, and every pixel off them that was
+  corrected (in the mask: on the background, whose truth is the median of
+  the bag's background frames' readings, or on an opaque object)
+  (`all_pixels_rms_mm`): the published depth where it was corrected, the
+  reading where it was left as read (a frame the pipeline passed through
+  counts at its reading), beside the raw reading's over the same pixels
+  (`all_pixels_rms_raw_mm`): the figure that says whether a scene came out
+  worse than raw;
+- the corrections off every translucent object on their own: pixels a
+  frame, and the mean per-frame RMS error there, published and raw
+  (`off_object_pixels`, `off_object_rms_mm`, `off_object_rms_raw_mm`): a
+  mixed pixel on an object's outline whose centre sees the background is
+  the background's;
 - per translucent material: the ξ estimate of the region its pixels mostly
   fell in, its interval, whether the truth lies inside, the poses seen, and
   the every-pixel figure over its own pixels (`rms_mm` beside `rms_raw_mm`:
@@ -108,6 +116,7 @@ def evaluate(bag, replay_args, exe):
         inp = read(bag, ["ground_truth/depth", "ground_truth/material", "depth/image_raw"])
         res = read(out_bag, ["depth/corrected", "translucent_mask", "regions", "depth/corrected_sigma",
                              "translucency_image"])
+    background = latched_background(side, inp, replay_args)
     multi = report.get("path") == "multi_frequency"
     # With no background latched (a moving camera's --no-latch) the path measures no xi.
     xi_measured = not multi or report.get("multi_frequency", {}).get("latched", True)
@@ -120,6 +129,7 @@ def evaluate(bag, replay_args, exe):
     frame_rms, frame_raw, covered, total = [], [], 0, 0
     every_rms, every_raw = [], []
     within_2sigma, with_sigma = 0, 0
+    off_rms, off_raw, off_pixels = [], [], []
     region_votes = defaultdict(Counter)
     opaque_flagged, opaque_total, opaque_err = defaultdict(int), defaultdict(int), defaultdict(list)
     opaque_raw_err = defaultdict(list)
@@ -145,8 +155,17 @@ def evaluate(bag, replay_args, exe):
         obj_sq = defaultdict(lambda: [0.0, 0.0, 0])
         e2, r2, n = 0.0, 0.0, 0
         a2, ar2, an = 0.0, 0.0, 0
+        off = [0.0, 0.0, 0]
         for i, m in enumerate(mat):
             info = materials.get(m)
+            if info is None or info.get("opaque"):
+                # Off every translucent object: a correction here is measured against the
+                # truth (an opaque object's, or the latched background's reading).
+                t = truth[i] if math.isfinite(truth[i]) else (background[i] if background else math.nan)
+                if corr is not None and mask[i] and math.isfinite(t) and math.isfinite(z[i]) and math.isfinite(raw[i]):
+                    off[0] += (z[i] - t) ** 2
+                    off[1] += (raw[i] - t) ** 2
+                    off[2] += 1
             if info is None or not math.isfinite(truth[i]):
                 continue
             if regions[i]:
@@ -193,6 +212,12 @@ def evaluate(bag, replay_args, exe):
         if n:
             frame_rms.append(math.sqrt(e2 / n))
             frame_raw.append(math.sqrt(r2 / n))
+        if off[2]:
+            off_rms.append(math.sqrt(off[0] / off[2]))
+            off_raw.append(math.sqrt(off[1] / off[2]))
+        off_pixels.append(off[2])
+        # Every pixel counts what was published wrongly off the objects too.
+        a2, ar2, an = a2 + off[0], ar2 + off[1], an + off[2]
         if an:
             every_rms.append(math.sqrt(a2 / an))
             every_raw.append(math.sqrt(ar2 / an))
@@ -205,6 +230,10 @@ def evaluate(bag, replay_args, exe):
         "all_pixels_rms_mm": statistics.fmean(every_rms) if every_rms else None,
         "all_pixels_rms_raw_mm": statistics.fmean(every_raw) if every_raw else None,
         "recovered_share": covered / total if total else None,
+        # corrections off every translucent object: pixels per frame, and their mean per-frame RMS
+        "off_object_pixels": statistics.fmean(off_pixels) if off_pixels else None,
+        "off_object_rms_mm": statistics.fmean(off_rms) if off_rms else None,
+        "off_object_rms_raw_mm": statistics.fmean(off_raw) if off_raw else None,
         "within_2sigma": [within_2sigma, with_sigma],
         "materials": [],
         "opaque": [],
@@ -265,6 +294,17 @@ def evaluate(bag, replay_args, exe):
             row["xi_pixel_frame_medians"] = [min(pixel_xi[mid]), max(pixel_xi[mid])]
         out["materials"].append(row)
     return out
+
+
+def latched_background(side, inp, replay_args):
+    """The background's depth per pixel (mm), the median of the bag's background frames'
+    readings: the truth behind the objects where the render gives none. None where the
+    scene has no still background (a moving camera's replay takes no latch)."""
+    n = side.get("background_frames", 0)
+    if not n or "--no-latch" in [*replay_args, *side.get("replay_args", [])]:
+        return None
+    frames = [z_mm(inp["depth/image_raw"][st]) for st in sorted(inp["depth/image_raw"])[:n]]
+    return [statistics.median(v) if all(math.isfinite(x) for x in v) else math.nan for v in zip(*frames)]
 
 
 def frames_mf(per_frame):
@@ -392,7 +432,9 @@ def print_row(r):
         f"(recovered {fmt(None if r['recovered_share'] is None else 100 * r['recovered_share'], '.0f')} %), "
         f"every pixel {fmt(r['all_pixels_rms_raw_mm'])} -> {fmt(r['all_pixels_rms_mm'])} mm; "
         f"{mats}{'; ' + opq if opq else ''}; "
-        f"within 2 sigma {fmt(100 * r['within_2sigma'][0] / r['within_2sigma'][1] if r['within_2sigma'][1] else None, '.0f')} %"
+        + (f"corrected off the objects {r['off_object_pixels']:.0f} px a frame ({fmt(r['off_object_rms_raw_mm'])} -> "
+           f"{fmt(r['off_object_rms_mm'])} mm); " if r.get("off_object_pixels") else "")
+        + f"within 2 sigma {fmt(100 * r['within_2sigma'][0] / r['within_2sigma'][1] if r['within_2sigma'][1] else None, '.0f')} %"
     )
 
 
@@ -413,11 +455,11 @@ def print_summary(rows):
 
 
 def markdown(rows):
-    print("| bag | true ξ: estimate [interval] (its pixels: raw → published, mm) | recovered pixels: raw → recovered, mm (share) | every pixel: raw → published, mm | opaque objects |")
-    print("| --- | --- | --- | --- | --- |")
+    print("| bag | true ξ: estimate [interval] (its pixels: raw → published, mm) | recovered pixels: raw → recovered, mm (share) | every pixel: raw → published, mm | corrected off the objects: pixels a frame (raw → published, mm) | opaque objects |")
+    print("| --- | --- | --- | --- | --- | --- |")
     for r in rows:
         if "error" in r:
-            print(f"| `{r['bag']}` | replay failed | | | |")
+            print(f"| `{r['bag']}` | replay failed | | | | |")
             continue
         mats = "; ".join(
             f"{m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.3f')}, "
@@ -427,8 +469,10 @@ def markdown(rows):
         opq = "; ".join(f"{100 * o['not_flagged']:.0f} % not flagged, median error {fmt(o['median_error_mm'])} mm "
                         f"(reading {fmt(o.get('median_raw_error_mm'))})" for o in r["opaque"]) or "-"
         share = "-" if r["recovered_share"] is None else f"{100 * r['recovered_share']:.0f} %"
+        off = (f"{r['off_object_pixels']:.0f} ({fmt(r.get('off_object_rms_raw_mm'))} → {fmt(r.get('off_object_rms_mm'))})"
+               if r.get("off_object_pixels") else "0")
         print(f"| `{os.path.splitext(r['bag'])[0]}` | {mats} | {fmt(r['mean_frame_rms_raw_mm'])} → {fmt(r['mean_frame_rms_mm'])} ({share}) "
-              f"| {fmt(r['all_pixels_rms_raw_mm'])} → {fmt(r['all_pixels_rms_mm'])} | {opq} |")
+              f"| {fmt(r['all_pixels_rms_raw_mm'])} → {fmt(r['all_pixels_rms_mm'])} | {off} | {opq} |")
 
 
 def default_bags():

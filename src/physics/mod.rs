@@ -9,6 +9,7 @@
 pub mod buffer;
 
 pub use buffer::{ImageBuf, Region, SparseImage};
+pub mod coverage;
 pub mod diffuse;
 pub mod model;
 pub mod multifreq;

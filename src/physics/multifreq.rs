@@ -616,6 +616,28 @@ impl MultiFrequencyInversion {
         })
     }
 
+    /// The share of the background's return left at a pixel with a layer's return at
+    /// `d1`: `t` of the least squares `min_{a >= 0, t} |M - a u(d1) - t B|^2` (`t` unbounded),
+    /// and its standard deviation `sqrt(<u, u> / det)`. A pixel that a layer of `ξ` covers
+    /// by a share `c` shows `t = 1 - c (1 - ξ^2)` (the one forward model: the covered part
+    /// is the layer's two returns, the rest the background's), so `t` says how much of it
+    /// the layer covers even where the layer's own return is under the noise.
+    pub fn background_share_at(&self, px: &PixelPhasors, d1: f64) -> Result<(f64, f64), MultiFrequencyError> {
+        let p = self.pixel(px)?;
+        let (g, f) = (self.gram(&p, d1), &p.fixed);
+        let det = g.uu * f.bb - g.ub * g.ub;
+        if !(det > 1e-12 * g.uu * f.bb) {
+            // No return at d1 to separate from the background's: t alone.
+            return Ok((f.bm / f.bb, f.bb.recip().sqrt()));
+        }
+        let (a, t) = ((g.um * f.bb - f.bm * g.ub) / det, (f.bm * g.uu - g.um * g.ub) / det);
+        if a >= 0.0 {
+            Ok((t, (g.uu / det).sqrt()))
+        } else {
+            Ok((f.bm / f.bb, f.bb.recip().sqrt()))
+        }
+    }
+
     /// The frequencies' common unambiguous range, mm.
     pub fn common_unambiguous_range_mm(&self) -> f64 {
         self.common_range_mm
@@ -1482,6 +1504,50 @@ mod tests {
             "noise-free layers: worst |d1 error| {:.2e} mm, worst |xi error| {:.2e}",
             worst.0, worst.1
         );
+    }
+
+    #[test]
+    fn a_partly_covered_pixel_shows_its_share_in_the_background_left() {
+        let (mf, inv) = model(Waveform::Sinusoid, &THREE);
+        let mut rng = ChaCha8Rng::seed_from_u64(35);
+        let (mut inside, mut draws) = (0, 0);
+        for xi in [0.5, 0.93] {
+            for c in [0.0, 0.3, 0.7, 1.0] {
+                let (df, db) = (2250.0, 3150.0);
+                let full = Observed::new(&mf, &scene(df, db, xi), NOISE);
+                // A share c of the pixel sees the layer's returns, the rest the background.
+                let mix = |m: &Phasor, b: &Phasor| Phasor {
+                    a: c * m.a + (1.0 - c) * b.a,
+                    b: c * m.b + (1.0 - c) * b.b,
+                };
+                let clean: Vec<Phasor> = full
+                    .measured
+                    .iter()
+                    .zip(&full.background)
+                    .map(|(m, b)| mix(m, b))
+                    .collect();
+                let want = 1.0 - c * (1.0 - xi * xi);
+                let mut o = Observed {
+                    measured: clean.clone(),
+                    background: full.background.clone(),
+                    db,
+                    sigma: vec![NOISE_FREE * full.sigma[0] / NOISE; mf.len()],
+                };
+                let (t, _) = inv.background_share_at(&o.phasors(), df).expect("share");
+                assert!((t - want).abs() < 1e-4, "noise-free xi {xi} c {c}: t {t} want {want}");
+                o.sigma = full.sigma.clone();
+                for _ in 0..200 {
+                    o.measured = clean.clone();
+                    o.add_noise(&mut rng);
+                    let (t, sd) = inv.background_share_at(&o.phasors(), df).expect("share");
+                    inside += usize::from((t - want).abs() <= 1.96 * sd);
+                    draws += 1;
+                }
+            }
+        }
+        let share = inside as f64 / draws as f64;
+        println!("background share: {inside} of {draws} draws within 1.96 sd ({share:.3})");
+        assert!((0.93..=0.97).contains(&share), "{share}");
     }
 
     #[test]

@@ -127,6 +127,61 @@ pub fn open_mask(mask: &ImageBuf<bool>) -> ImageBuf<bool> {
     }
 }
 
+/// The holes of labelled regions: each 4-connected piece of unlabelled pixels (label 0) of
+/// at most `max_pixels`, off the image's border, every pixel of it `eligible`, whose
+/// 8-neighbours outside it all carry one label; each of its pixels with that label. A hole
+/// smaller than a region can be is no object of its own: it is the region that surrounds it.
+pub fn enclosed_holes(
+    labels: &ImageBuf<u32>,
+    max_pixels: usize,
+    eligible: impl Fn(usize) -> bool,
+) -> Vec<(usize, u32)> {
+    let (w, h) = (labels.width, labels.height);
+    let mut seen = vec![false; w * h];
+    let mut holes = Vec::new();
+    let mut piece = Vec::new();
+    for start in 0..w * h {
+        if labels.data[start] != 0 || seen[start] {
+            continue;
+        }
+        piece.clear();
+        let mut stack = vec![start];
+        seen[start] = true;
+        // `None` until a neighbour's label is met; a second label, the border, an ineligible
+        // pixel or too large a piece spoil it (the piece is still walked whole, so that none
+        // of its pixels starts another).
+        let (mut around, mut spoilt) = (None, false);
+        while let Some(i) = stack.pop() {
+            piece.push(i);
+            spoilt |= !eligible(i) || piece.len() > max_pixels;
+            let (c, r) = (i % w, i / w);
+            if c == 0 || r == 0 || c + 1 == w || r + 1 == h {
+                spoilt = true;
+            }
+            for (dc, dr) in [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
+                let (cc, rr) = (c as isize + dc, r as isize + dr);
+                if cc < 0 || rr < 0 || cc >= w as isize || rr >= h as isize {
+                    continue;
+                }
+                let j = rr as usize * w + cc as usize;
+                match labels.data[j] {
+                    0 if (dc == 0 || dr == 0) && !seen[j] => {
+                        seen[j] = true;
+                        stack.push(j);
+                    }
+                    0 => {}
+                    l if around.is_none_or(|a| a == l) => around = Some(l),
+                    _ => spoilt = true,
+                }
+            }
+        }
+        if let (Some(l), false) = (around, spoilt) {
+            holes.extend(piece.iter().map(|&i| (i, l)));
+        }
+    }
+    holes
+}
+
 /// Removes 4-connected regions smaller than `min_pixels` (isolated noise
 /// crossing the threshold); returns the cleaned mask and the region count kept.
 pub fn remove_small_regions(mask: &ImageBuf<bool>, min_pixels: usize) -> (ImageBuf<bool>, usize) {
@@ -548,6 +603,40 @@ mod tests {
     }
 
     use super::*;
+
+    #[test]
+    fn holes_of_one_region_are_filled_and_nothing_else() {
+        let (w, h) = (12, 10);
+        let mut l = ImageBuf::filled(w, h, 0u32);
+        for y in 1..8 {
+            for x in 1..7 {
+                l.data[y * w + x] = 1; // region 1, 6 x 7
+            }
+        }
+        for y in 1..8 {
+            for x in 7..11 {
+                l.data[y * w + x] = 2; // region 2 beside it
+            }
+        }
+        let (hole, big, seam, barred) = (3 * w + 3, [5 * w + 2, 5 * w + 3, 5 * w + 4], 6 * w + 7, 2 * w + 5);
+        l.data[hole] = 0; // one pixel inside region 1
+        for i in big {
+            l.data[i] = 0; // three in a row inside region 1
+        }
+        l.data[seam] = 0; // on the seam of 1 and 2
+        l.data[barred] = 0; // inside 1, but not eligible
+        let holes = enclosed_holes(&l, 3, |i| i != barred);
+        let mut want: Vec<(usize, u32)> = [hole].into_iter().chain(big).map(|i| (i, 1)).collect();
+        want.sort_unstable();
+        let mut got = holes.clone();
+        got.sort_unstable();
+        assert_eq!(got, want);
+        // Too large a piece is no hole.
+        let small = enclosed_holes(&l, 2, |i| i != barred);
+        assert_eq!(small, vec![(hole, 1)]);
+        // The background outside (touching the border) never is.
+        assert!(holes.iter().all(|&(i, _)| l.data[i] == 0 && i != 0));
+    }
 
     #[test]
     fn threshold_and_validity() {

@@ -6,6 +6,7 @@
 use nalgebra::Vector3;
 
 use super::{label_mask, restrict, DepthFrame, FrameOutput, Observed, Pipeline, RegionOutput};
+use crate::physics::coverage::{layer_coverage, ReadingNoise};
 use crate::physics::near_wall;
 use crate::physics::parallel::{map_chunks_ordered, map_ordered};
 use crate::physics::surface::{LocalSurfaces, Windows};
@@ -101,11 +102,15 @@ impl Pipeline {
             }
         }
         let mut tally = Tally::default();
+        let mut uncovered = vec![];
+        let frame_mask = out.mask.clone();
         for (_, xi, labels) in &groups {
             let mut layer = Layer {
                 z_mm: &mut out.corrected_z_mm,
                 sigma_mm: &mut out.corrected_sigma_mm,
                 tally: &mut tally,
+                frame_mask: &frame_mask,
+                uncovered: &mut uncovered,
             };
             if labels.len() == obs.regions.len() {
                 // Every region: the frame's own mask and observations, no copy.
@@ -117,6 +122,9 @@ impl Pipeline {
                 };
                 self.recover_layer(&mask, &observations, xi, &mut layer);
             }
+        }
+        for fi in uncovered {
+            out.mask.data[fi] = false;
         }
         out.recovered_pixels = tally.recovered;
         out.pinned_pixels = tally.pinned;
@@ -163,9 +171,19 @@ impl Pipeline {
         let roots = self.layer_roots((&observed, &held, observations), (&rays, &mask), xi, region.width);
         let xi_share = self.xi_share(&observed, &held, &roots.df, region.width, xi_estimate);
         for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
+            // A pixel on the outline that the layer covers less than half keeps its reading.
+            let outline = observations
+                .get(fi)
+                .filter(|_| roots.df[i].is_finite())
+                .and_then(|o| self.outline_coverage(fi, o, roots.df[i], xi, out.frame_mask));
+            if let Some((true, _)) = outline {
+                out.uncovered.push(fi);
+                continue;
+            }
+            let floor = outline.map_or(0.0, |o| o.1);
             let (z, sigma) = if roots.df[i].is_finite() {
                 out.tally.recovered += 1;
-                let s = roots.noise[i].hypot(xi_share[i]);
+                let s = roots.noise[i].hypot(xi_share[i]).max(floor);
                 (
                     (roots.df[i] / self.scale.data[fi]) as f32,
                     (s / self.scale.data[fi]) as f32,
@@ -284,7 +302,6 @@ impl Pipeline {
     /// deviation from the reading and IR noise: inverted in batches, in parallel over the
     /// current rayon pool when there are enough of them, in pixel order.
     fn solve_pixels(&self, observed: &[(usize, usize)], held: &[PixelObservation], xi: f64) -> Vec<Option<PixelSolve>> {
-        let bg = self.background.as_ref();
         map_chunks_ordered(
             observed,
             INVERSION_BATCH,
@@ -297,23 +314,15 @@ impl Pipeline {
                     .zip(observations.iter().zip(estimates))
                     .map(|(&(_, fi), (o, est))| {
                         let est = est?;
-                        // Reading and IR noise: the background's, measured over the latch, scaled
-                        // to this pixel's light as shot noise; the layer's follows through the
-                        // model's slopes (implicit function: d df = -(dF/dI dI - dd) / (dF/d df)).
-                        let light = (o.ir / o.background_ir).max(1e-9);
-                        let d_sigma = bg
-                            .map(|b| b.noise_mm.data[fi])
-                            .filter(|v| v.is_finite())
-                            .unwrap_or(self.config.threshold_mm / 3.0)
-                            / light.sqrt();
-                        let ir_sigma =
-                            bg.map(|b| b.ir_noise.data[fi]).filter(|v| v.is_finite()).unwrap_or(0.0) * light.sqrt();
+                        // The layer's noise follows from the reading's through the model's slopes
+                        // (implicit function: d df = -(dF/dI dI - dd) / (dF/d df)).
+                        let noise = self.reading_noise(fi, o);
                         let dfdi = est.reading_per_ir;
-                        let ir_term = if dfdi.is_finite() { ir_sigma * dfdi } else { 0.0 };
+                        let ir_term = if dfdi.is_finite() { noise.ir * dfdi } else { 0.0 };
                         Some(PixelSolve {
                             foreground_distance_mm: est.foreground_distance_mm,
                             residual_mm: est.residual_mm,
-                            layer_sigma_mm: (d_sigma * d_sigma + ir_term * ir_term).sqrt() / est.slope.abs(),
+                            layer_sigma_mm: noise.distance_mm.hypot(ir_term) / est.slope.abs(),
                             several_roots: est.roots > 1,
                             pinned: est.pinned,
                         })
@@ -321,6 +330,62 @@ impl Pipeline {
                     .collect()
             },
         )
+    }
+
+    /// Pixel `fi`'s reading and IR noise: the background's, measured over the latch, scaled
+    /// to the pixel's light as shot noise.
+    fn reading_noise(&self, fi: usize, o: &PixelObservation) -> ReadingNoise {
+        let bg = self.background.as_ref();
+        let light = (o.ir / o.background_ir).max(1e-9);
+        let d_sigma = bg
+            .map(|b| b.noise_mm.data[fi])
+            .filter(|v| v.is_finite())
+            .unwrap_or(self.config.threshold_mm / 3.0);
+        let ir_sigma = bg.map(|b| b.ir_noise.data[fi]).filter(|v| v.is_finite()).unwrap_or(0.0);
+        ReadingNoise {
+            distance_mm: d_sigma / light.sqrt(),
+            ir: ir_sigma * light.sqrt(),
+        }
+    }
+
+    /// Whether a recovered pixel on the mask's outline (`fi`, an 8-neighbour off `mask`) is
+    /// covered by the layer at ray distance `df` less than half, so that its centre sees
+    /// the background ([`layer_coverage`]: the background's dimming and the layer's return
+    /// against the share covered); `Some(true)` then, `Some(false)` where it is covered by
+    /// half or more, with the least σ its depth may have (half the gap to the background
+    /// where the share's 95 % interval holds a half, 0 elsewhere). `None` off the outline
+    /// or where the model's reading is no phasor.
+    fn outline_coverage(
+        &self,
+        fi: usize,
+        o: &PixelObservation,
+        df: f64,
+        xi: f64,
+        mask: &ImageBuf<bool>,
+    ) -> Option<(bool, f64)> {
+        let (w, h) = (mask.width, mask.height);
+        let (c, r) = ((fi % w) as isize, (fi / w) as isize);
+        let outline = (-1..=1)
+            .flat_map(|dr| (-1..=1).map(move |dc| (c + dc, r + dr)))
+            .any(|(cc, rr)| {
+                cc < 0 || rr < 0 || cc >= w as isize || rr >= h as isize || !mask.data[rr as usize * w + cc as usize]
+            });
+        if !outline {
+            return None;
+        }
+        let cov = layer_coverage(&self.config.model, o, df, xi, self.reading_noise(fi, o))?;
+        if cov.share < 0.5 {
+            return Some((true, 0.0));
+        }
+        let ambiguous = cov.share - 1.96 * cov.share_sigma <= 0.5;
+        Some((
+            false,
+            if ambiguous {
+                (o.background_distance_mm - df).abs() / 2.0
+            } else {
+                0.0
+            },
+        ))
     }
 
     /// The smooth-surface prior on the roots: where a pixel fits several layers, the one its
@@ -483,6 +548,10 @@ struct Layer<'a> {
     z_mm: &'a mut ImageBuf<f32>,
     sigma_mm: &'a mut ImageBuf<f32>,
     tally: &'a mut Tally,
+    /// The frame's mask (what is translucent: an outline pixel has a neighbour off it).
+    frame_mask: &'a ImageBuf<bool>,
+    /// Pixels on the outline that the layer covers less than half: they leave the mask.
+    uncovered: &'a mut Vec<usize>,
 }
 
 /// Parameters a window's surface fits (a quadric's six): its value at a pixel averages the

@@ -36,7 +36,9 @@ use crate::physics::multifreq::{
     MultiFrequencyError, MultiFrequencyEstimate, MultiFrequencyInversion, MultiFrequencyModel, Phasor, PixelPhasors,
     ScanSettings, SingleReturn,
 };
-use crate::physics::segmentation::{label_regions, open_mask, remove_small_regions, wrapped_difference};
+use crate::physics::segmentation::{
+    enclosed_holes, label_regions, open_mask, remove_small_regions, wrapped_difference,
+};
 use crate::physics::stats::{median_select, quantile_select, sigma_about, student_t975};
 use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::{ForwardModel, ImageBuf, Intrinsics, XiEstimate, XiMethod};
@@ -825,7 +827,7 @@ impl MultiFrequencyStage {
         let (mut labels, mut layers) = self.labels(results, &mask, &opaque);
         let pixel_sr = 1.0 / (self.intrinsics.fx * self.intrinsics.fy);
         let mut regions = regions(&labels, layers, results, pixel_sr);
-        let mut grown = vec![];
+        let (mut grown, mut edges) = (vec![], vec![]);
         if let Some(frame) = latched {
             let growth = self.grow_layers(frame, &labels, layers, &regions, results);
             let (merged, new_ids, merged_layers) = merge_labels(&labels, layers, &growth.joined);
@@ -834,10 +836,16 @@ impl MultiFrequencyStage {
                 regions = self::regions(&labels, layers, results, pixel_sr);
             }
             grown = growth.pixels.iter().map(|&(i, r)| (i, new_ids[r as usize])).collect();
+            grown.extend(self.holes(&labels, layers, &grown, results));
+            edges = self.covered_edges(frame, &labels, layers, &regions, &grown, results);
+            grown.extend(edges.iter().map(|e| (e.pixel, e.region)));
         }
         let mut layer = self.surface_prior(&labels, layers, results, &grown);
         if let Some(frame) = latched {
             self.add_translucency_share(frame, &labels, layers, &regions, &grown, &mut layer);
+        }
+        for e in &edges {
+            layer.sigma_mm[e.pixel] = layer.sigma_mm[e.pixel].max(e.sigma_floor_mm);
         }
         let mut results = results.to_vec();
         for &(i, region) in &grown {
@@ -850,6 +858,9 @@ impl MultiFrequencyStage {
                     ..PixelResult::only(PixelClass::Layer)
                 };
             }
+        }
+        if latched.is_some() {
+            self.keep_uncovered_outline(&mut mask, &mut labels, layers, &regions, &mut results, &mut layer);
         }
         let count = |c: PixelClass| results.iter().filter(|r| r.class == c).count();
         let filled = self.fill(depth, &mask, &results, &layer);
@@ -1020,8 +1031,10 @@ impl MultiFrequencyStage {
         grown
     }
 
-    /// The median distance of `region`'s own pixels (its labels, not those grown) within the
-    /// prior's window of pixel `i`, mm: where the region's layer is near `i`.
+    /// The median distance of `region`'s own pixels (its labels, not those grown) in the
+    /// narrowest of the prior's windows about pixel `i` that holds any ([`PRIOR_WIDENINGS`]),
+    /// mm: where the region's layer is near `i`. A faint layer's own pixels may be few and
+    /// far between, and what is grown from them lies beyond the first window.
     fn local_layer_distance(
         &self,
         i: usize,
@@ -1030,16 +1043,162 @@ impl MultiFrequencyStage {
         results: &[PixelResult],
     ) -> Option<f64> {
         let (w, h) = (labels.width as isize, labels.height as isize);
-        let r = self.config.prior_radius_px.max(1) as isize;
         let (c, row) = ((i as isize) % w, (i as isize) / w);
-        let mut near: Vec<f64> = ((row - r).max(0)..=(row + r).min(h - 1))
-            .flat_map(|y| ((c - r).max(0)..=(c + r).min(w - 1)).map(move |x| (y * w + x) as usize))
-            .filter(|&j| labels.data[j] == region)
-            .map(|j| results[j].distance_mm)
-            .filter(|d| d.is_finite())
-            .collect();
-        let d = median_select(&mut near);
-        d.is_finite().then_some(d)
+        (0..PRIOR_WIDENINGS).find_map(|k| {
+            let r = (self.config.prior_radius_px.max(1) << k) as isize;
+            let mut near: Vec<f64> = ((row - r).max(0)..=(row + r).min(h - 1))
+                .flat_map(|y| ((c - r).max(0)..=(c + r).min(w - 1)).map(move |x| (y * w + x) as usize))
+                .filter(|&j| labels.data[j] == region)
+                .map(|j| results[j].distance_mm)
+                .filter(|d| d.is_finite())
+                .collect();
+            let d = median_select(&mut near);
+            d.is_finite().then_some(d)
+        })
+    }
+
+    /// The holes of the layer regions with what was grown into them: pieces of fewer than
+    /// `min_region_pixels` that no region claims, each pixel unchanged from the background,
+    /// unclaimed, failed or a layer's, and surrounded by one layer region alone. A layer
+    /// whose own return is under the noise (ξ near 1) leaves such pixels in its midst: its
+    /// phasors there fit the region's ξ a little beyond the level or not at all, while a
+    /// sheet has no pinholes. Each takes its region's surface, as a grown pixel does.
+    fn holes(
+        &self,
+        labels: &ImageBuf<u32>,
+        layers: u32,
+        grown: &[(usize, u32)],
+        results: &[PixelResult],
+    ) -> Vec<(usize, u32)> {
+        let mut with_grown = labels.clone();
+        for &(i, r) in grown {
+            with_grown.data[i] = r;
+        }
+        let eligible = |i: usize| {
+            matches!(
+                results[i].class,
+                PixelClass::Background | PixelClass::Unclaimed | PixelClass::Failed | PixelClass::Layer
+            )
+        };
+        let max = self.config.min_region_pixels.saturating_sub(1);
+        enclosed_holes(&with_grown, max, eligible)
+            .into_iter()
+            .filter(|&(_, r)| r <= layers)
+            .collect()
+    }
+
+    /// The pixels along a layer region's outline that the layer covers by half or more:
+    /// of no region, unchanged, unclaimed, failed or a layer's, 8-adjacent to one layer region
+    /// (with what was grown into it) alone. The share `c` the layer covers follows from the
+    /// background left at the region's distance near the pixel, `t = 1 - c (1 - ξ^2)`
+    /// ([`MultiFrequencyInversion::background_share_at`]): the mixed pixels of a layer whose
+    /// own return is under the noise fit neither a layer nor the background. Where `c`'s
+    /// 95 % interval holds one half, the data cannot tell whether the pixel's centre sees
+    /// the layer or the background: its σ is at least half the gap between them.
+    fn covered_edges(
+        &self,
+        frame: &PhasorFrame,
+        labels: &ImageBuf<u32>,
+        layers: u32,
+        regions: &[RegionOutput],
+        grown: &[(usize, u32)],
+        results: &[PixelResult],
+    ) -> Vec<CoveredEdge> {
+        let (w, h) = (labels.width, labels.height);
+        let mut with_grown = labels.clone();
+        for &(i, r) in grown {
+            with_grown.data[i] = r;
+        }
+        let open = |i: usize| {
+            with_grown.data[i] == 0
+                && matches!(
+                    results[i].class,
+                    PixelClass::Background | PixelClass::Unclaimed | PixelClass::Failed | PixelClass::Layer
+                )
+        };
+        let neighbour_region = |i: usize| {
+            let (c, r) = ((i % w) as isize, (i / w) as isize);
+            let mut seen = None;
+            for (dc, dr) in NEIGHBOURS_8 {
+                let (cc, rr) = (c + dc, r + dr);
+                if cc < 0 || rr < 0 || cc >= w as isize || rr >= h as isize {
+                    continue;
+                }
+                match with_grown.data[rr as usize * w + cc as usize] {
+                    0 => {}
+                    l if l > layers || seen.is_some_and(|s| s != l) => return None,
+                    l => seen = Some(l),
+                }
+            }
+            seen
+        };
+        (0..w * h)
+            .filter(|&i| open(i))
+            .filter_map(|i| {
+                let region = neighbour_region(i)?;
+                let xi = regions.get(region as usize - 1)?.xi.xi;
+                let near = self.local_layer_distance(i, region, labels, results)?;
+                let p = self.pixel_inputs(frame, i)?;
+                let (t, sd) = self.inversion.background_share_at(&p.phasors(), near).ok()?;
+                let dimming = 1.0 - xi * xi;
+                let (c, c_sd) = ((1.0 - t) / dimming, sd / dimming);
+                let gap = p.background_distance_mm - near;
+                (c.is_finite() && c >= 0.5).then(|| CoveredEdge {
+                    pixel: i,
+                    region,
+                    sigma_floor_mm: if c - 1.96 * c_sd <= 0.5 { gap.abs() / 2.0 } else { 0.0 },
+                })
+            })
+            .collect()
+    }
+
+    /// A layer region's own pixels on its outline (an 8-neighbour outside the mask) that the
+    /// layer covers by less than half leave the mask and keep their readings; those it may
+    /// cover by less than half take a σ of at least half the gap to the background. A pixel
+    /// that a layer of `ξ` covers by a share `c` fits a layer at the layer's distance with
+    /// `ξ_p^2 = 1 - c (1 - ξ^2)` ([`Self::covered_edges`] is the same from the other side):
+    /// its centre sees the background where `c < 1/2`, and the reading is nearer the truth
+    /// there than the layer's distance.
+    fn keep_uncovered_outline(
+        &self,
+        mask: &mut ImageBuf<bool>,
+        labels: &mut ImageBuf<u32>,
+        layers: u32,
+        regions: &[RegionOutput],
+        results: &mut [PixelResult],
+        layer: &mut Layer,
+    ) {
+        let (w, h) = (mask.width, mask.height);
+        let outline = |i: usize| {
+            let (c, r) = ((i % w) as isize, (i / w) as isize);
+            NEIGHBOURS_8.iter().any(|(dc, dr)| {
+                let (cc, rr) = (c + dc, r + dr);
+                cc >= 0 && rr >= 0 && cc < w as isize && rr < h as isize && !mask.data[rr as usize * w + cc as usize]
+            })
+        };
+        let mut uncovered = vec![];
+        for i in (0..w * h).filter(|&i| mask.data[i] && outline(i)) {
+            let (l, p) = (labels.data[i], &results[i]);
+            let Some(region) = (l >= 1 && l <= layers).then(|| &regions[l as usize - 1]) else {
+                continue;
+            };
+            let dimming = 1.0 - region.xi.xi * region.xi.xi;
+            if !(p.xi.is_finite() && p.xi_sigma.is_finite() && dimming > 0.0) {
+                continue;
+            }
+            let c = (1.0 - p.xi * p.xi) / dimming;
+            let c_sd = 2.0 * p.xi * p.xi_sigma / dimming;
+            if c < 0.5 {
+                uncovered.push(i);
+            } else if c - 1.96 * c_sd <= 0.5 && p.gap_mm.is_finite() {
+                layer.sigma_mm[i] = layer.sigma_mm[i].max(p.gap_mm.abs() / 2.0);
+            }
+        }
+        for i in uncovered {
+            mask.data[i] = false;
+            labels.data[i] = 0;
+            results[i] = PixelResult::only(PixelClass::Unclaimed);
+        }
     }
 
     /// Each pixel's layer distance along its ray, mm: the pixel's own, or, with the prior,
@@ -1070,6 +1229,8 @@ impl MultiFrequencyStage {
         let mut sigma_mm = noise.clone();
         let mut chosen = vec![f64::INFINITY; w * h];
         let radii: Vec<usize> = (0..PRIOR_WIDENINGS).map(|k| self.config.prior_radius_px << k).collect();
+        // A grown pixel takes the nearest plane as far as the widest window reaches.
+        let reach = radii.last().copied().unwrap_or(1);
         for region in 1..=layers {
             let mask = ImageBuf {
                 width: w,
@@ -1108,18 +1269,18 @@ impl MultiFrequencyStage {
                         (chosen[i], out[i], sigma_mm[i]) = (se[i], surface[i], se[i]);
                     }
                 }
-                widest = Some((surfaces, radius));
+                widest = Some(surfaces);
                 let mut now: Vec<f64> = members.iter().map(|&i| chosen[i]).filter(|s| s.is_finite()).collect();
                 if median_select(&mut now) <= PRIOR_FINE_ENOUGH_MM {
                     break;
                 }
             }
-            let Some((surfaces, radius)) = widest else {
+            let Some(surfaces) = widest else {
                 continue;
             };
             for &(i, _) in grown.iter().filter(|g| g.1 == region) {
                 out[i] = surfaces
-                    .nearest_plane(i, radius, &self.rays)
+                    .nearest_plane(i, reach, &self.rays)
                     .and_then(|p| p.ray_distance(&self.rays.data[i]))
                     .unwrap_or(f64::NAN);
             }
@@ -1226,6 +1387,17 @@ impl MultiFrequencyStage {
         f.xi_median = median_select(&mut xis);
         f
     }
+}
+
+/// A pixel on a layer region's outline that the layer covers by half or more
+/// ([`MultiFrequencyStage::covered_edges`]).
+#[derive(Debug, Clone, Copy)]
+struct CoveredEdge {
+    pixel: usize,
+    region: u32,
+    /// The least σ its depth may have, mm (half the gap to the background where the layer
+    /// may cover less than half of it).
+    sigma_floor_mm: f64,
 }
 
 /// What [`MultiFrequencyStage::grow_layers`] finds.
