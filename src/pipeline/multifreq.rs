@@ -836,8 +836,17 @@ impl MultiFrequencyStage {
                 regions = self::regions(&labels, layers, results, pixel_sr);
             }
             grown = growth.pixels.iter().map(|&(i, r)| (i, new_ids[r as usize])).collect();
-            grown.extend(self.holes(&labels, layers, &grown, results));
-            edges = self.covered_edges(frame, &labels, layers, &regions, &grown, results);
+            // The layer regions with what is grown into them, as the next steps see them.
+            let mut with_grown = labels.clone();
+            for &(i, r) in &grown {
+                with_grown.data[i] = r;
+            }
+            let holes = self.holes(&with_grown, layers, results);
+            for &(i, r) in &holes {
+                with_grown.data[i] = r;
+            }
+            grown.extend(holes);
+            edges = self.covered_edges(frame, &labels, &with_grown, layers, &regions, results);
             grown.extend(edges.iter().map(|e| (e.pixel, e.region)));
         }
         let mut layer = self.surface_prior(&labels, layers, results, &grown);
@@ -1063,25 +1072,10 @@ impl MultiFrequencyStage {
     /// whose own return is under the noise (ξ near 1) leaves such pixels in its midst: its
     /// phasors there fit the region's ξ a little beyond the level or not at all, while a
     /// sheet has no pinholes. Each takes its region's surface, as a grown pixel does.
-    fn holes(
-        &self,
-        labels: &ImageBuf<u32>,
-        layers: u32,
-        grown: &[(usize, u32)],
-        results: &[PixelResult],
-    ) -> Vec<(usize, u32)> {
-        let mut with_grown = labels.clone();
-        for &(i, r) in grown {
-            with_grown.data[i] = r;
-        }
-        let eligible = |i: usize| {
-            matches!(
-                results[i].class,
-                PixelClass::Background | PixelClass::Unclaimed | PixelClass::Failed | PixelClass::Layer
-            )
-        };
+    fn holes(&self, with_grown: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> Vec<(usize, u32)> {
+        let eligible = |i: usize| unclaimed_by_a_region(results[i].class);
         let max = self.config.min_region_pixels.saturating_sub(1);
-        enclosed_holes(&with_grown, max, eligible)
+        enclosed_holes(with_grown, max, eligible)
             .into_iter()
             .filter(|&(_, r)| r <= layers)
             .collect()
@@ -1099,23 +1093,13 @@ impl MultiFrequencyStage {
         &self,
         frame: &PhasorFrame,
         labels: &ImageBuf<u32>,
+        with_grown: &ImageBuf<u32>,
         layers: u32,
         regions: &[RegionOutput],
-        grown: &[(usize, u32)],
         results: &[PixelResult],
     ) -> Vec<CoveredEdge> {
         let (w, h) = (labels.width, labels.height);
-        let mut with_grown = labels.clone();
-        for &(i, r) in grown {
-            with_grown.data[i] = r;
-        }
-        let open = |i: usize| {
-            with_grown.data[i] == 0
-                && matches!(
-                    results[i].class,
-                    PixelClass::Background | PixelClass::Unclaimed | PixelClass::Failed | PixelClass::Layer
-                )
-        };
+        let open = |i: usize| with_grown.data[i] == 0 && unclaimed_by_a_region(results[i].class);
         let neighbour_region = |i: usize| {
             let (c, r) = ((i % w) as isize, (i / w) as isize);
             let mut seen = None;
@@ -1474,6 +1458,16 @@ const NEIGHBOURS_8: [(isize, isize); 8] = [(-1, -1), (0, -1), (1, -1), (-1, 0), 
 /// The largest amplitude among a pixel's phasors (one return's strength, for the sinusoid).
 fn peak_amplitude(phasors: &[Phasor]) -> f64 {
     phasors.iter().map(|p| p.a.hypot(p.b)).fold(0.0, f64::max)
+}
+
+/// Whether a pixel of no region may still be a layer region's (a hole in it, or on its
+/// outline): unchanged, unclaimed, failed, or a layer's in a piece too small; not opaque,
+/// not unusable.
+fn unclaimed_by_a_region(class: PixelClass) -> bool {
+    matches!(
+        class,
+        PixelClass::Background | PixelClass::Unclaimed | PixelClass::Failed | PixelClass::Layer
+    )
 }
 
 /// Farthest from the background's distance, beyond three of its own standard deviations,
