@@ -136,6 +136,22 @@ impl PhasorModel {
         (x.is_finite() && x >= 0.0 && x <= x_max).then_some(x)
     }
 
+    /// The reading the model predicts for a layer at `df` of `X = x` (what
+    /// [`predicted_reading`] decodes from the forward model's returns): the phase of the
+    /// layer's return, with a near wall's third and a back wall by their lead and length, plus
+    /// the background's share at its own phase.
+    fn reading_at(&self, obs: &PixelObservation, (trig, walls): (&PhaseTrig, bool), df: f64, xi: f64, x: f64) -> f64 {
+        let (lead, length) = self.layer_factor(obs, xi, df, walls);
+        let a = x * length * (1.0 - xi) * obs.emitted_light / (df * df);
+        let c = xi * xi * (obs.background_ir - self.offset).max(0.0) * if walls { xi * xi } else { 1.0 };
+        let (s, co) = (self.k * (df + self.delay_mm) + lead).sin_cos();
+        let (re, im) = (a * co + c * trig.cb, a * s + c * trig.sb);
+        if re == 0.0 && im == 0.0 {
+            return f64::NAN;
+        }
+        wrap(im.atan2(re) / self.k, self.range_mm)
+    }
+
     /// The sines and cosines of a pixel's reading's and background's phases.
     pub(super) fn trig(&self, obs: &PixelObservation) -> PhaseTrig {
         let (sd, cd) = (self.k * obs.distance_mm).sin_cos();
@@ -187,7 +203,8 @@ impl PhasorModel {
         Search { lo, hi, slopes }: Search,
     ) -> Option<LayerEstimate> {
         let (re, im, m) = self.layer_phasor(obs, trig, xi, walls)?;
-        let len = re.hypot(im);
+        // (Counts: no overflow for `hypot` to guard against, and the square root is cheaper.)
+        let len = (re * re + im * im).sqrt();
         let x_scale = (1.0 - xi) * obs.emitted_light;
         if !(len > 0.0 && x_scale > 0.0) {
             return None;
@@ -195,7 +212,7 @@ impl PhasorModel {
         // The layer's distance: the phase's, less the delay, in the search range if a period
         // allows; with a near wall's third return or a back wall, less their lead, found in turn.
         let phase = im.atan2(re);
-        let from_phase = |lead: f64| lo + ((phase - lead) / self.k - self.delay_mm - lo).rem_euclid(self.range_mm);
+        let from_phase = |lead: f64| lo + wrap((phase - lead) / self.k - self.delay_mm - lo, self.range_mm);
         let mut df = from_phase(0.0);
         let mut length = 1.0;
         if walls || (self.wall_gain > 0.0 && obs.wall_view_factor > 0.0) {
@@ -235,7 +252,7 @@ impl PhasorModel {
         // No admissible root: the nearest admissible layer, flagged pinned.
         let df = df.min(hi);
         let x = self.albedo_cos(obs, df, xi, x_max).unwrap_or(x_max);
-        let pred = predicted_reading(model, obs, df, xi, x);
+        let pred = self.reading_at(obs, (trig, walls), df, xi, x);
         Some(LayerEstimate {
             foreground_distance_mm: df,
             albedo_cos: x,
@@ -245,6 +262,17 @@ impl PhasorModel {
             slope,
             reading_per_ir,
         })
+    }
+}
+
+/// `x` wrapped into `[0, r)` (`rem_euclid`, without its division's remainder call: `x` is
+/// within a few ranges of 0 here).
+fn wrap(x: f64, r: f64) -> f64 {
+    let w = x - r * (x / r).floor();
+    if w >= r {
+        w - r
+    } else {
+        w
     }
 }
 
@@ -313,6 +341,32 @@ mod tests {
             .invert(&model, &o, 0.0, 0.05, Search { lo, hi, slopes: false })
             .expect("estimate");
         assert!(est.pinned && est.albedo_cos <= 0.05);
+    }
+
+    #[test]
+    fn its_predicted_reading_is_the_forward_models() {
+        let mut worst = 0.0f64;
+        for (delay, gain, hollow) in [(0.0, 0.0, 0.0), (12.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 150.0)] {
+            let mut model = ForwardModel::physical(Sensor::sr4000());
+            model.options.subsurface_delay_mm = delay;
+            model.options.wall_interreflection = gain;
+            model.options.hollow_depth_mm = hollow;
+            let p = PhasorModel::new(&model).expect("closed form");
+            let mut o = obs_of(&model, 900.0, 2000.0, 0.7, 0.6, 1.0);
+            o.wall_view_factor = 0.2 * gain;
+            for (df, xi, x) in [(900.0, 0.7, 0.6), (600.0, 0.4, 0.9), (1500.0, 0.9, 0.2)] {
+                let walls = p.walls_at(&o, df);
+                let want = predicted_reading(&model, &o, df, xi, x);
+                let got = p.reading_at(&o, (&p.trig(&o), walls), df, xi, x);
+                let diff = model.sensor.wrapped_difference_mm(got, want).abs();
+                assert!(
+                    diff < 1e-6,
+                    "{delay} {gain} {hollow} {df} {xi} {x}: {got} against {want}"
+                );
+                worst = worst.max(diff);
+            }
+        }
+        println!("closed-form predicted reading: worst difference {worst:.1e} mm");
     }
 
     #[test]
