@@ -172,10 +172,13 @@ impl Pipeline {
         let xi_share = self.xi_share(&observed, &held, &roots.df, region.width, xi_estimate);
         for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
             // A pixel on the outline that the layer covers less than half keeps its reading.
+            // The layer's distance there from the interior near it: the surface's windows at
+            // the outline hold the mixed pixels' roots, which a share of background pulls far.
+            let df = interior_distance(i, &mask, &roots.df).unwrap_or(roots.df[i]);
             let outline = observations
                 .get(fi)
-                .filter(|_| roots.df[i].is_finite())
-                .and_then(|o| self.outline_coverage(fi, o, roots.df[i], xi, out.frame_mask));
+                .filter(|_| df.is_finite())
+                .and_then(|o| self.outline_coverage(fi, o, df, xi, out.frame_mask));
             if let Some((true, _)) = outline {
                 out.uncovered.push(fi);
                 continue;
@@ -552,6 +555,26 @@ struct Layer<'a> {
     frame_mask: &'a ImageBuf<bool>,
     /// Pixels on the outline that the layer covers less than half: they leave the mask.
     uncovered: &'a mut Vec<usize>,
+}
+
+/// How far about an outline pixel [`interior_distance`] looks, pixels.
+const INTERIOR_REACH: isize = 3;
+
+/// The median layer distance `df` (by the index in `mask`'s rectangle) of the interior
+/// pixels (all 8 neighbours in `mask`) within [`INTERIOR_REACH`] of pixel `i`; `None` where
+/// there are none.
+fn interior_distance(i: usize, mask: &ImageBuf<bool>, df: &[f64]) -> Option<f64> {
+    let (w, h) = (mask.width as isize, mask.height as isize);
+    let inside = |c: isize, r: isize| c >= 0 && r >= 0 && c < w && r < h && mask.data[(r * w + c) as usize];
+    let (c, r) = ((i as isize) % w, (i as isize) / w);
+    let mut near: Vec<f64> = (-INTERIOR_REACH..=INTERIOR_REACH)
+        .flat_map(|dr| (-INTERIOR_REACH..=INTERIOR_REACH).map(move |dc| (c + dc, r + dr)))
+        .filter(|&(cc, rr)| (-1..=1).all(|y| (-1..=1).all(|x| inside(cc + x, rr + y))))
+        .map(|(cc, rr)| df[(rr * w + cc) as usize])
+        .filter(|d| d.is_finite())
+        .collect();
+    let d = crate::physics::stats::median_select(&mut near);
+    d.is_finite().then_some(d)
 }
 
 /// Parameters a window's surface fits (a quadric's six): its value at a pixel averages the
