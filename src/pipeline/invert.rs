@@ -172,25 +172,27 @@ impl Pipeline {
         let xi_share = self.xi_share(&observed, &held, &roots.df, region.width, xi_estimate);
         for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
             // A pixel on the outline that the layer covers less than half keeps its reading.
-            // The layer's distance there from the interior near it: the surface's windows at
+            // The layer's distance there is the interior's near it: the surface's windows at
             // the outline hold the mixed pixels' roots, which a share of background pulls far.
-            let df = interior_distance(i, &mask, &roots.df).unwrap_or(roots.df[i]);
-            let outline = observations
+            let on_outline = outline(fi, out.frame_mask);
+            let df = if on_outline {
+                interior_distance(i, &mask, &roots.df).unwrap_or(roots.df[i])
+            } else {
+                roots.df[i]
+            };
+            let coverage = observations
                 .get(fi)
-                .filter(|_| df.is_finite())
-                .and_then(|o| self.outline_coverage(fi, o, df, xi, out.frame_mask));
-            if let Some((true, _)) = outline {
+                .filter(|_| on_outline && df.is_finite())
+                .and_then(|o| self.outline_coverage(fi, o, df, xi));
+            if let Some((true, _)) = coverage {
                 out.uncovered.push(fi);
                 continue;
             }
-            let floor = outline.map_or(0.0, |o| o.1);
-            let (z, sigma) = if roots.df[i].is_finite() {
+            let floor = coverage.map_or(0.0, |c| c.1);
+            let (z, sigma) = if df.is_finite() {
                 out.tally.recovered += 1;
                 let s = roots.noise[i].hypot(xi_share[i]).max(floor);
-                (
-                    (roots.df[i] / self.scale.data[fi]) as f32,
-                    (s / self.scale.data[fi]) as f32,
-                )
+                ((df / self.scale.data[fi]) as f32, (s / self.scale.data[fi]) as f32)
             } else {
                 (f32::NAN, f32::NAN)
             };
@@ -351,31 +353,13 @@ impl Pipeline {
         }
     }
 
-    /// Whether a recovered pixel on the mask's outline (`fi`, an 8-neighbour off `mask`) is
-    /// covered by the layer at ray distance `df` less than half, so that its centre sees
-    /// the background ([`layer_coverage`]: the background's dimming and the layer's return
-    /// against the share covered); `Some(true)` then, `Some(false)` where it is covered by
-    /// half or more, with the least σ its depth may have (half the gap to the background
-    /// where the share's 95 % interval holds a half, 0 elsewhere). `None` off the outline
-    /// or where the model's reading is no phasor.
-    fn outline_coverage(
-        &self,
-        fi: usize,
-        o: &PixelObservation,
-        df: f64,
-        xi: f64,
-        mask: &ImageBuf<bool>,
-    ) -> Option<(bool, f64)> {
-        let (w, h) = (mask.width, mask.height);
-        let (c, r) = ((fi % w) as isize, (fi / w) as isize);
-        let outline = (-1..=1)
-            .flat_map(|dr| (-1..=1).map(move |dc| (c + dc, r + dr)))
-            .any(|(cc, rr)| {
-                cc < 0 || rr < 0 || cc >= w as isize || rr >= h as isize || !mask.data[rr as usize * w + cc as usize]
-            });
-        if !outline {
-            return None;
-        }
+    /// Whether a recovered pixel on the mask's outline (`fi`) is covered by the layer at ray
+    /// distance `df` less than half, so that its centre sees the background
+    /// ([`layer_coverage`]: the background's dimming and the layer's return against the share
+    /// covered); `Some(true)` then, `Some(false)` where it is covered by half or more, with
+    /// the least σ its depth may have (half the gap to the background where the share's 95 %
+    /// interval holds a half, 0 elsewhere). `None` where the model's reading is no phasor.
+    fn outline_coverage(&self, fi: usize, o: &PixelObservation, df: f64, xi: f64) -> Option<(bool, f64)> {
         let cov = layer_coverage(&self.config.model, o, df, xi, self.reading_noise(fi, o))?;
         if cov.share < 0.5 {
             return Some((true, 0.0));
@@ -555,6 +539,15 @@ struct Layer<'a> {
     frame_mask: &'a ImageBuf<bool>,
     /// Pixels on the outline that the layer covers less than half: they leave the mask.
     uncovered: &'a mut Vec<usize>,
+}
+
+/// Whether pixel `i` of `mask` has an 8-neighbour off it (or the image's edge).
+fn outline(i: usize, mask: &ImageBuf<bool>) -> bool {
+    let (w, h) = (mask.width as isize, mask.height as isize);
+    let (c, r) = ((i as isize) % w, (i as isize) / w);
+    (-1..=1)
+        .flat_map(|dr| (-1..=1).map(move |dc| (c + dc, r + dr)))
+        .any(|(cc, rr)| cc < 0 || rr < 0 || cc >= w || rr >= h || !mask.data[(rr * w + cc) as usize])
 }
 
 /// How far about an outline pixel [`interior_distance`] looks, pixels.
