@@ -392,7 +392,15 @@ impl Pipeline {
             min_points: 12,
             stride: self.config.prior_stride_px,
         };
-        let mut surfaces = LocalSurfaces::new(&roots.points, rays, mask, &windows);
+        // The surfaces are fitted to the interior's roots: an outline pixel's mixes the layer
+        // with what lies beside it and pulls the windows at the edge far.
+        let mut interior_points = roots.points.clone();
+        for (i, p) in interior_points.data.iter_mut().enumerate() {
+            if mask.data[i] && outline(i, mask) {
+                *p = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
+            }
+        }
+        let mut surfaces = LocalSurfaces::new(&interior_points, rays, mask, &windows);
         let df = &roots.df;
         let repicks: Vec<Option<f64>> = map_ordered(
             &roots.several_roots,
@@ -410,11 +418,14 @@ impl Pipeline {
             if let Some(d) = d {
                 roots.df[i] = d;
                 roots.points.data[i] = rays.data[i] * d;
+                if !outline(i, mask) {
+                    interior_points.data[i] = roots.points.data[i];
+                }
                 repicked.push(i);
             }
         }
         // The windows those pixels are in, refitted (the same surfaces as refitting all).
-        surfaces.update(&roots.points, rays, &windows, &repicked);
+        surfaces.update(&interior_points, rays, &windows, &repicked);
         let own = roots.df.clone();
         // Pixels without their own root but inside the object take the neighbourhood's surface too.
         for (&(i, _), o) in observed.iter().zip(held.iter()) {
