@@ -182,6 +182,32 @@ pub fn enclosed_holes(
     holes
 }
 
+/// The outline of `mask`: its pixels with an 8-neighbour in the image off it, and with
+/// `image_edge` those on the image's own edge too. A layer that runs past the image's edge
+/// is not mixed there with anything, but one whose edge runs along it shows no neighbour
+/// off it: what a pixel's own evidence decides takes the edge, what trusts the interior
+/// (a surface's fit) leaves it out.
+pub fn outline_pixels(mask: &ImageBuf<bool>, image_edge: bool) -> ImageBuf<bool> {
+    let (w, h) = (mask.width as isize, mask.height as isize);
+    let off = |c: isize, r: isize| {
+        if c < 0 || r < 0 || c >= w || r >= h {
+            image_edge
+        } else {
+            !mask.data[(r * w + c) as usize]
+        }
+    };
+    ImageBuf {
+        width: mask.width,
+        height: mask.height,
+        data: (0..mask.data.len())
+            .map(|i| {
+                let (c, r) = ((i as isize) % w.max(1), (i as isize) / w.max(1));
+                mask.data[i] && (-1..=1).any(|dr| (-1..=1).any(|dc| off(c + dc, r + dr)))
+            })
+            .collect(),
+    }
+}
+
 /// Removes 4-connected regions smaller than `min_pixels` (isolated noise
 /// crossing the threshold); returns the cleaned mask and the region count kept.
 pub fn remove_small_regions(mask: &ImageBuf<bool>, min_pixels: usize) -> (ImageBuf<bool>, usize) {
@@ -603,6 +629,28 @@ mod tests {
     }
 
     use super::*;
+
+    #[test]
+    fn the_outline_is_the_masks_pixels_beside_others_and_the_images_edge_when_asked() {
+        let (w, h) = (6, 5);
+        let mut m = ImageBuf::filled(w, h, false);
+        for y in 0..4 {
+            for x in 0..4 {
+                m.data[y * w + x] = true; // a 4 x 4 block in the corner
+            }
+        }
+        let (edge, with_image_edge) = (outline_pixels(&m, false), outline_pixels(&m, true));
+        for y in 0..h {
+            for x in 0..w {
+                // Off the mask beside it: column 4 and row 4; the image's edge at column 0 and
+                // row 0 only when asked for.
+                let beside = m.data[y * w + x] && (x == 3 || y == 3);
+                assert_eq!(edge.data[y * w + x], beside, "({x}, {y})");
+                let at_edge = m.data[y * w + x] && (x == 0 || y == 0);
+                assert_eq!(with_image_edge.data[y * w + x], beside || at_edge, "({x}, {y})");
+            }
+        }
+    }
 
     #[test]
     fn holes_of_one_region_are_filled_and_nothing_else() {

@@ -9,6 +9,7 @@ use super::{label_mask, restrict, DepthFrame, FrameOutput, Observed, Pipeline, R
 use crate::physics::coverage::{layer_coverage, ReadingNoise};
 use crate::physics::near_wall;
 use crate::physics::parallel::{map_chunks_ordered, map_ordered};
+use crate::physics::segmentation::outline_pixels;
 use crate::physics::surface::{LocalSurfaces, Windows};
 use crate::physics::{
     foreground_distance_without_slopes, foreground_distances, ImageBuf, PixelObservation, Region, SparseImage,
@@ -103,13 +104,13 @@ impl Pipeline {
         }
         let mut tally = Tally::default();
         let mut uncovered = vec![];
-        let frame_mask = out.mask.clone();
+        let frame_edge = outline_pixels(&out.mask, true);
         for (_, xi, labels) in &groups {
             let mut layer = Layer {
                 z_mm: &mut out.corrected_z_mm,
                 sigma_mm: &mut out.corrected_sigma_mm,
                 tally: &mut tally,
-                frame_mask: &frame_mask,
+                frame_edge: &frame_edge,
                 uncovered: &mut uncovered,
             };
             if labels.len() == obs.regions.len() {
@@ -157,6 +158,7 @@ impl Pipeline {
         };
         let rays = region.crop(&self.rays);
         let mask = region.crop(obs_mask);
+        let edge = region.crop(&outline_pixels(obs_mask, false));
         let observed = observed_in(&region, observations);
         // Every observation lies in the rectangle (both come from the frame's mask), so the
         // observations are the frame's own list, not a copy (unless that ever fails).
@@ -168,15 +170,20 @@ impl Pipeline {
                 .filter_map(|&(_, fi)| observations.get(fi).copied())
                 .collect()
         };
-        let roots = self.layer_roots((&observed, &held, observations), (&rays, &mask), xi, region.width);
+        let roots = self.layer_roots(
+            (&observed, &held, observations),
+            (&rays, &mask, &edge),
+            xi,
+            region.width,
+        );
         let xi_share = self.xi_share(&observed, &held, &roots.df, region.width, xi_estimate);
         for (i, fi) in region.pixels().filter(|&(i, _)| mask.data[i]) {
-            // A pixel on the outline that the layer covers less than half keeps its reading.
-            // The layer's distance there is the interior's near it: the surface's windows at
-            // the outline hold the mixed pixels' roots, which a share of background pulls far.
-            let on_outline = outline(fi, out.frame_mask);
-            let df = if on_outline {
-                interior_distance(i, &mask, &roots.df).unwrap_or(roots.df[i])
+            // A pixel on the outline (the image's edge with it) that the layer covers less than
+            // half keeps its reading. Beside a pixel off the mask, the layer's distance is the
+            // interior's near it: the surface there is extrapolated past the interior's roots.
+            let on_outline = out.frame_edge.data[fi];
+            let df = if edge.data[i] {
+                interior_distance(i, (&mask, &edge), &roots.df).unwrap_or(roots.df[i])
             } else {
                 roots.df[i]
             };
@@ -221,6 +228,7 @@ impl Pipeline {
         let region = Region::around(&obs_mask, self.config.prior_stride_px)?;
         let rays = region.crop(&self.rays);
         let mask = region.crop(&obs_mask);
+        let edge = region.crop(&outline_pixels(&obs_mask, false));
         let observed = observed_in(&region, observations);
         let mut held: Vec<PixelObservation> = observed
             .iter()
@@ -229,7 +237,7 @@ impl Pipeline {
         let mut walled = None;
         for _ in 0..WALL_PASSES {
             let layer_of = walled.as_ref().unwrap_or(observations);
-            let roots = self.layer_roots((&observed, &held, layer_of), (&rays, &mask), xi, region.width);
+            let roots = self.layer_roots((&observed, &held, layer_of), (&rays, &mask, &edge), xi, region.width);
             let factors = self.wall_view_factors(&observed, &held, &roots.df, &rays, region.width);
             walled = Some(with_view_factors(observations, &observed, &factors)?);
             held = observed
@@ -245,7 +253,7 @@ impl Pipeline {
     fn layer_roots(
         &self,
         (observed, held, observations): (&[(usize, usize)], &[PixelObservation], &SparseImage<PixelObservation>),
-        (rays, mask): (&ImageBuf<Vector3<f64>>, &ImageBuf<bool>),
+        (rays, mask, edge): (&ImageBuf<Vector3<f64>>, &ImageBuf<bool>, &ImageBuf<bool>),
         xi: f64,
         width: usize,
     ) -> Roots {
@@ -258,7 +266,13 @@ impl Pipeline {
             self.config.max_layer_sigma_mm,
         );
         if self.config.prior_radius_px > 0 {
-            self.apply_surface_prior(&mut roots, (observed, held, observations), (rays, mask), xi, width);
+            self.apply_surface_prior(
+                &mut roots,
+                (observed, held, observations),
+                (rays, mask, edge),
+                xi,
+                width,
+            );
         }
         roots
     }
@@ -383,7 +397,7 @@ impl Pipeline {
         &self,
         roots: &mut Roots,
         (observed, held, observations): (&[(usize, usize)], &[PixelObservation], &SparseImage<PixelObservation>),
-        (rays, mask): (&ImageBuf<Vector3<f64>>, &ImageBuf<bool>),
+        (rays, mask, edge): (&ImageBuf<Vector3<f64>>, &ImageBuf<bool>, &ImageBuf<bool>),
         xi: f64,
         width: usize,
     ) {
@@ -396,7 +410,7 @@ impl Pipeline {
         // with what lies beside it and pulls the windows at the edge far.
         let mut interior_points = roots.points.clone();
         for (i, p) in interior_points.data.iter_mut().enumerate() {
-            if mask.data[i] && outline(i, mask) {
+            if edge.data[i] {
                 *p = Vector3::new(f64::NAN, f64::NAN, f64::NAN);
             }
         }
@@ -418,7 +432,7 @@ impl Pipeline {
             if let Some(d) = d {
                 roots.df[i] = d;
                 roots.points.data[i] = rays.data[i] * d;
-                if !outline(i, mask) {
+                if !edge.data[i] {
                     interior_points.data[i] = roots.points.data[i];
                 }
                 repicked.push(i);
@@ -546,35 +560,28 @@ struct Layer<'a> {
     z_mm: &'a mut ImageBuf<f32>,
     sigma_mm: &'a mut ImageBuf<f32>,
     tally: &'a mut Tally,
-    /// The frame's mask (what is translucent: an outline pixel has a neighbour off it).
-    frame_mask: &'a ImageBuf<bool>,
+    /// The outline of the frame's mask (what is translucent), the image's edge with it: the
+    /// pixels whose covered share is tested.
+    frame_edge: &'a ImageBuf<bool>,
     /// Pixels on the outline that the layer covers less than half: they leave the mask.
     uncovered: &'a mut Vec<usize>,
-}
-
-/// Whether pixel `i` of `mask` has an 8-neighbour off it (or the image's edge).
-fn outline(i: usize, mask: &ImageBuf<bool>) -> bool {
-    let (w, h) = (mask.width as isize, mask.height as isize);
-    let (c, r) = ((i as isize) % w, (i as isize) / w);
-    (-1..=1)
-        .flat_map(|dr| (-1..=1).map(move |dc| (c + dc, r + dr)))
-        .any(|(cc, rr)| cc < 0 || rr < 0 || cc >= w || rr >= h || !mask.data[(rr * w + cc) as usize])
 }
 
 /// How far about an outline pixel [`interior_distance`] looks, pixels.
 const INTERIOR_REACH: isize = 3;
 
 /// The median layer distance `df` (by the index in `mask`'s rectangle) of the interior
-/// pixels (all 8 neighbours in `mask`) within [`INTERIOR_REACH`] of pixel `i`; `None` where
-/// there are none.
-fn interior_distance(i: usize, mask: &ImageBuf<bool>, df: &[f64]) -> Option<f64> {
+/// pixels (in `mask`, not on its outline `edge`) within [`INTERIOR_REACH`] of pixel `i`;
+/// `None` where there are none.
+fn interior_distance(i: usize, (mask, edge): (&ImageBuf<bool>, &ImageBuf<bool>), df: &[f64]) -> Option<f64> {
     let (w, h) = (mask.width as isize, mask.height as isize);
-    let inside = |c: isize, r: isize| c >= 0 && r >= 0 && c < w && r < h && mask.data[(r * w + c) as usize];
     let (c, r) = ((i as isize) % w, (i as isize) / w);
     let mut near: Vec<f64> = (-INTERIOR_REACH..=INTERIOR_REACH)
         .flat_map(|dr| (-INTERIOR_REACH..=INTERIOR_REACH).map(move |dc| (c + dc, r + dr)))
-        .filter(|&(cc, rr)| (-1..=1).all(|y| (-1..=1).all(|x| inside(cc + x, rr + y))))
-        .map(|(cc, rr)| df[(rr * w + cc) as usize])
+        .filter(|&(cc, rr)| cc >= 0 && rr >= 0 && cc < w && rr < h)
+        .map(|(cc, rr)| (rr * w + cc) as usize)
+        .filter(|&j| mask.data[j] && !edge.data[j])
+        .map(|j| df[j])
         .filter(|d| d.is_finite())
         .collect();
     let d = crate::physics::stats::median_select(&mut near);

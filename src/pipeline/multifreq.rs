@@ -37,7 +37,7 @@ use crate::physics::multifreq::{
     ScanSettings, SingleReturn,
 };
 use crate::physics::segmentation::{
-    enclosed_holes, label_regions, open_mask, remove_small_regions, wrapped_difference,
+    enclosed_holes, label_regions, open_mask, outline_pixels, remove_small_regions, wrapped_difference,
 };
 use crate::physics::stats::{median_select, quantile_select, sigma_about, student_t975};
 use crate::physics::surface::{LocalSurfaces, Windows};
@@ -1152,16 +1152,9 @@ impl MultiFrequencyStage {
         results: &mut [PixelResult],
         layer: &mut Layer,
     ) {
-        let (w, h) = (mask.width, mask.height);
-        let outline = |i: usize| {
-            let (c, r) = ((i % w) as isize, (i / w) as isize);
-            NEIGHBOURS_8.iter().any(|(dc, dr)| {
-                let (cc, rr) = (c + dc, r + dr);
-                cc >= 0 && rr >= 0 && cc < w as isize && rr < h as isize && !mask.data[rr as usize * w + cc as usize]
-            })
-        };
+        let edge = outline_pixels(mask, false);
         let mut uncovered = vec![];
-        for i in (0..w * h).filter(|&i| mask.data[i] && outline(i)) {
+        for i in (0..edge.data.len()).filter(|&i| edge.data[i]) {
             let (l, p) = (labels.data[i], &results[i]);
             let Some(region) = (l >= 1 && l <= layers).then(|| &regions[l as usize - 1]) else {
                 continue;
