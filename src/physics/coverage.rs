@@ -25,6 +25,34 @@ pub struct Coverage {
     pub share_sigma: f64,
 }
 
+impl Coverage {
+    /// From the share `t` of the background's return left at a pixel (and its standard
+    /// deviation) under a layer of `xi`: `t = 1 - c (1 - ξ^2)`. `None` where the layer dims
+    /// nothing (ξ 1) or the inputs are not finite.
+    pub fn from_background_share(t: f64, t_sigma: f64, xi: f64) -> Option<Self> {
+        let dimming = 1.0 - xi * xi;
+        let (share, share_sigma) = ((1.0 - t) / dimming, t_sigma / dimming);
+        (dimming > 0.0 && share.is_finite() && share_sigma.is_finite()).then_some(Self { share, share_sigma })
+    }
+
+    /// Whether the pixel's centre sees the layer: it covers half of it or more (the ground
+    /// truth of a pixel is what its centre sees).
+    pub fn centre_covered(&self) -> bool {
+        self.share >= 0.5
+    }
+
+    /// The least standard deviation a layer's depth published there may have: half the gap
+    /// `gap_mm` between the layer and the background where the share's 95 % interval holds
+    /// one half (the data cannot tell which its centre sees), 0 elsewhere.
+    pub fn sigma_floor_mm(&self, gap_mm: f64) -> f64 {
+        if (self.share - 1.96 * self.share_sigma..=self.share + 1.96 * self.share_sigma).contains(&0.5) {
+            gap_mm.abs() / 2.0
+        } else {
+            0.0
+        }
+    }
+}
+
 /// The noise of one pixel's reading: its distance's and its IR's standard deviations.
 #[derive(Debug, Clone, Copy)]
 pub struct ReadingNoise {
@@ -185,6 +213,28 @@ mod tests {
         let share = inside as f64 / draws as f64;
         println!("covered share: {inside} of {draws} draws within 1.96 sigma ({share:.3})");
         assert!((0.93..=0.97).contains(&share), "{share}");
+    }
+
+    #[test]
+    fn the_share_from_the_background_left_and_the_floor_where_a_half_is_possible() {
+        // A layer of ξ 0.8 dims what it covers to 0.64: a pixel three quarters covered keeps 0.73.
+        let c = Coverage::from_background_share(1.0 - 0.75 * 0.36, 0.01, 0.8).expect("share");
+        assert!((c.share - 0.75).abs() < 1e-12 && (c.share_sigma - 0.01 / 0.36).abs() < 1e-12);
+        assert!(c.centre_covered());
+        assert_eq!(c.sigma_floor_mm(900.0), 0.0);
+        // Its interval holds a half: the floor is half the gap.
+        let loose = Coverage {
+            share: 0.6,
+            share_sigma: 0.1,
+        };
+        assert_eq!(loose.sigma_floor_mm(-900.0), 450.0);
+        assert!(!Coverage {
+            share: 0.4,
+            share_sigma: 0.01
+        }
+        .centre_covered());
+        // A layer that dims nothing says nothing of the share.
+        assert_eq!(Coverage::from_background_share(0.9, 0.01, 1.0), None);
     }
 
     #[test]

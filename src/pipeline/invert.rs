@@ -375,18 +375,11 @@ impl Pipeline {
     /// interval holds a half, 0 elsewhere). `None` where the model's reading is no phasor.
     fn outline_coverage(&self, fi: usize, o: &PixelObservation, df: f64, xi: f64) -> Option<(bool, f64)> {
         let cov = layer_coverage(&self.config.model, o, df, xi, self.reading_noise(fi, o))?;
-        if cov.share < 0.5 {
-            return Some((true, 0.0));
-        }
-        let ambiguous = cov.share - 1.96 * cov.share_sigma <= 0.5;
-        Some((
-            false,
-            if ambiguous {
-                (o.background_distance_mm - df).abs() / 2.0
-            } else {
-                0.0
-            },
-        ))
+        Some(if cov.centre_covered() {
+            (false, cov.sigma_floor_mm(o.background_distance_mm - df))
+        } else {
+            (true, 0.0)
+        })
     }
 
     /// The smooth-surface prior on the roots: where a pixel fits several layers, the one its

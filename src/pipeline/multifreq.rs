@@ -32,6 +32,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use super::{DepthFrame, FrameOutput, RegionOutput};
+use crate::physics::coverage::Coverage;
 use crate::physics::multifreq::{
     MultiFrequencyError, MultiFrequencyEstimate, MultiFrequencyInversion, MultiFrequencyModel, Phasor, PixelPhasors,
     ScanSettings, SingleReturn,
@@ -1124,13 +1125,11 @@ impl MultiFrequencyStage {
                 let near = self.local_layer_distance(i, region, labels, results)?;
                 let p = self.pixel_inputs(frame, i)?;
                 let (t, sd) = self.inversion.background_share_at(&p.phasors(), near).ok()?;
-                let dimming = 1.0 - xi * xi;
-                let (c, c_sd) = ((1.0 - t) / dimming, sd / dimming);
-                let gap = p.background_distance_mm - near;
-                (c.is_finite() && c >= 0.5).then(|| CoveredEdge {
+                let cov = Coverage::from_background_share(t, sd, xi)?;
+                cov.centre_covered().then(|| CoveredEdge {
                     pixel: i,
                     region,
-                    sigma_floor_mm: if c - 1.96 * c_sd <= 0.5 { gap.abs() / 2.0 } else { 0.0 },
+                    sigma_floor_mm: cov.sigma_floor_mm(p.background_distance_mm - near),
                 })
             })
             .collect()
@@ -1159,16 +1158,14 @@ impl MultiFrequencyStage {
             let Some(region) = (l >= 1 && l <= layers).then(|| &regions[l as usize - 1]) else {
                 continue;
             };
-            let dimming = 1.0 - region.xi.xi * region.xi.xi;
-            if !(p.xi.is_finite() && p.xi_sigma.is_finite() && dimming > 0.0) {
+            // The pixel's own ξ^2 is the background's share left there.
+            let Some(cov) = Coverage::from_background_share(p.xi * p.xi, 2.0 * p.xi * p.xi_sigma, region.xi.xi) else {
                 continue;
-            }
-            let c = (1.0 - p.xi * p.xi) / dimming;
-            let c_sd = 2.0 * p.xi * p.xi_sigma / dimming;
-            if c < 0.5 {
+            };
+            if !cov.centre_covered() {
                 uncovered.push(i);
-            } else if c - 1.96 * c_sd <= 0.5 && p.gap_mm.is_finite() {
-                layer.sigma_mm[i] = layer.sigma_mm[i].max(p.gap_mm.abs() / 2.0);
+            } else if p.gap_mm.is_finite() {
+                layer.sigma_mm[i] = layer.sigma_mm[i].max(cov.sigma_floor_mm(p.gap_mm));
             }
         }
         for i in uncovered {
