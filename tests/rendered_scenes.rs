@@ -77,7 +77,7 @@ fn the_papers_file_box_with_the_defaults_is_under_the_papers_error() {
 /// The document holder against the paper's figure and its truth: ξ 0.65 inside the interval,
 /// which four poses of one sheet bound to ±0.1, and the error under the paper's 10.6 mm.
 #[test]
-#[ignore = "issue 36: 20.7 mm and [0.652, 0.696] (misses 0.65) with the default physics, which leaves out the near wall's third return in the last pose; with the audit's file the setup is under the paper's figure (the_audit_names_the_near_wall_on_the_rendered_document_holder_and_its_file_recovers_it)"]
+#[ignore = "issue 36: 18.6 mm and [0.652, 0.696] (misses 0.65) with the default physics, which leaves out the near wall's third return in the last pose; with the audit's file the setup is under the paper's figure (the_audit_names_the_near_wall_on_the_rendered_document_holder_and_its_file_recovers_it)"]
 fn the_papers_document_holder_with_the_defaults_is_under_the_papers_error() {
     let dir = tempfile::tempdir().expect("temp dir");
     let r = replay(dir.path(), "paper_document_holder.mcap", &[]);

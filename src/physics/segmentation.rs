@@ -188,23 +188,39 @@ pub fn enclosed_holes(
 /// off it: what a pixel's own evidence decides takes the edge, what trusts the interior
 /// (a surface's fit) leaves it out.
 pub fn outline_pixels(mask: &ImageBuf<bool>, image_edge: bool) -> ImageBuf<bool> {
-    let (w, h) = (mask.width as isize, mask.height as isize);
-    let off = |c: isize, r: isize| {
-        if c < 0 || r < 0 || c >= w || r >= h {
-            image_edge
-        } else {
-            !mask.data[(r * w + c) as usize]
+    let (w, h) = (mask.width, mask.height);
+    let n = mask.data.len();
+    if w == 0 || h == 0 || n != w * h {
+        return ImageBuf {
+            width: w,
+            height: h,
+            data: vec![false; n],
+        };
+    }
+    // Off the mask somewhere in each pixel's row of three (beyond the image: `image_edge`),
+    // then in its column of three such rows: the 3 x 3 square, in two passes of plain loops.
+    let off = |i: usize| !mask.data[i];
+    let mut rows = vec![false; n];
+    for r in 0..h {
+        let row = r * w;
+        for c in 0..w {
+            let left = if c == 0 { image_edge } else { off(row + c - 1) };
+            let right = if c + 1 == w { image_edge } else { off(row + c + 1) };
+            rows[row + c] = left | off(row + c) | right;
         }
-    };
+    }
+    let data = (0..n)
+        .map(|i| {
+            let r = i / w;
+            let up = if r == 0 { image_edge } else { rows[i - w] };
+            let down = if r + 1 == h { image_edge } else { rows[i + w] };
+            mask.data[i] & (up | rows[i] | down)
+        })
+        .collect();
     ImageBuf {
-        width: mask.width,
-        height: mask.height,
-        data: (0..mask.data.len())
-            .map(|i| {
-                let (c, r) = ((i as isize) % w.max(1), (i as isize) / w.max(1));
-                mask.data[i] && (-1..=1).any(|dr| (-1..=1).any(|dc| off(c + dc, r + dr)))
-            })
-            .collect(),
+        width: w,
+        height: h,
+        data,
     }
 }
 
