@@ -18,6 +18,11 @@
 //! then starts a new object: an undetermined ξ is kept as read, a wrongly
 //! pooled one would be corrected wrongly.
 //!
+//! A region whose median distance stays where an object stood continues it only where its
+//! pixels repeat what the object's showed, within their noise: another object put down in
+//! the same place at about the same distance (a swap) reads otherwise pixel by pixel, and
+//! is a jump.
+//!
 //! Each object takes at most one region of a frame, and each region one
 //! object, the pairs that share most pixels first: two regions seen at once
 //! are two objects. An object that reappears elsewhere is a new one.
@@ -39,6 +44,75 @@ pub const MAX_MATERIALS: usize = 16;
 /// median by that much.
 const DISTANCE_SLACK_MM: f64 = 20.0;
 
+/// What an object's pixels show once the shift they share is taken out: over the pixels
+/// two frames share, `z^2 = r_d^2 / var(Δd) + r_I^2 / var(ΔI)`, with `r_d` a pixel's change
+/// of distance less the median change and `r_I` its IR less the median ratio's share, is
+/// about chi-square with 2 degrees of freedom for one object (median 1.39), moved or not.
+/// Above this median the pixels show another pattern: another object stands where this
+/// one stood. It allows the noise to be underestimated threefold (a mixed pixel's phase
+/// noise exceeds what its amplitude says); an object swapped for another reads off by
+/// many times that (another tilt along its outline, another albedo or ξ in its IR).
+pub const REPEAT_MEDIAN_Z2: f64 = 16.0;
+
+/// Fewest shared pixels with readings in both frames that a comparison is made on.
+const MIN_REPEAT_PIXELS: usize = 30;
+
+/// Least shift of distance shared by an object's pixels that counts as moving, in standard
+/// errors of the median change (with at least [`DISTANCE_FLOOR_MM`]).
+const SHIFT_STANDARD_ERRORS: f64 = 4.0;
+
+/// Least shared shift of distance that counts as moving, mm: light between objects changes
+/// as others move about a still one (its reading by a few mm).
+const DISTANCE_FLOOR_MM: f64 = 10.0;
+
+/// One pixel's reading and IR with their noise variances, as the objects stage compares
+/// them between frames (NaN where the pixel has none).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelReading {
+    /// Measured distance, mm.
+    pub distance_mm: f32,
+    /// IR value, counts.
+    pub ir: f32,
+    /// Variance of the distance, mm^2.
+    pub distance_var: f32,
+    /// Variance of the IR value, counts^2 (0 where unknown: the IR is then not compared).
+    pub ir_var: f32,
+}
+
+impl PixelReading {
+    /// A pixel without a reading.
+    pub const NONE: Self = Self {
+        distance_mm: f32::NAN,
+        ir: f32::NAN,
+        distance_var: f32::NAN,
+        ir_var: 0.0,
+    };
+
+    fn usable(&self) -> bool {
+        self.distance_mm.is_finite() && self.distance_var > 0.0 && self.ir.is_finite()
+    }
+}
+
+/// How a region's pixels compare with an object's earlier ones ([`Footprint::compare`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PixelChange {
+    /// The median change of distance over the shared pixels, mm.
+    shift_mm: f64,
+    /// Whether that shift exceeds noise ([`SHIFT_STANDARD_ERRORS`], [`DISTANCE_FLOOR_MM`]).
+    shifted: bool,
+    /// Whether, the shift taken out, the pixels show the same pattern ([`REPEAT_MEDIAN_Z2`]).
+    same_pattern: bool,
+}
+
+/// The median of `v` (reordered); NaN when empty.
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
 /// Where an object's region was in one frame.
 #[derive(Debug, Clone, Default)]
 struct Footprint {
@@ -51,6 +125,8 @@ struct Footprint {
     spread_mm: f64,
     /// Pixel indices, ascending.
     pixels: Vec<u32>,
+    /// Their readings (empty where the region brought none).
+    readings: Vec<PixelReading>,
 }
 
 /// One region of a frame as the objects stage takes it.
@@ -65,6 +141,8 @@ pub struct RegionEvidence<'a> {
     pub spread_mm: f64,
     /// Its evidence about ξ (`None` when too small to carry any).
     pub profile: Option<FrameProfile>,
+    /// Its pixels' readings, in the order of `pixels` (empty: not compared between frames).
+    pub readings: Vec<PixelReading>,
 }
 
 impl Footprint {
@@ -83,6 +161,73 @@ impl Footprint {
             }
         }
         n
+    }
+
+    /// How `region`'s pixels compare with this footprint's over the pixels both hold with
+    /// readings; `None` where fewer than [`MIN_REPEAT_PIXELS`].
+    fn compare(&self, region: &RegionEvidence) -> Option<PixelChange> {
+        if self.readings.len() != self.pixels.len() || region.readings.len() != region.pixels.len() {
+            return None;
+        }
+        let (mut i, mut j) = (0, 0);
+        let mut pairs = vec![];
+        while i < self.pixels.len() && j < region.pixels.len() {
+            match self.pixels[i].cmp(&region.pixels[j]) {
+                std::cmp::Ordering::Less => i += 1,
+                std::cmp::Ordering::Greater => j += 1,
+                std::cmp::Ordering::Equal => {
+                    let (a, b) = (self.readings[i], region.readings[j]);
+                    if a.usable() && b.usable() {
+                        pairs.push((a, b));
+                    }
+                    i += 1;
+                    j += 1;
+                }
+            }
+        }
+        if pairs.len() < MIN_REPEAT_PIXELS {
+            return None;
+        }
+        let f = |x: f32| f64::from(x);
+        let shift = median(
+            &mut pairs
+                .iter()
+                .map(|(a, b)| f(b.distance_mm) - f(a.distance_mm))
+                .collect::<Vec<_>>(),
+        );
+        let ratio = median(
+            &mut pairs
+                .iter()
+                .filter(|(a, _)| a.ir > 0.0)
+                .map(|(a, b)| f(b.ir) / f(a.ir))
+                .collect::<Vec<_>>(),
+        );
+        let mut z2: Vec<f64> = pairs
+            .iter()
+            .map(|(a, b)| {
+                let rd = f(b.distance_mm) - f(a.distance_mm) - shift;
+                let d_term = rd * rd / (f(a.distance_var) + f(b.distance_var));
+                let var_i = f(a.ir_var) * ratio * ratio + f(b.ir_var);
+                let ri = f(b.ir) - ratio * f(a.ir);
+                d_term
+                    + if var_i > 0.0 && ri.is_finite() {
+                        ri * ri / var_i
+                    } else {
+                        0.0
+                    }
+            })
+            .collect();
+        let mut var_d: Vec<f64> = pairs
+            .iter()
+            .map(|(a, b)| f(a.distance_var) + f(b.distance_var))
+            .collect();
+        // The median's standard error: 1.2533 sd / sqrt(n), with the pixels' typical variance.
+        let standard_error = 1.2533 * (median(&mut var_d) / pairs.len() as f64).sqrt();
+        Some(PixelChange {
+            shift_mm: shift,
+            shifted: shift.abs() > (SHIFT_STANDARD_ERRORS * standard_error).max(DISTANCE_FLOOR_MM),
+            same_pattern: median(&mut z2) <= REPEAT_MEDIAN_Z2,
+        })
     }
 }
 
@@ -170,9 +315,17 @@ impl Material {
             .filter(|s| s.is_finite())
             .fold(0.0, f64::max);
         let slack = DISTANCE_SLACK_MM + 0.25 * spread;
-        let moved = (region.distance_mm - last.distance_mm).abs();
+        let mut moved = (region.distance_mm - last.distance_mm).abs();
         if !(moved > slack) {
-            return Some(Motion::Still);
+            match last.compare(region) {
+                // Where it stood, but its pixels show another pattern: another object took
+                // its place.
+                Some(c) if !c.same_pattern => return Some(Motion::Jumped),
+                // Its pixels moved together by more than noise: judged as a move, by their
+                // shift (the outline's change hides it from the median).
+                Some(c) if c.shifted => moved = c.shift_mm.abs(),
+                _ => return Some(Motion::Still),
+            }
         }
         // The speed from the two footprints before, where there are two.
         let speed_mm_s = (self.before.frame < last.frame && !self.before.pixels.is_empty())
@@ -199,7 +352,7 @@ enum Motion {
     Still,
     /// As far as it can move between the frames.
     Moving,
-    /// Farther: a cut.
+    /// Farther, or another object where it stood (its pixels read otherwise): a cut.
     Jumped,
 }
 
@@ -277,6 +430,7 @@ impl Materials {
                 distance_mm: region.distance_mm,
                 spread_mm: region.spread_mm,
                 pixels: region.pixels.to_vec(),
+                readings: region.readings,
             };
             match (pairs[k], region.profile) {
                 (Some(i), profile) => {
@@ -472,6 +626,7 @@ mod tests {
             distance_mm,
             spread_mm: 0.0,
             profile: Some(evidence()),
+            readings: vec![],
         }
     }
 
@@ -641,6 +796,128 @@ mod tests {
         }
     }
 
+    /// Readings of `pixels` (a 20-pixel-wide patch): distance `d + slope * column` and IR
+    /// `ir`, each with its noise (σ 20 mm, 1 % of the IR) drawn from `seed`.
+    fn readings(pixels: &[u32], d: f64, slope: f64, ir: f64, seed: u64) -> Vec<PixelReading> {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let unit = Normal::new(0.0, 1.0).expect("unit normal");
+        pixels
+            .iter()
+            .map(|&p| PixelReading {
+                distance_mm: (d + slope * f64::from(p % 20) + 20.0 * unit.sample(&mut rng)) as f32,
+                ir: (ir * (1.0 + 0.01 * unit.sample(&mut rng))) as f32,
+                distance_var: 400.0,
+                ir_var: (0.01 * ir * 0.01 * ir) as f32,
+            })
+            .collect()
+    }
+
+    fn with_readings<'a>(pixels: &'a [u32], d: f64, slope: f64, ir: f64, seed: u64) -> RegionEvidence<'a> {
+        RegionEvidence {
+            readings: readings(pixels, d, slope, ir, seed),
+            ..region(pixels, d + slope * 9.5)
+        }
+    }
+
+    #[test]
+    fn an_object_standing_still_repeats_its_pixels_within_noise() {
+        let mut objects = Materials::default();
+        let (a, b): (Vec<u32>, Vec<u32>) = ((0..400).collect(), (1000..1400).collect());
+        let first = add(
+            &mut objects,
+            1,
+            vec![
+                with_readings(&a, 1000.0, 5.0, 800.0, 1),
+                with_readings(&b, 2000.0, 0.0, 300.0, 2),
+            ],
+        );
+        let second = add(
+            &mut objects,
+            2,
+            vec![
+                with_readings(&a, 1000.0, 5.0, 800.0, 3),
+                with_readings(&b, 2000.0, 0.0, 300.0, 4),
+            ],
+        );
+        assert_eq!(first, second);
+    }
+
+    #[test]
+    fn another_object_put_where_one_stood_is_a_new_one() {
+        // Two objects in view. Where a box stood, showing two faces (one lit at 900 counts,
+        // one turned from the emitter at 400), a flat sheet (500 counts) now stands at the
+        // box's median distance: its IR follows no one ratio of the box's.
+        let mut objects = Materials::default();
+        let (a, b): (Vec<u32>, Vec<u32>) = ((0..400).collect(), (1000..1400).collect());
+        let faces = |seed| {
+            let mut r = readings(&a, 1000.0, 0.0, 900.0, seed);
+            for (p, x) in a.iter().zip(r.iter_mut()).filter(|(p, _)| *p % 20 >= 10) {
+                x.ir *= 4.0 / 9.0;
+                x.ir_var *= 16.0 / 81.0;
+                x.distance_mm += 5.0 * (*p % 20 - 10) as f32;
+            }
+            RegionEvidence {
+                readings: r,
+                ..region(&a, 1000.0)
+            }
+        };
+        let first = add(
+            &mut objects,
+            1,
+            vec![faces(1), with_readings(&b, 2000.0, 0.0, 300.0, 2)],
+        );
+        let box_again = add(
+            &mut objects,
+            2,
+            vec![faces(3), with_readings(&b, 2000.0, 0.0, 300.0, 4)],
+        );
+        assert_eq!(box_again, first);
+        let swapped = add(
+            &mut objects,
+            3,
+            vec![
+                with_readings(&a, 1010.0, 0.0, 500.0, 5),
+                with_readings(&b, 2000.0, 0.0, 300.0, 6),
+            ],
+        );
+        assert_ne!(swapped[0], first[0]);
+        assert_eq!(swapped[1], first[1]);
+        // Its median distance alone would have continued the box.
+        let mut objects = Materials::default();
+        let first = add(&mut objects, 1, vec![region(&a, 1000.0), region(&b, 2000.0)]);
+        let bare = add(&mut objects, 2, vec![region(&a, 1010.0), region(&b, 2000.0)]);
+        assert_eq!(bare, first);
+    }
+
+    #[test]
+    fn an_object_creeping_nearer_within_the_outline_slack_moves() {
+        // 15 mm a frame at 10 Hz (0.15 m/s), under the slack the median is allowed: its
+        // pixels' shared shift says it moves, and a move this slow continues the object.
+        let mut objects = Materials::default();
+        let (a, b): (Vec<u32>, Vec<u32>) = ((0..400).collect(), (1000..1400).collect());
+        let mut ids = vec![];
+        for f in 1..=6u64 {
+            let d = 1000.0 - 15.0 * f as f64;
+            ids.push(add(
+                &mut objects,
+                f,
+                vec![
+                    with_readings(&a, d, 5.0, 800.0, 2 * f),
+                    with_readings(&b, 2000.0, 0.0, 300.0, 2 * f + 1),
+                ],
+            ));
+        }
+        assert!(ids.iter().all(|i| *i == ids[0]), "{ids:?}");
+        let m = objects.get(ids[0][0].expect("an id")).expect("the object");
+        let c = m
+            .before
+            .compare(&with_readings(&a, 900.0, 5.0, 800.0, 99))
+            .expect("comparable");
+        assert!(c.shifted && c.same_pattern, "{c:?}");
+    }
+
     #[test]
     fn a_region_without_evidence_continues_an_object_but_starts_none() {
         let mut objects = Materials::default();
@@ -652,6 +929,7 @@ mod tests {
             distance_mm: 1000.0,
             spread_mm: 0.0,
             profile: None,
+            readings: vec![],
         };
         let ids = add(&mut objects, 2, vec![bare(&a), bare(&far)]);
         assert_eq!(ids, vec![first[0], None]);

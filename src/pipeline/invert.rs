@@ -353,7 +353,7 @@ impl Pipeline {
 
     /// Pixel `fi`'s reading and IR noise: the background's, measured over the latch, scaled
     /// to the pixel's light as shot noise.
-    fn reading_noise(&self, fi: usize, o: &PixelObservation) -> ReadingNoise {
+    pub(super) fn reading_noise(&self, fi: usize, o: &PixelObservation) -> ReadingNoise {
         let bg = self.background.as_ref();
         let light = (o.ir / o.background_ir).max(1e-9);
         let d_sigma = bg

@@ -34,6 +34,7 @@ impl Pipeline {
                     distance_mm,
                     spread_mm,
                     profile: None,
+                    readings: self.pixel_readings(obs, pixels),
                 }
             })
             .collect();
@@ -69,6 +70,27 @@ impl Pipeline {
         for (region, id) in obs.regions.iter_mut().zip(ids) {
             region.material = id;
         }
+    }
+
+    /// The readings of a region's pixels with their noise ([`Self::reading_noise`]), for the
+    /// objects stage to tell an object standing still from another put in its place.
+    fn pixel_readings(&self, obs: &Observed, pixels: &[u32]) -> Vec<PixelReading> {
+        pixels
+            .iter()
+            .map(|&p| {
+                let i = p as usize;
+                let Some(o) = obs.observations.get(i) else {
+                    return PixelReading::NONE;
+                };
+                let noise = self.reading_noise(i, o);
+                PixelReading {
+                    distance_mm: o.distance_mm as f32,
+                    ir: o.ir as f32,
+                    distance_var: (noise.distance_mm * noise.distance_mm) as f32,
+                    ir_var: (noise.ir * noise.ir) as f32,
+                }
+            })
+            .collect()
     }
 
     /// The estimate ξ of the material with the most evidence, or the given ξ.
