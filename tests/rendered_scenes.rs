@@ -409,6 +409,11 @@ fn a_moving_camera_is_corrected_with_no_latch() {
 
 /// The rows `scripts/results.py --json` makes of `bags` (rendered bags by name).
 fn results_rows(bags: &[&str]) -> Vec<Value> {
+    results_rows_with(bags, &[])
+}
+
+/// `scripts/results` rows of `bags`, each replayed with `replay_args` too.
+fn results_rows_with(bags: &[&str], replay_args: &[&str]) -> Vec<Value> {
     let python = python();
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().expect("temp dir");
@@ -417,12 +422,59 @@ fn results_rows(bags: &[&str]) -> Vec<Value> {
         .arg(root.join("scripts/results.py"))
         .args(["--exe", exe(), "--json"])
         .arg(&json)
+        .args(replay_args.iter().map(|a| format!("--replay-arg={a}")))
         .args(bags.iter().map(|b| rendered(b)))
         .output()
         .unwrap_or_else(|e| panic!("running {python} scripts/results.py: {e} (scripts/setup-python.sh makes .venv)"));
     println!("{}", String::from_utf8_lossy(&out.stdout));
     let rows: Value = serde_json::from_str(&std::fs::read_to_string(&json).expect("rows")).expect("json");
     rows.as_array().expect("rows").clone()
+}
+
+/// Issue 31, item 3, as a camera is calibrated: `Lin` once from a white wall
+/// (`calibrate-lin`), the sheet's material from its own calibration render at that scale
+/// (`calibrate-xi --lin-calibration`), then `opaque_and_translucent` (a sheet and a box
+/// re-arranged between three poses, each pose a new object) replayed with both. The box
+/// stays opaque (at least 90 % unflagged, its median error at most 10 mm: the issue's
+/// figures) and the sheet, which the defaults keep as read, comes out better than read
+/// over its own pixels. Its error against the issue's 30 mm is printed: not met (README,
+/// Known materials).
+#[test]
+fn a_materials_file_on_the_calibrated_scale_keeps_the_box_and_corrects_the_sheet() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let lin = dir.path().join("lin.toml");
+    let materials = dir.path().join("materials.toml");
+    let (lin, materials) = (lin.to_str().expect("utf-8"), materials.to_str().expect("utf-8"));
+    let wall = rendered("white_wall_lin.mcap");
+    run(dir.path(), &["calibrate-lin", wall.to_str().expect("utf-8"), "-o", lin]);
+    let calibration = rendered("calib_opaque_and_translucent_sheet.mcap");
+    let args = [
+        "calibrate-xi",
+        calibration.to_str().expect("utf-8"),
+        "--lin-calibration",
+        lin,
+        "--name",
+        "sheet",
+        "-o",
+        materials,
+    ];
+    run(dir.path(), &args);
+    let rows = results_rows_with(
+        &["opaque_and_translucent.mcap"],
+        &["--materials", materials, "--lin-calibration", lin],
+    );
+    let row = rows.first().expect("one row");
+    assert!(row.get("error").is_none(), "{row}");
+    let sheet = &row["materials"][0];
+    let (rms, raw) = (num(sheet, "rms_mm"), num(sheet, "rms_raw_mm"));
+    println!("the sheet over its own pixels: {raw:.1} mm read, {rms:.1} mm published (the issue's limit 30 mm)");
+    assert!(rms < raw, "{sheet}");
+    let boxes = row["opaque"].as_array().expect("the box is scored");
+    assert!(!boxes.is_empty(), "{row}");
+    for o in boxes {
+        assert!(num(o, "not_flagged") >= 0.9, "{o}");
+        assert!(num(o, "median_error_mm") <= 10.0, "{o}");
+    }
 }
 
 /// The multi-frequency renders (`mf_two_materials`, `mf_opaque_and_translucent`: the

@@ -18,10 +18,11 @@
 //! then starts a new object: an undetermined ξ is kept as read, a wrongly
 //! pooled one would be corrected wrongly.
 //!
-//! A region whose median distance stays where an object stood continues it only where its
-//! pixels repeat what the object's showed, within their noise: another object put down in
-//! the same place at about the same distance (a swap) reads otherwise pixel by pixel, and
-//! is a jump.
+//! A region whose median distance stays where a still object stood continues it only where
+//! its pixels show the object's pattern of readings and IR within their noise, the shift and
+//! ratio they share taken out: another object put down in the same place at about the same
+//! distance (a swap) reads otherwise pixel by pixel, and is a jump. A moving object's pixels
+//! change with its motion; the kinematic bounds alone judge it.
 //!
 //! Each object takes at most one region of a frame, and each region one
 //! object, the pairs that share most pixels first: two regions seen at once
@@ -310,14 +311,28 @@ impl Material {
     fn motion(&self, region: &RegionEvidence, frame: u64, stamp_ns: u64, limits: &Kinematics) -> Option<Motion> {
         let last = self.earlier_than(frame)?;
         let dt_s = stamp_ns.saturating_sub(last.stamp_ns) as f64 * 1e-9;
-        let spread = [last.spread_mm, region.spread_mm]
-            .into_iter()
-            .filter(|s| s.is_finite())
-            .fold(0.0, f64::max);
-        let slack = DISTANCE_SLACK_MM + 0.25 * spread;
+        let slack = |a: &Footprint, b: f64| {
+            let spread = [a.spread_mm, b]
+                .into_iter()
+                .filter(|s| s.is_finite())
+                .fold(0.0, f64::max);
+            DISTANCE_SLACK_MM + 0.25 * spread
+        };
+        // The two footprints before, where there are two: the object's speed, and whether it
+        // stood still between them.
+        let earlier = (self.before.frame < last.frame && !self.before.pixels.is_empty()).then_some(&self.before);
+        let speed_mm_s = earlier.and_then(|b| {
+            let dt = last.stamp_ns.saturating_sub(b.stamp_ns) as f64 * 1e-9;
+            (dt > 0.0).then(|| (last.distance_mm - b.distance_mm) / dt)
+        });
+        let stood_still = earlier.is_some_and(|b| (last.distance_mm - b.distance_mm).abs() <= slack(b, last.spread_mm));
+        let slack = slack(last, region.spread_mm);
         let mut moved = (region.distance_mm - last.distance_mm).abs();
         if !(moved > slack) {
-            match last.compare(region) {
+            // A moving object's pixels change with its motion (it turns, its outline slides
+            // over what is behind): the kinematics alone judge it. Where one stood still,
+            // its pixels tell whether it stayed.
+            match last.compare(region).filter(|_| stood_still) {
                 // Where it stood, but its pixels show another pattern: another object took
                 // its place.
                 Some(c) if !c.same_pattern => return Some(Motion::Jumped),
@@ -327,13 +342,6 @@ impl Material {
                 _ => return Some(Motion::Still),
             }
         }
-        // The speed from the two footprints before, where there are two.
-        let speed_mm_s = (self.before.frame < last.frame && !self.before.pixels.is_empty())
-            .then(|| {
-                let dt = last.stamp_ns.saturating_sub(self.before.stamp_ns) as f64 * 1e-9;
-                (dt > 0.0).then(|| (last.distance_mm - self.before.distance_mm) / dt)
-            })
-            .flatten();
         let off = match speed_mm_s {
             Some(v) => {
                 let predicted = last.distance_mm + v * dt_s;
@@ -916,6 +924,29 @@ mod tests {
             .compare(&with_readings(&a, 900.0, 5.0, 800.0, 99))
             .expect("comparable");
         assert!(c.shifted && c.same_pattern, "{c:?}");
+    }
+
+    #[test]
+    fn a_carried_object_that_turns_as_it_slows_keeps_its_identity() {
+        // Carried 50 mm a frame at 10 Hz, then slowing to 10 mm while it turns (its pixels'
+        // tilt reverses) beside another object: a moving object's pixels change with its
+        // motion, so the kinematics alone judge it.
+        let mut objects = Materials::default();
+        let (a, b): (Vec<u32>, Vec<u32>) = ((0..400).collect(), (1000..1400).collect());
+        let other = |f: u64| with_readings(&b, 2000.0, 0.0, 300.0, 100 + f);
+        let mut ids = vec![];
+        for f in 1..=3u64 {
+            let d = 1000.0 + 50.0 * f as f64;
+            ids.push(add(
+                &mut objects,
+                f,
+                vec![with_readings(&a, d, 20.0, 800.0, f), other(f)],
+            ));
+        }
+        // Its median 10 mm beyond the last frame's (1340 mm).
+        let turned = with_readings(&a, 1540.0, -20.0, 800.0, 4);
+        ids.push(add(&mut objects, 4, vec![turned, other(4)]));
+        assert!(ids.iter().all(|i| *i == ids[0]), "{ids:?}");
     }
 
     #[test]
