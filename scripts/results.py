@@ -27,8 +27,9 @@ Per bag it reports:
   counts at its reading), beside the raw reading's over the same pixels
   (`all_pixels_rms_raw_mm`): the figure that says whether a scene came out
   worse than raw;
-- the corrections off every translucent object on their own: pixels a
-  frame, and the mean per-frame RMS error there, published and raw
+- the corrections off every translucent object on their own (pixels in
+  the mask, or published otherwise than read): pixels a frame, and the
+  mean per-frame RMS error there, published and raw
   (`off_object_pixels`, `off_object_rms_mm`, `off_object_rms_raw_mm`): a
   mixed pixel on an object's outline whose centre sees the background is
   the background's;
@@ -159,10 +160,12 @@ def evaluate(bag, replay_args, exe):
         for i, m in enumerate(mat):
             info = materials.get(m)
             if info is None or info.get("opaque"):
-                # Off every translucent object: a correction here is measured against the
-                # truth (an opaque object's, or the latched background's reading).
+                # Off every translucent object: a correction here (a pixel in the mask, or
+                # one published otherwise than read) is measured against the truth (an
+                # opaque object's, or the latched background's reading).
                 t = truth[i] if math.isfinite(truth[i]) else (background[i] if background else math.nan)
-                if corr is not None and mask[i] and math.isfinite(t) and math.isfinite(z[i]) and math.isfinite(raw[i]):
+                finite = math.isfinite(t) and math.isfinite(z[i]) and math.isfinite(raw[i])
+                if corr is not None and finite and (mask[i] or abs(z[i] - raw[i]) > 0.5):
                     off[0] += (z[i] - t) ** 2
                     off[1] += (raw[i] - t) ** 2
                     off[2] += 1
