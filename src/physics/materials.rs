@@ -97,9 +97,8 @@ impl PixelReading {
 /// How a region's pixels compare with an object's earlier ones ([`Footprint::compare`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct PixelChange {
-    /// The median change of distance over the shared pixels, mm.
-    shift_mm: f64,
-    /// Whether that shift exceeds noise ([`SHIFT_STANDARD_ERRORS`], [`DISTANCE_FLOOR_MM`]).
+    /// Whether the median change of distance over the shared pixels exceeds noise
+    /// ([`SHIFT_STANDARD_ERRORS`], [`DISTANCE_FLOOR_MM`]).
     shifted: bool,
     /// Whether, the shift taken out, the pixels show the same pattern ([`REPEAT_MEDIAN_Z2`]).
     same_pattern: bool,
@@ -225,7 +224,6 @@ impl Footprint {
         // The median's standard error: 1.2533 sd / sqrt(n), with the pixels' typical variance.
         let standard_error = 1.2533 * (median(&mut var_d) / pairs.len() as f64).sqrt();
         Some(PixelChange {
-            shift_mm: shift,
             shifted: shift.abs() > (SHIFT_STANDARD_ERRORS * standard_error).max(DISTANCE_FLOOR_MM),
             same_pattern: median(&mut z2) <= REPEAT_MEDIAN_Z2,
         })
@@ -311,7 +309,7 @@ impl Material {
     fn motion(&self, region: &RegionEvidence, frame: u64, stamp_ns: u64, limits: &Kinematics) -> Option<Motion> {
         let last = self.earlier_than(frame)?;
         let dt_s = stamp_ns.saturating_sub(last.stamp_ns) as f64 * 1e-9;
-        let slack = |a: &Footprint, b: f64| {
+        let slack_of = |a: &Footprint, b: f64| {
             let spread = [a.spread_mm, b]
                 .into_iter()
                 .filter(|s| s.is_finite())
@@ -325,20 +323,21 @@ impl Material {
             let dt = last.stamp_ns.saturating_sub(b.stamp_ns) as f64 * 1e-9;
             (dt > 0.0).then(|| (last.distance_mm - b.distance_mm) / dt)
         });
-        let stood_still = earlier.is_some_and(|b| (last.distance_mm - b.distance_mm).abs() <= slack(b, last.spread_mm));
-        let slack = slack(last, region.spread_mm);
-        let mut moved = (region.distance_mm - last.distance_mm).abs();
+        let stood_still =
+            earlier.is_some_and(|b| (last.distance_mm - b.distance_mm).abs() <= slack_of(b, last.spread_mm));
+        let slack = slack_of(last, region.spread_mm);
+        let moved = (region.distance_mm - last.distance_mm).abs();
         if !(moved > slack) {
             // A moving object's pixels change with its motion (it turns, its outline slides
             // over what is behind): the kinematics alone judge it. Where one stood still,
             // its pixels tell whether it stayed.
-            match last.compare(region).filter(|_| stood_still) {
+            match stood_still.then(|| last.compare(region)).flatten() {
                 // Where it stood, but its pixels show another pattern: another object took
                 // its place.
                 Some(c) if !c.same_pattern => return Some(Motion::Jumped),
-                // Its pixels moved together by more than noise: judged as a move, by their
-                // shift (the outline's change hides it from the median).
-                Some(c) if c.shifted => moved = c.shift_mm.abs(),
+                // Its pixels moved together by more than noise (the outline's change hides
+                // that from the median): the kinematics judge the move.
+                Some(c) if c.shifted => {}
                 _ => return Some(Motion::Still),
             }
         }

@@ -1500,24 +1500,26 @@ fn drop_layer_regions(labels: &ImageBuf<u32>, layers: u32, dropped: &[u32]) -> (
             new_id[l as usize] = next;
         }
     }
-    let gone = layers - next;
+    (renumbered(labels, layers, &new_id, next), next)
+}
+
+/// `labels` with each layer label `l` made `new_ids[l]` (0 for a region dropped) and the
+/// opaque regions after the `new_layers` layer regions.
+fn renumbered(labels: &ImageBuf<u32>, layers: u32, new_ids: &[u32], new_layers: u32) -> ImageBuf<u32> {
     let data = labels
         .data
         .iter()
         .map(|&l| match l {
             0 => 0,
-            l if l <= layers => new_id[l as usize],
-            l => l - gone,
+            l if l <= layers => new_ids[l as usize],
+            o => o - layers + new_layers,
         })
         .collect();
-    (
-        ImageBuf {
-            width: labels.width,
-            height: labels.height,
-            data,
-        },
-        next,
-    )
+    ImageBuf {
+        width: labels.width,
+        height: labels.height,
+        data,
+    }
 }
 
 /// `labels` with the layer regions of `joined` made one (each the smallest label of its
@@ -1547,21 +1549,7 @@ fn merge_labels(labels: &ImageBuf<u32>, layers: u32, joined: &[(u32, u32)]) -> (
             new_ids[l as usize] = new_ids[r as usize];
         }
     }
-    let data = labels
-        .data
-        .iter()
-        .map(|&l| match l {
-            0 => 0,
-            l if l <= layers => new_ids[l as usize],
-            o => o - layers + next,
-        })
-        .collect();
-    let merged = ImageBuf {
-        width: labels.width,
-        height: labels.height,
-        data,
-    };
-    (merged, new_ids, next)
+    (renumbered(labels, layers, &new_ids, next), new_ids, next)
 }
 
 /// The pixels of a region [`MultiFrequencyStage::add_translucency_share`] samples.
