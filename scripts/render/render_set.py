@@ -2,6 +2,9 @@
 
 usage: render_set.py [--list] [--out DIR] [--cache DIR] [NAME ...]
 
+A NAME beyond the set (draw_20, video_3, mf_draw_21, ...) is drawn from the same
+seeded ranges: a scene nothing was tuned on.
+
 Each bag: 10 background-only frames, then its stages (a few frames of one
 geometry each). Each geometry is rendered once (cached by content in
 --cache) and its noisy frames are drawn from that render with per-frame
@@ -332,6 +335,17 @@ def _write_bag(spec, out_dir, cache):
     print(f"{name}: {frame} frames, render {total_secs:.1f} s", flush=True)
 
 
+def fresh_spec(name):
+    """The spec of `draw_<i>`, `video_<i>` or either with `mf_` before it, for any `i`."""
+    mf = name.startswith("mf_")
+    kind, _, index = name.removeprefix("mf_").rpartition("_")
+    make = {"draw": scenes.draw, "video": scenes.video}.get(kind)
+    if make is None or not index.isdigit():
+        raise SystemExit(f"{name}: no such scene (see --list; draw_<i>, video_<i> and mf_ before either are drawn fresh)")
+    spec = make(int(index))
+    return scenes.multi_frequency(spec) if mf else spec
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("names", nargs="*")
@@ -347,6 +361,11 @@ def main():
         return
     names = args.names or [s["name"] for s in specs]
     by = {s["name"]: s for s in specs}
+    # Fresh scenes from the same seeded ranges, beyond the committed set (draw_20,
+    # mf_draw_20, video_3, ...): scenes nothing was tuned on.
+    for n in names:
+        if n not in by:
+            by[n] = fresh_spec(n)
     os.makedirs(args.cache, exist_ok=True)
     for n in names:
         if args.spp:

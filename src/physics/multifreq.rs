@@ -597,14 +597,26 @@ impl MultiFrequencyInversion {
         if !(0.0..=1.0).contains(&xi) {
             return Err(MultiFrequencyError::TranslucencyOutOfRange(xi));
         }
+        self.fit_at_translucency_within(px, xi, (f64::NEG_INFINITY, max_distance_mm))
+    }
+
+    /// [`Self::fit_at_translucency`] with the layer's distance searched only within
+    /// `[near, far]` (and the scan's own range): whether a layer where another layer's surface
+    /// lies explains the phasors.
+    pub fn fit_at_translucency_within(
+        &self,
+        px: &PixelPhasors,
+        xi: f64,
+        (near, far): (f64, f64),
+    ) -> Result<TranslucencyFit, MultiFrequencyError> {
+        if !(0.0..=1.0).contains(&xi) {
+            return Err(MultiFrequencyError::TranslucencyOutOfRange(xi));
+        }
         let p = self.pixel(px)?;
         let t = xi * xi;
-        let hi = if max_distance_mm < p.hi {
-            max_distance_mm.max(p.lo)
-        } else {
-            p.hi
-        };
-        let (d1, chi_square) = self.minimise(p.lo, hi, |d| {
+        let hi = if far < p.hi { far.max(p.lo) } else { p.hi };
+        let lo = if near > p.lo { near.min(hi) } else { p.lo };
+        let (d1, chi_square) = self.minimise(lo, hi, |d| {
             let g = self.gram(&p, d);
             g.chi_square(&p.fixed, g.return_at(t), t)
         });
@@ -1548,6 +1560,26 @@ mod tests {
         let share = inside as f64 / draws as f64;
         println!("background share: {inside} of {draws} draws within 1.96 sd ({share:.3})");
         assert!((0.93..=0.97).contains(&share), "{share}");
+    }
+
+    #[test]
+    fn a_layer_searched_within_a_window_is_found_only_there() {
+        let (mf, inv) = model(Waveform::Sinusoid, &THREE);
+        let xi = 0.4;
+        let o = Observed::new(&mf, &scene(900.0, 3300.0, xi), NOISE);
+        let px = o.phasors();
+        let free = inv.fit_at_translucency(&px, xi).expect("fit");
+        assert!((free.foreground_distance_mm - 900.0).abs() < 1.0, "{free:?}");
+        let near = inv.fit_at_translucency_within(&px, xi, (850.0, 950.0)).expect("fit");
+        assert!(
+            (near.foreground_distance_mm - 900.0).abs() < 1.0 && near.chi_square < 1e-6,
+            "{near:?}"
+        );
+        // Where another layer's surface lies, 2 m behind it, no layer of this ξ explains it.
+        let far = inv.fit_at_translucency_within(&px, xi, (2500.0, 3000.0)).expect("fit");
+        assert!((2500.0..=3000.0).contains(&far.foreground_distance_mm), "{far:?}");
+        // Far beyond chi-square's 99.9 % quantile for its few degrees of freedom (under 20).
+        assert!(far.chi_square > 100.0, "{far:?}");
     }
 
     #[test]

@@ -55,8 +55,9 @@ pub const CHI_SQUARE_1_999: f64 = 10.827_566_170_662_733;
 /// default level at which two free returns make a pixel a layer with no background latched.
 pub const CHI_SQUARE_2_999: f64 = 13.815_510_557_964_274;
 
-/// A background pixel whose phasors and depth image disagree by more than
-/// this (mm, wrapped at the depth image's range) is aliased.
+/// A background pixel whose phasors' distance, moved by a multiple of the frequencies'
+/// common unambiguous range, agrees with the depth image within this (mm, wrapped at the
+/// depth image's range) where as it is it does not, is aliased.
 pub const ALIAS_TOLERANCE_MM: f64 = 100.0;
 
 /// Share of the background's pixels allowed to disagree so before the
@@ -322,6 +323,7 @@ impl PhasorLatch {
             aliased_pixels: 0,
         };
         let (mut phasor_aliased, mut depth_aliased) = (vec![], vec![]);
+        let common_range = inversion.common_unambiguous_range_mm();
         for (i, p) in pixels.into_iter().enumerate() {
             let Some((b, s, db)) = p else { continue };
             bg.phasors[i * k..(i + 1) * k].copy_from_slice(&b);
@@ -331,7 +333,7 @@ impl PhasorLatch {
             let dd = self.depth_mm[i];
             if dd.is_finite() {
                 bg.compared_pixels += 1;
-                if wrapped_difference(db, dd, depth_range_mm).abs() > ALIAS_TOLERANCE_MM {
+                if aliased(db, dd, common_range, depth_range_mm) {
                     bg.aliased_pixels += 1;
                     phasor_aliased.push(db);
                     depth_aliased.push(dd);
@@ -384,6 +386,29 @@ impl PhasorLatch {
         let fit = inversion.single_return(&b, &sigma).ok()?;
         Some((b, sigma, fit.distance_mm))
     }
+}
+
+/// How far from its region's surface near it (a share of that distance) a pixel grown into
+/// the region may have its layer ([`MultiFrequencyStage::grow_layers`]): the surface comes from
+/// the region's pixels in windows up to 65 pixels wide, over which a tilted layer's distance
+/// changes by this much.
+const GROWTH_REACH: f64 = 0.15;
+
+/// Most multiples of the common range [`aliased`] tries.
+const MAX_ALIAS_WRAPS: usize = 16;
+
+/// Whether a background pixel's distance from its phasors, `db`, is the depth image's `dd`
+/// less a multiple of the frequencies' common unambiguous range (both wrapped at the depth
+/// image's range): aliased. A disagreement that no multiple explains is light the
+/// frequencies see apart (a corner's or a table's several paths), which the latched
+/// phasors hold as they are.
+fn aliased(db: f64, dd: f64, common_range_mm: f64, depth_range_mm: f64) -> bool {
+    let off = |k: usize| wrapped_difference(db + k as f64 * common_range_mm, dd, depth_range_mm).abs();
+    if !(off(0) > ALIAS_TOLERANCE_MM) || !(common_range_mm > 0.0) {
+        return false;
+    }
+    let wraps = ((depth_range_mm / common_range_mm).ceil() as usize + 1).min(MAX_ALIAS_WRAPS);
+    (1..=wraps).any(|k| off(k) <= ALIAS_TOLERANCE_MM)
 }
 
 fn check_size(what: &str, w: usize, h: usize, want_w: usize, want_h: usize) -> Result<(), MultiFrequencyStageError> {
@@ -1124,15 +1149,18 @@ impl MultiFrequencyStage {
                 if owner[j] != 0 || labels.data[j] != 0 || !open {
                     continue;
                 }
-                // The layer must stay clear of the background: halfway from the region's
-                // surface near the pixel to the background at most.
+                // The layer must lie where the region's surface near the pixel is (within
+                // GROWTH_REACH of it: a pixel whose own bright layer lies elsewhere is not
+                // the region's, whatever ξ fits it) and stay clear of the background: halfway
+                // from that surface to the background at most.
                 let Some(near) = self.local_layer_distance(j, region, labels, results) else {
                     continue;
                 };
                 let fits = self.pixel_inputs(frame, j).is_some_and(|p| {
                     let clear = (near + p.background_distance_mm) / 2.0;
+                    let window = (near * (1.0 - GROWTH_REACH), clear.min(near * (1.0 + GROWTH_REACH)));
                     self.inversion
-                        .fit_at_translucency_nearer(&p.phasors(), xi, clear)
+                        .fit_at_translucency_within(&p.phasors(), xi, window)
                         .is_ok_and(|f| f.chi_square <= level)
                 });
                 owner[j] = if fits { region } else { TRIED };
@@ -2133,6 +2161,17 @@ albedo = 0.7
             matches!(e, MultiFrequencyStageError::BackgroundInvalid { valid: 0, .. }),
             "{e}"
         );
+    }
+
+    #[test]
+    fn a_background_pixel_is_aliased_only_where_a_multiple_of_the_common_range_explains_it() {
+        let depth_range = Sensor::sr4000().unambiguous_range_mm();
+        // 50 and 100 MHz (2998 mm) before a wall at 3300 mm: the phasors put it at 302.
+        assert!(aliased(302.0, 3300.0, 2998.0, depth_range));
+        // Light along several paths (a table's, a corner's): 221 mm apart, no multiple of
+        // 14990 mm (20, 50 and 100 MHz) explains it.
+        assert!(!aliased(2066.0, 2287.0, 14990.0, depth_range));
+        assert!(!aliased(2000.0, 2040.0, 2998.0, depth_range));
     }
 
     #[test]
