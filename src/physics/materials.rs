@@ -28,6 +28,7 @@
 //! object, the pairs that share most pixels first: two regions seen at once
 //! are two objects. An object that reappears elsewhere is a new one.
 
+use super::stats::median_select;
 use super::translucency::{self, FrameProfile, XiEstimate, XiMethod, XiSettings};
 
 /// Least share of the smaller of two regions that the other must cover for the later to
@@ -104,13 +105,24 @@ struct PixelChange {
     same_pattern: bool,
 }
 
-/// The median of `v` (reordered); NaN when empty.
-fn median(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    let mid = v.len() / 2;
-    *v.select_nth_unstable_by(mid, f64::total_cmp).1
+/// The positions `(i, j)` in two ascending pixel lists where they hold the same pixel.
+fn shared_positions<'a>(a: &'a [u32], b: &'a [u32]) -> impl Iterator<Item = (usize, usize)> + 'a {
+    let (mut i, mut j) = (0, 0);
+    std::iter::from_fn(move || {
+        while i < a.len() && j < b.len() {
+            match a[i].cmp(&b[j]) {
+                std::cmp::Ordering::Less => i += 1,
+                std::cmp::Ordering::Greater => j += 1,
+                std::cmp::Ordering::Equal => {
+                    let at = (i, j);
+                    i += 1;
+                    j += 1;
+                    return Some(at);
+                }
+            }
+        }
+        None
+    })
 }
 
 /// Where an object's region was in one frame.
@@ -148,19 +160,7 @@ pub struct RegionEvidence<'a> {
 impl Footprint {
     /// Pixels of `region` (ascending) that this footprint covers too.
     fn overlap(&self, region: &[u32]) -> usize {
-        let (mut i, mut j, mut n) = (0, 0, 0);
-        while i < self.pixels.len() && j < region.len() {
-            match self.pixels[i].cmp(&region[j]) {
-                std::cmp::Ordering::Less => i += 1,
-                std::cmp::Ordering::Greater => j += 1,
-                std::cmp::Ordering::Equal => {
-                    n += 1;
-                    i += 1;
-                    j += 1;
-                }
-            }
-        }
-        n
+        shared_positions(&self.pixels, region).count()
     }
 
     /// How `region`'s pixels compare with this footprint's over the pixels both hold with
@@ -169,33 +169,21 @@ impl Footprint {
         if self.readings.len() != self.pixels.len() || region.readings.len() != region.pixels.len() {
             return None;
         }
-        let (mut i, mut j) = (0, 0);
-        let mut pairs = vec![];
-        while i < self.pixels.len() && j < region.pixels.len() {
-            match self.pixels[i].cmp(&region.pixels[j]) {
-                std::cmp::Ordering::Less => i += 1,
-                std::cmp::Ordering::Greater => j += 1,
-                std::cmp::Ordering::Equal => {
-                    let (a, b) = (self.readings[i], region.readings[j]);
-                    if a.usable() && b.usable() {
-                        pairs.push((a, b));
-                    }
-                    i += 1;
-                    j += 1;
-                }
-            }
-        }
+        let pairs: Vec<(PixelReading, PixelReading)> = shared_positions(&self.pixels, region.pixels)
+            .map(|(i, j)| (self.readings[i], region.readings[j]))
+            .filter(|(a, b)| a.usable() && b.usable())
+            .collect();
         if pairs.len() < MIN_REPEAT_PIXELS {
             return None;
         }
         let f = |x: f32| f64::from(x);
-        let shift = median(
+        let shift = median_select(
             &mut pairs
                 .iter()
                 .map(|(a, b)| f(b.distance_mm) - f(a.distance_mm))
                 .collect::<Vec<_>>(),
         );
-        let ratio = median(
+        let ratio = median_select(
             &mut pairs
                 .iter()
                 .filter(|(a, _)| a.ir > 0.0)
@@ -222,10 +210,10 @@ impl Footprint {
             .map(|(a, b)| f(a.distance_var) + f(b.distance_var))
             .collect();
         // The median's standard error: 1.2533 sd / sqrt(n), with the pixels' typical variance.
-        let standard_error = 1.2533 * (median(&mut var_d) / pairs.len() as f64).sqrt();
+        let standard_error = 1.2533 * (median_select(&mut var_d) / pairs.len() as f64).sqrt();
         Some(PixelChange {
             shifted: shift.abs() > (SHIFT_STANDARD_ERRORS * standard_error).max(DISTANCE_FLOOR_MM),
-            same_pattern: median(&mut z2) <= REPEAT_MEDIAN_Z2,
+            same_pattern: median_select(&mut z2) <= REPEAT_MEDIAN_Z2,
         })
     }
 }

@@ -581,28 +581,14 @@ impl MultiFrequencyInversion {
     /// in closed form. Over several ξ this is the profile that shows whether
     /// the phasors determine ξ (with one frequency they do not).
     pub fn fit_at_translucency(&self, px: &PixelPhasors, xi: f64) -> Result<TranslucencyFit, MultiFrequencyError> {
-        self.fit_at_translucency_nearer(px, xi, f64::INFINITY)
-    }
-
-    /// [`Self::fit_at_translucency`] with the layer's distance searched only up to
-    /// `max_distance_mm`: whether a layer clear of the background explains the phasors (with
-    /// its distance free up to the background, a share of the background's own return left
-    /// over, as a pixel partly covered shows, fits as a "layer" right at it).
-    pub fn fit_at_translucency_nearer(
-        &self,
-        px: &PixelPhasors,
-        xi: f64,
-        max_distance_mm: f64,
-    ) -> Result<TranslucencyFit, MultiFrequencyError> {
-        if !(0.0..=1.0).contains(&xi) {
-            return Err(MultiFrequencyError::TranslucencyOutOfRange(xi));
-        }
-        self.fit_at_translucency_within(px, xi, (f64::NEG_INFINITY, max_distance_mm))
+        self.fit_at_translucency_within(px, xi, (f64::NEG_INFINITY, f64::INFINITY))
     }
 
     /// [`Self::fit_at_translucency`] with the layer's distance searched only within
     /// `[near, far]` (and the scan's own range): whether a layer where another layer's surface
-    /// lies explains the phasors.
+    /// lies, and clear of the background, explains the phasors (with its distance free up to
+    /// the background, a share of the background's own return left over, as a pixel partly
+    /// covered shows, fits as a "layer" right at it).
     pub fn fit_at_translucency_within(
         &self,
         px: &PixelPhasors,
