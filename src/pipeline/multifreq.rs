@@ -529,6 +529,8 @@ struct PixelResult {
     layer_to_background: f64,
     /// The background's distance beyond the layer, mm (NaN where not known).
     gap_mm: f64,
+    /// The layer's own return (the one return's, when opaque), counts (NaN where not fitted).
+    first_return: f64,
 }
 
 impl PixelResult {
@@ -542,6 +544,7 @@ impl PixelResult {
             xi_squared_sigma: f64::NAN,
             layer_to_background: f64::NAN,
             gap_mm: f64::NAN,
+            first_return: f64::NAN,
         }
     }
 }
@@ -751,6 +754,7 @@ impl MultiFrequencyStage {
             xi_squared_sigma: f64::NAN,
             layer_to_background: f64::NAN,
             gap_mm: f64::NAN,
+            first_return: two.near_strength,
         }
     }
 
@@ -837,6 +841,7 @@ impl MultiFrequencyStage {
             xi_squared_sigma,
             layer_to_background: layer_to_background(est, inputs),
             gap_mm: inputs.background_distance_mm - est.foreground_distance_mm,
+            first_return: est.first_return,
         }
     }
 
@@ -1097,7 +1102,8 @@ impl MultiFrequencyStage {
     /// up to halfway from the region's own pixels near it to the background) fits its
     /// phasors within chi-square's quantile with `2K - 2` degrees of freedom at the change
     /// level: the background behind it dimmed by ξ² as beside it, and a return of its own
-    /// that the noise may hide (a faint layer, ξ near 1, far away). A pixel that the layer
+    /// that the noise may hide (a faint layer, ξ near 1, far away), but not far under the
+    /// returns of the region's own pixels near it ([`too_weak`]). A pixel that the layer
     /// only partly covers, or the background beside it, is not dimmed by ξ²: it fits only
     /// with a return at the background, which the search does not reach. Its distance is
     /// then the region's surface's ([`Self::surface_prior`]): the pixel's own phasors do not
@@ -1153,15 +1159,16 @@ impl MultiFrequencyStage {
                 // GROWTH_REACH of it: a pixel whose own bright layer lies elsewhere is not
                 // the region's, whatever ξ fits it) and stay clear of the background: halfway
                 // from that surface to the background at most.
-                let Some(near) = self.local_layer_distance(j, region, labels, results) else {
+                let Some(local) = self.local_layer(j, region, labels, results) else {
                     continue;
                 };
+                let near = local.distance_mm;
                 let fits = self.pixel_inputs(frame, j).is_some_and(|p| {
                     let clear = (near + p.background_distance_mm) / 2.0;
                     let window = (near * (1.0 - GROWTH_REACH), clear.min(near * (1.0 + GROWTH_REACH)));
                     self.inversion
                         .fit_at_translucency_within(&p.phasors(), xi, window)
-                        .is_ok_and(|f| f.chi_square <= level)
+                        .is_ok_and(|f| f.chi_square <= level && !too_weak(f.first_return, local.weak_return, &p))
                 });
                 owner[j] = if fits { region } else { TRIED };
                 if fits {
@@ -1175,29 +1182,34 @@ impl MultiFrequencyStage {
         grown
     }
 
-    /// The median distance of `region`'s own pixels (its labels, not those grown) in the
-    /// narrowest of the prior's windows about pixel `i` that holds any ([`PRIOR_WIDENINGS`]),
-    /// mm: where the region's layer is near `i`. A faint layer's own pixels may be few and
-    /// far between, and what is grown from them lies beyond the first window.
-    fn local_layer_distance(
+    /// Where `region`'s layer is near pixel `i`: its own pixels (its labels, not those grown)
+    /// in the narrowest of the prior's windows about `i` that holds any ([`PRIOR_WIDENINGS`]),
+    /// their median distance and the lower quartile of their returns. A faint layer's own
+    /// pixels may be few and far between, and what is grown from them lies beyond the first
+    /// window.
+    fn local_layer(
         &self,
         i: usize,
         region: u32,
         labels: &ImageBuf<u32>,
         results: &[PixelResult],
-    ) -> Option<f64> {
+    ) -> Option<LocalLayer> {
         let (w, h) = (labels.width as isize, labels.height as isize);
         let (c, row) = ((i as isize) % w, (i as isize) / w);
         (0..PRIOR_WIDENINGS).find_map(|k| {
             let r = (self.config.prior_radius_px.max(1) << k) as isize;
-            let mut near: Vec<f64> = ((row - r).max(0)..=(row + r).min(h - 1))
+            let own: Vec<&PixelResult> = ((row - r).max(0)..=(row + r).min(h - 1))
                 .flat_map(|y| ((c - r).max(0)..=(c + r).min(w - 1)).map(move |x| (y * w + x) as usize))
-                .filter(|&j| labels.data[j] == region)
-                .map(|j| results[j].distance_mm)
-                .filter(|d| d.is_finite())
+                .filter(|&j| labels.data[j] == region && results[j].distance_mm.is_finite())
+                .map(|j| &results[j])
                 .collect();
-            let d = median_select(&mut near);
-            d.is_finite().then_some(d)
+            let mut distances: Vec<f64> = own.iter().map(|p| p.distance_mm).collect();
+            let mut returns: Vec<f64> = own.iter().map(|p| p.first_return).filter(|a| a.is_finite()).collect();
+            let distance_mm = median_select(&mut distances);
+            distance_mm.is_finite().then(|| LocalLayer {
+                distance_mm,
+                weak_return: quantile_select(&mut returns, 0.25),
+            })
         })
     }
 
@@ -1256,7 +1268,7 @@ impl MultiFrequencyStage {
             .filter_map(|i| {
                 let region = neighbour_region(i)?;
                 let xi = regions.get(region as usize - 1)?.xi.xi;
-                let near = self.local_layer_distance(i, region, labels, results)?;
+                let near = self.local_layer(i, region, labels, results)?.distance_mm;
                 let p = self.pixel_inputs(frame, i)?;
                 let (t, sd) = self.inversion.background_share_at(&p.phasors(), near).ok()?;
                 let cov = Coverage::from_background_share(t, sd, xi)?;
@@ -1497,6 +1509,15 @@ impl MultiFrequencyStage {
     }
 }
 
+/// Where a layer region's layer is near a pixel ([`MultiFrequencyStage::local_layer`]).
+#[derive(Debug, Clone, Copy)]
+struct LocalLayer {
+    /// The median distance of the region's own pixels there, mm.
+    distance_mm: f64,
+    /// The lower quartile of their returns, counts (NaN where none has one).
+    weak_return: f64,
+}
+
 /// A pixel on a layer region's outline that the layer covers by half or more
 /// ([`MultiFrequencyStage::covered_edges`]).
 #[derive(Debug, Clone, Copy)]
@@ -1613,22 +1634,45 @@ fn unclaimed_by_a_region(class: PixelClass) -> bool {
     )
 }
 
+/// The share of a layer region's weak returns near a pixel (their lower quartile) that a
+/// pixel grown into it must reach, less three of its own return's standard deviations.
+const GROWTH_RETURN_SHARE: f64 = 0.5;
+
+/// Whether a return `a` fitted at a region's ξ is too weak to be the region's layer: under
+/// [`GROWTH_RETURN_SHARE`] of `weak_return` (the region's own pixels' returns near it) beyond
+/// three of its standard deviations. One material at one distance returns alike, so a pixel
+/// of a bright layer returns brightly; a background that something else dimmed (an object's
+/// shadow in the light between a table and a wall) fits the region's ξ² only with a return
+/// of its own far under the layer's. A faint layer's returns are under the noise, and so is
+/// the bound.
+fn too_weak(a: f64, weak_return: f64, inputs: &PixelInputs) -> bool {
+    let information: f64 = inputs.noise_sigma[..inputs.frequencies]
+        .iter()
+        .map(|s| s.powi(-2))
+        .sum();
+    let sigma = information.recip().sqrt();
+    a < GROWTH_RETURN_SHARE * weak_return - 3.0 * sigma
+}
+
 /// Farthest from the background's distance, beyond three of its own standard deviations,
 /// that one return still counts as the background's ([`PixelClass::Unclaimed`]), mm.
 const DIMMED_TOLERANCE_MM: f64 = 30.0;
 
 /// Whether a changed pixel's fit claims nothing ([`PixelClass::Unclaimed`]): a layer preferred
-/// to one return (at 95 %) but not beyond `level`, or one return at the background's own
-/// distance and weaker than it (a layer whose own return is under the noise shows that, its ξ²
-/// that return over the background's; so does a shadow; an opaque surface there would be the
-/// background itself).
+/// to one return (at 95 %) but not beyond `level`; a layer at the background's own distance
+/// (within three of its standard deviations, or [`DIMMED_TOLERANCE_MM`]); or one return there
+/// and weaker than the background's. A layer whose own return is under the noise shows the
+/// last, its ξ² that return over the background's; so does a shadow. Light between two
+/// surfaces (a table and a wall) changes where an object elsewhere blocks or adds to it: the
+/// background dims and turns a little, which fits a layer of weak return at the background.
+/// A layer or an opaque surface there cannot be told from the background itself.
 fn unclaimed(est: &MultiFrequencyEstimate, inputs: &PixelInputs, level: f64) -> bool {
-    if !est.opaque {
-        return est.opacity_statistic <= level;
-    }
-    let background = peak_amplitude(inputs.background);
     let tolerance = (3.0 * est.foreground_distance_sigma_mm).max(DIMMED_TOLERANCE_MM);
-    (est.foreground_distance_mm - inputs.background_distance_mm).abs() <= tolerance && est.first_return < background
+    let at_background = (est.foreground_distance_mm - inputs.background_distance_mm).abs() <= tolerance;
+    if !est.opaque {
+        return est.opacity_statistic <= level || at_background;
+    }
+    at_background && est.first_return < peak_amplitude(inputs.background)
 }
 
 /// Each pixel's layer distance along its ray and its σ, mm (what [`MultiFrequencyStage::fill`]
@@ -2051,6 +2095,86 @@ albedo = 0.7
         assert!(c.box_px > 50 && c.box_masked * 20 <= c.box_px, "{c:?}");
         assert!(o.regions.iter().any(|r| r.opaque) && o.regions.iter().any(|r| !r.opaque));
         assert_eq!(o.xi.method, XiMethod::MultiFrequency);
+    }
+
+    /// Beside a bright layer (ξ 0.75, albedo 0.6), the background dimmed by ξ² with no return
+    /// of its own, as when an object blocks the light that reached a wall from a table: the
+    /// region's ξ fits those pixels with a return near zero, where the layer's own pixels
+    /// return brightly. They are not grown into the layer and keep their readings; the layer is
+    /// recovered as without them.
+    #[test]
+    fn a_background_dimmed_beside_a_bright_layer_is_not_grown_into_it() {
+        let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
+        let all = frames(&scene);
+        let s = latched_stage(&scene, &all);
+        let (p, d, truth) = &all[6];
+        let w = truth.width;
+        // The six pixels to the right of the sheet's last column, in each of its rows, dimmed;
+        // the first of them, on the sheet's outline, mixes its return and is not counted.
+        let (mut dimmed, mut outline) = (vec![], vec![]);
+        for row in 0..truth.height {
+            let sheet_cols = (0..w).filter(|&c| truth.data[row * w + c] < 1150.0);
+            if let Some(last) = sheet_cols.max() {
+                outline.push(row * w + last + 1);
+                dimmed.extend((last + 2..(last + 7).min(w)).map(|c| row * w + c));
+            }
+        }
+        let mut p = p.clone();
+        for img in &mut p.phasors {
+            for &i in dimmed.iter().chain(&outline) {
+                img.data[i] = img.data[i].map(|v| v * 0.5625);
+            }
+        }
+        let out = s.process(&p, d).expect("frame");
+        let grown = dimmed.iter().filter(|&&i| out.frame.mask.data[i]).count();
+        let moved = dimmed
+            .iter()
+            .filter(|&&i| out.frame.corrected_z_mm.data[i] != d.z_mm.data[i])
+            .count();
+        let c = SheetAndBox::of(&out, d, truth);
+        println!(
+            "dimmed {} pixels: {grown} in the mask, {moved} moved; sheet {} of {} in the mask, RMS {:.1} mm",
+            dimmed.len(),
+            c.in_mask,
+            c.sheet,
+            c.rms_mm
+        );
+        assert!(dimmed.len() > 60, "{} dimmed pixels", dimmed.len());
+        assert_eq!((grown, moved), (0, 0));
+        assert!(c.in_mask * 100 >= c.sheet * 95 && c.rms_mm < 15.0, "{c:?}");
+    }
+
+    /// A changed pixel whose best layer lies at the background's own distance claims nothing:
+    /// light between two surfaces that an object elsewhere blocks dims the background and turns
+    /// it a little, which a layer of weak return at the background fits. A layer well before
+    /// the background is claimed.
+    #[test]
+    fn a_layer_at_the_background_claims_nothing() {
+        let background = [Phasor { a: 1000.0, b: 0.0 }; 3];
+        let inputs = PixelInputs {
+            measured: [Phasor { a: 850.0, b: 20.0 }; MAX_FREQUENCIES],
+            noise_sigma: [5.0; MAX_FREQUENCIES],
+            frequencies: 3,
+            background: &background,
+            background_distance_mm: 2700.0,
+            change_chi_square: 1e4,
+        };
+        let layer_at = |d: f64| MultiFrequencyEstimate {
+            foreground_distance_mm: d,
+            first_return: 120.0,
+            translucency: 0.9,
+            chi_square: 3.0,
+            opacity_statistic: 60.0,
+            opaque: false,
+            foreground_distance_sigma_mm: 40.0,
+            translucency_sigma: 0.02,
+        };
+        let level = CHI_SQUARE_1_999;
+        // Within three of its standard deviations (120 mm) of the background: nothing claimed.
+        assert!(unclaimed(&layer_at(2700.0 - 100.0), &inputs, level));
+        assert!(unclaimed(&layer_at(2700.0 + 20.0), &inputs, level));
+        // Beyond them: a layer.
+        assert!(!unclaimed(&layer_at(2700.0 - 400.0), &inputs, level));
     }
 
     #[test]
