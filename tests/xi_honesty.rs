@@ -165,3 +165,30 @@ fn a_misfit_that_grows_with_distance_widens_the_interval_to_both_sides() {
         est.interval
     );
 }
+
+/// Where the near poses find a layer and the far ones do not reject opaque (a larger IR
+/// offset than above: the far poses' weak returns are mostly offset), the misfit is as large
+/// as the layer's effect: the object is kept as read and its interval is every ξ. Spanning the
+/// two sides' intervals gives [0, 0.849] here, where a diffuse transmitter's sides both fall
+/// short of its ξ (`video_02`: 0 and 0.51 for 0.88).
+#[test]
+fn sides_that_part_into_opaque_and_a_layer_exclude_no_xi() {
+    let seed = 5u64;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let xi = rng.random_range(0.5..0.8);
+    let albedo = rng.random_range(0.5..0.8);
+    let tilt = rng.random_range(20.0..35.0);
+    let stages = [500.0, 800.0, 1100.0, 1400.0, 1700.0, 1950.0]
+        .iter()
+        .map(|&z| StageSpec {
+            frames: 1,
+            objects: vec![plane([0.0, 0.0, z], [260.0, 320.0], [0.0, tilt], xi, albedo)],
+        })
+        .collect();
+    let mut s = scene_with("tilted plane, a large IR offset".into(), seed, 2200.0, stages);
+    s.physics.ambient_offset = 1200.0;
+    let est = online_estimates(&s).pop().expect("an estimate");
+    println!("xi {xi:.3}: {:.3} {:?} ({})", est.xi, est.interval, est.note);
+    assert!(est.note.contains("the near poses alone give"), "{}", est.note);
+    assert_eq!((est.xi, est.interval), (0.0, [0.0, 1.0]), "{}", est.note);
+}

@@ -901,7 +901,8 @@ pub const POSES_TO_COMPARE: usize = 4;
 /// offset per pose; a misfit that grows with distance (light between a layer and a near wall,
 /// a layer that scatters what it passes) is not random, and there the two sides' intervals
 /// part. Then what the data cannot tell is which side is right: the interval spans both
-/// sides' and the pooled one (objects.md, "Intervals that hold").
+/// sides' and the pooled one (objects.md, "Intervals that hold"); where one side is opaque
+/// and the other a layer, the interval is every ξ.
 fn across_distance(profiles: &[FrameProfile], pooled: XiEstimate) -> XiEstimate {
     let (pose, poses) = pose_labels(profiles);
     let determined = pooled.interval != [0.0, 1.0];
@@ -933,10 +934,16 @@ fn across_distance(profiles: &[FrameProfile], pooled: XiEstimate) -> XiEstimate 
         near.xi, near.interval[0], near.interval[1], far.xi, far.interval[0], far.interval[1], statistic
     );
     if lo <= OPAQUE_XI {
+        // One side does not reject opaque where the other finds a layer: the misfit is as
+        // large as the layer's own effect, and where it puts ξ says nothing of where ξ is
+        // (a diffuse transmitter's sides both fall short of it). No ξ is excluded.
         return XiEstimate {
             xi: 0.0,
-            interval: [0.0, hi],
-            note: format!("taken as opaque: {disagreement} and 0 ({})", pooled.note),
+            interval: [0.0, 1.0],
+            note: format!(
+                "taken as opaque, the data do not say otherwise: {disagreement}, one of them opaque: a misfit as large as the layer's effect, so no xi is excluded ({})",
+                pooled.note
+            ),
             ..pooled
         };
     }
