@@ -294,13 +294,29 @@ pub fn label_regions(
     range_mm: f64,
     min_pixels: usize,
 ) -> (ImageBuf<u32>, Vec<usize>) {
-    let (w, h) = (mask.width, mask.height);
     let step = |i: usize, j: usize| wrapped_difference(distance_mm.data[i], distance_mm.data[j], range_mm).abs();
-    let joined = |i: usize, j: usize| {
-        let (a, b) = (noise_mm(i), noise_mm(j));
-        let sigma = (a * a + b * b).sqrt();
-        step(i, j) <= EDGE_FLOOR_MM.max(if sigma.is_finite() { EDGE_SIGMAS * sigma } else { 0.0 })
-    };
+    let joined = |i: usize, j: usize| step(i, j) <= step_allowed(EDGE_FLOOR_MM, noise_mm(i), noise_mm(j));
+    label_regions_by(mask, joined, step, min_pixels)
+}
+
+/// The largest step between two neighbours' values (noise `a` and `b`, one standard
+/// deviation each) that keeps them in one region: [`EDGE_SIGMAS`] times the noise of the
+/// difference, at least `floor`.
+pub fn step_allowed(floor: f64, a: f64, b: f64) -> f64 {
+    let sigma = a.hypot(b);
+    floor.max(if sigma.is_finite() { EDGE_SIGMAS * sigma } else { 0.0 })
+}
+
+/// The regions of a mask as [`label_regions`] makes them, with any rule for which neighbours
+/// belong together (`joined`) and how far apart two neighbours are (`step`, what an edge
+/// pixel's nearest region is chosen by).
+pub fn label_regions_by(
+    mask: &ImageBuf<bool>,
+    joined: impl Fn(usize, usize) -> bool,
+    step: impl Fn(usize, usize) -> f64,
+    min_pixels: usize,
+) -> (ImageBuf<u32>, Vec<usize>) {
+    let (w, h) = (mask.width, mask.height);
     let neighbours = |i: usize| {
         let c = i % w;
         [

@@ -38,7 +38,8 @@ use crate::physics::multifreq::{
     ScanSettings, SingleReturn,
 };
 use crate::physics::segmentation::{
-    enclosed_holes, label_regions, open_mask, outline_pixels, remove_small_regions, wrapped_difference,
+    enclosed_holes, label_regions, label_regions_by, open_mask, outline_pixels, remove_small_regions, step_allowed,
+    wrapped_difference, EDGE_FLOOR_MM,
 };
 use crate::physics::stats::{median_select, quantile_select, sigma_about, student_t975};
 use crate::physics::surface::{LocalSurfaces, Windows};
@@ -393,6 +394,10 @@ impl PhasorLatch {
 /// the region's pixels in windows up to 65 pixels wide, over which a tilted layer's distance
 /// changes by this much.
 const GROWTH_REACH: f64 = 0.15;
+
+/// Least step of ξ between two neighbouring layer pixels that separates two regions (two
+/// materials side by side): what the model's misfit moves one material's ξ by across a sheet.
+const XI_STEP_FLOOR: f64 = 0.05;
 
 /// Most multiples of the common range [`aliased`] tries.
 const MAX_ALIAS_WRAPS: usize = 16;
@@ -1073,7 +1078,25 @@ impl MultiFrequencyStage {
         };
         let (range, min) = (self.common_unambiguous_range_mm(), self.config.min_region_pixels);
         let noise = |i: usize| results[i].distance_sigma_mm;
-        let (layer_labels, layer_sizes) = label_regions(mask, &distance, noise, range, min);
+        // Layers: where the distance steps, or ξ does (two materials side by side).
+        let scaled_steps = |i: usize, j: usize| {
+            let (a, b) = (&results[i], &results[j]);
+            let d = wrapped_difference(a.distance_mm, b.distance_mm, range).abs();
+            let d_allowed = step_allowed(EDGE_FLOOR_MM, a.distance_sigma_mm, b.distance_sigma_mm);
+            let xi_allowed = step_allowed(XI_STEP_FLOOR, a.xi_sigma, b.xi_sigma);
+            // With no background latched no pixel has a ξ: the distance alone.
+            let xi = (a.xi - b.xi).abs() / xi_allowed;
+            (d / d_allowed, if xi.is_nan() { 0.0 } else { xi })
+        };
+        let joined = |i: usize, j: usize| {
+            let (d, xi) = scaled_steps(i, j);
+            d <= 1.0 && xi <= 1.0
+        };
+        let step = |i: usize, j: usize| {
+            let (d, xi) = scaled_steps(i, j);
+            d + xi
+        };
+        let (layer_labels, layer_sizes) = label_regions_by(mask, joined, step, min);
         let (opaque_labels, _) = label_regions(opaque, &distance, noise, range, min);
         let layers = layer_sizes.len() as u32;
         let data = layer_labels
@@ -2142,6 +2165,43 @@ albedo = 0.7
         assert!(dimmed.len() > 60, "{} dimmed pixels", dimmed.len());
         assert_eq!((grown, moved), (0, 0));
         assert!(c.in_mask * 100 >= c.sheet * 95 && c.rms_mm < 15.0, "{c:?}");
+    }
+
+    /// Two sheets side by side at one distance, ξ 0.5 and 0.8: one region by their
+    /// distances, two by their pixels' ξ. Each comes out a region of its own whose interval
+    /// holds its ξ; pooled they give one ξ between the two.
+    #[test]
+    fn two_materials_side_by_side_are_two_regions() {
+        let scene = Scene::from_toml(
+            &SCENE
+                .replace("center_mm = [120, 0, 900]", "center_mm = [150, 0, 1000]")
+                .replace("tilt_y_deg = 25\n", "")
+                .replace("xi = 0.75", "xi = 0.8")
+                .replace("center_mm = [-250, 0, 1300]", "center_mm = [-150, 0, 1000]")
+                .replace("size_mm = [200, 300]", "size_mm = [300, 400]")
+                .replace("xi = 0.0", "xi = 0.5"),
+            "t.toml",
+        )
+        .expect("scene");
+        let all = frames(&scene);
+        let s = latched_stage(&scene, &all);
+        let (p, d, _) = &all[6];
+        let out = s.process(p, d).expect("frame");
+        let layers: Vec<&RegionOutput> = out
+            .frame
+            .regions
+            .iter()
+            .filter(|r| !r.opaque && r.pixels > 100)
+            .collect();
+        for r in &layers {
+            println!(
+                "region {}: {} pixels, xi {:.3} {:?}",
+                r.id, r.pixels, r.xi.xi, r.xi.interval
+            );
+        }
+        let holds = |xi: f64| layers.iter().any(|r| r.xi.interval[0] <= xi && xi <= r.xi.interval[1]);
+        assert_eq!(layers.len(), 2);
+        assert!(holds(0.5) && holds(0.8));
     }
 
     /// A changed pixel whose best layer lies at the background's own distance claims nothing:
