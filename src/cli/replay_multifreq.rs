@@ -143,6 +143,7 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
             "background_valid_pixels": background.as_ref().map(|b| b.valid_pixels),
             "background_compared_with_depth": background.as_ref().map(|b| b.compared_pixels),
             "background_aliased_pixels": background.as_ref().map(|b| b.aliased_pixels),
+            "background_systematic_mm": background.as_ref().map(|b| b.systematic_mm),
             "opacity_threshold": stage.config.opacity_threshold,
             "two_return_threshold": stage.config.two_return_threshold,
         },

@@ -234,6 +234,12 @@ pub struct PhasorBackground {
     pub compared_pixels: usize,
     /// Of those, how many disagree by more than [`ALIAS_TOLERANCE_MM`].
     pub aliased_pixels: usize,
+    /// How far the phasors' distance of the background and the depth image's disagree, the
+    /// magnitude of their median difference over the pixels compared (not aliased), mm: a
+    /// systematic error that no distance from the phasors is free of (light along several
+    /// paths moves each frequency's phase its own way; 0 before a plain wall). Every layer
+    /// pixel's σ is at least this ([`MultiFrequencyStage::process`]).
+    pub systematic_mm: f64,
 }
 
 impl PhasorLatch {
@@ -322,8 +328,10 @@ impl PhasorLatch {
             valid_pixels: 0,
             compared_pixels: 0,
             aliased_pixels: 0,
+            systematic_mm: 0.0,
         };
         let (mut phasor_aliased, mut depth_aliased) = (vec![], vec![]);
+        let mut differences = vec![];
         let common_range = inversion.common_unambiguous_range_mm();
         for (i, p) in pixels.into_iter().enumerate() {
             let Some((b, s, db)) = p else { continue };
@@ -338,6 +346,8 @@ impl PhasorLatch {
                     bg.aliased_pixels += 1;
                     phasor_aliased.push(db);
                     depth_aliased.push(dd);
+                } else {
+                    differences.push(db - dd);
                 }
             }
         }
@@ -347,6 +357,8 @@ impl PhasorLatch {
                 total,
             });
         }
+        let offset = median_select(&mut differences);
+        bg.systematic_mm = if offset.is_finite() { offset.abs() } else { 0.0 };
         let share = bg.aliased_pixels as f64 / bg.compared_pixels.max(1) as f64;
         if share > ALIAS_SHARE {
             return Err(MultiFrequencyStageError::Aliased {
@@ -631,6 +643,12 @@ impl MultiFrequencyStage {
         }
         let bg = latch.finish(&self.inversion, depth_range_mm)?;
         Ok(self.background.insert(bg))
+    }
+
+    /// The latched background's systematic error ([`PhasorBackground::systematic_mm`]), 0
+    /// with none latched.
+    fn systematic_mm(&self) -> f64 {
+        self.background.as_ref().map_or(0.0, |b| b.systematic_mm)
     }
 
     /// The latched background.
@@ -1039,7 +1057,10 @@ impl MultiFrequencyStage {
             } else {
                 background
             };
-            let sigma = p.distance_sigma_mm.max(cov.sigma_floor_mm(p.gap_mm));
+            let sigma = p
+                .distance_sigma_mm
+                .max(cov.sigma_floor_mm(p.gap_mm))
+                .hypot(self.systematic_mm());
             filled.corrected_z_mm.data[i] = (distance / s) as f32;
             filled.sigma_mm.data[i] = (sigma / s) as f32;
         }
@@ -1519,10 +1540,11 @@ impl MultiFrequencyStage {
             xi_median: f64::NAN,
         };
         let mut xis = vec![];
+        let floor = self.systematic_mm();
         for i in (0..mask.len()).filter(|&i| mask.data[i]) {
             let (r, s) = (&results[i], self.scale.data[i]);
             f.corrected_z_mm.data[i] = (layer.distance_mm[i] / s) as f32;
-            f.sigma_mm.data[i] = (layer.sigma_mm[i] / s) as f32;
+            f.sigma_mm.data[i] = (layer.sigma_mm[i].hypot(floor) / s) as f32;
             f.translucency.data[i] = r.xi as f32;
             xis.push(r.xi);
         }
@@ -2202,6 +2224,49 @@ albedo = 0.7
         let holds = |xi: f64| layers.iter().any(|r| r.xi.interval[0] <= xi && xi <= r.xi.interval[1]);
         assert_eq!(layers.len(), 2);
         assert!(holds(0.5) && holds(0.8));
+    }
+
+    /// Where the depth image reads the background 25 mm nearer than its phasors do (a
+    /// systematic that light along several paths makes, each frequency's phase moved its own
+    /// way), the latch measures it, and no layer pixel's σ is under it; with the two agreeing,
+    /// σ is the fit's own.
+    #[test]
+    fn a_background_the_frequencies_disagree_on_sets_a_floor_under_sigma() {
+        let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
+        let all = frames(&scene);
+        let sigmas = |offset_mm: f32| {
+            let mut s = stage(&scene);
+            let shifted: Vec<DepthFrame> = all[..6]
+                .iter()
+                .map(|(_, d, _)| DepthFrame {
+                    z_mm: ImageBuf {
+                        data: d.z_mm.data.iter().map(|z| z - offset_mm).collect(),
+                        ..d.z_mm.clone()
+                    },
+                    ..d.clone()
+                })
+                .collect();
+            let latch: Vec<_> = all[..6].iter().map(|(p, _, _)| p).zip(&shifted).collect();
+            let systematic = s
+                .latch(&latch, Sensor::sr4000().unambiguous_range_mm())
+                .expect("latch")
+                .systematic_mm;
+            let (p, d, _) = &all[6];
+            let out = s.process(p, d).expect("frame");
+            let mut sigma: Vec<f64> = (0..out.frame.mask.len())
+                .filter(|&i| out.frame.mask.data[i])
+                .map(|i| f64::from(out.frame.corrected_sigma_mm.data[i]))
+                .collect();
+            let least = sigma.iter().copied().fold(f64::INFINITY, f64::min);
+            (systematic, least, median_select(&mut sigma))
+        };
+        let (plain, _, plain_median) = sigmas(0.0);
+        let (shifted, least, _) = sigmas(25.0);
+        println!("systematic {plain:.2} mm, sigma median {plain_median:.2}; shifted 25 mm: {shifted:.2}, least sigma {least:.2}");
+        assert!(plain < 2.0 && plain_median < 10.0, "{plain} {plain_median}");
+        // Ray distance: z times up to 1.07 in this field of view.
+        assert!((25.0..27.5).contains(&shifted), "{shifted}");
+        assert!(least >= 23.0, "{least}");
     }
 
     /// A changed pixel whose best layer lies at the background's own distance claims nothing:
