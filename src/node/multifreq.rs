@@ -192,9 +192,10 @@ impl MultiFrequencyNode {
                     .latch(&frames, self.depth_range_mm)
                     .map(|bg| {
                         format!(
-                            "; phasors at {} frequencies (common range {range:.0} mm) latched: {} usable pixels",
+                            "; phasors at {} frequencies (common range {range:.0} mm) latched: {} usable pixels, the phasors and the depth image {:.1} mm apart on the background (no layer's sigma is less)",
                             self.config.frequencies_hz.len(),
-                            bg.valid_pixels
+                            bg.valid_pixels,
+                            bg.systematic_mm
                         )
                     })
                     .map_err(|e| format!("could not latch the phasor background: {e}"))
