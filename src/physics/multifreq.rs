@@ -614,6 +614,29 @@ impl MultiFrequencyInversion {
         })
     }
 
+    /// The best layer with ξ free and its distance searched only within `[near, far]` (and
+    /// the scan's own range): `d1`, `a` and `ξ² = t` of `min |M - a u(d1) - t B|^2` as in
+    /// [`Self::invert`]. With fewer frequencies than the camera's (one left out, to see how
+    /// far ξ moves with it) the common range may be short, and the window keeps the layer
+    /// where all of them put it.
+    pub fn layer_within(
+        &self,
+        px: &PixelPhasors,
+        (near, far): (f64, f64),
+    ) -> Result<TranslucencyFit, MultiFrequencyError> {
+        let p = self.pixel(px)?;
+        let hi = if far < p.hi { far.max(p.lo) } else { p.hi };
+        let lo = if near > p.lo { near.min(hi) } else { p.lo };
+        let (d1, chi_square) = self.minimise(lo, hi, |d| self.gram(&p, d).two_returns(&p.fixed).chi_square);
+        let layer = self.gram(&p, d1).two_returns(&p.fixed);
+        Ok(TranslucencyFit {
+            translucency: layer.t.max(0.0).sqrt(),
+            foreground_distance_mm: d1,
+            first_return: layer.a,
+            chi_square,
+        })
+    }
+
     /// The share of the background's return left at a pixel with a layer's return at
     /// `d1`: `t` of the least squares `min_{a >= 0, t} |M - a u(d1) - t B|^2` (`t` unbounded),
     /// and its standard deviation `sqrt(<u, u> / det)`. A pixel that a layer of `ξ` covers

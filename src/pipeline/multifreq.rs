@@ -597,6 +597,9 @@ pub struct MultiFrequencyStage {
     /// Camera.
     pub intrinsics: Intrinsics,
     inversion: MultiFrequencyInversion,
+    /// With three frequencies or more, the inversion with each frequency left out in turn
+    /// ([`MultiFrequencyStage::frequency_jackknife`]).
+    left_out: Vec<MultiFrequencyInversion>,
     rays: Arc<ImageBuf<Vector3<f64>>>,
     scale: ImageBuf<f64>,
     change_chi_square: f64,
@@ -612,12 +615,23 @@ impl MultiFrequencyStage {
         }
         let model = MultiFrequencyModel::new(&config.model, &config.frequencies_hz)?;
         let inversion = MultiFrequencyInversion::new(&model, config.scan)?;
+        let left_out = if k >= 3 {
+            (0..k)
+                .map(|out| {
+                    let kept: Vec<f64> = (0..k).filter(|&j| j != out).map(|j| config.frequencies_hz[j]).collect();
+                    MultiFrequencyInversion::new(&MultiFrequencyModel::new(&config.model, &kept)?, config.scan)
+                })
+                .collect::<Result<Vec<_>, _>>()?
+        } else {
+            vec![]
+        };
         let change_chi_square = chi_square_quantile(2.0 * k as f64, config.change_sigmas);
         Ok(Self {
             rays: Arc::new(intrinsics.unit_ray_map()),
             scale: intrinsics.ray_scale_map(),
             intrinsics,
             inversion,
+            left_out,
             change_chi_square,
             config,
             background: None,
@@ -933,6 +947,9 @@ impl MultiFrequencyStage {
             grown.extend(holes);
             edges = self.covered_edges(frame, &labels, &with_grown, layers, &regions, results);
             grown.extend(edges.iter().map(|e| (e.pixel, e.region)));
+        }
+        if let Some(frame) = latched {
+            self.widen_by_frequency_jackknife(frame, &labels, layers, results, &mut regions);
         }
         let mut layer = self.surface_prior(&labels, layers, results, &grown);
         if let Some(frame) = latched {
@@ -1456,6 +1473,102 @@ impl MultiFrequencyStage {
             distance_mm: out,
             sigma_mm,
         }
+    }
+
+    /// Widens each layer region's ξ interval by what leaving one frequency out does to ξ
+    /// ([`Self::frequency_jackknife`]): about ξ, by the larger of the two half widths.
+    fn widen_by_frequency_jackknife(
+        &self,
+        frame: &PhasorFrame,
+        labels: &ImageBuf<u32>,
+        layers: u32,
+        results: &[PixelResult],
+        regions: &mut [RegionOutput],
+    ) {
+        if self.left_out.is_empty() {
+            return;
+        }
+        let mut members: Vec<Vec<usize>> = vec![vec![]; layers as usize];
+        for (i, &l) in labels.data.iter().enumerate() {
+            if l > 0 && l <= layers && results[i].class == PixelClass::Layer {
+                members[l as usize - 1].push(i);
+            }
+        }
+        for (region, px) in regions.iter_mut().zip(&members) {
+            let Some((half, moved)) = self.frequency_jackknife(frame, px, results) else {
+                continue;
+            };
+            let (xi, [lo, hi]) = (region.xi.xi, region.xi.interval);
+            if !(xi.is_finite() && half > 0.0) {
+                continue;
+            }
+            region.xi.interval = [lo.min(xi - half).max(0.0), hi.max(xi + half).min(1.0)];
+            region.xi.note.push_str(&format!(
+                "; with each frequency left out in turn the pixels' median xi is {moved}: a half width of {half:.4} from their scatter (jackknife)"
+            ));
+        }
+    }
+
+    /// The jackknife over the frequencies of a region's ξ: with each frequency left out in
+    /// turn, the median ξ of up to [`SHARE_SAMPLES`] of the region's pixels, each refitted
+    /// within [`GROWTH_REACH`] of its own layer (and clear of the background); the half width
+    /// Student's t (K - 1 degrees of freedom) times the jackknife's standard error,
+    /// `sqrt((K - 1) / K sum (ξ_(k) - mean)^2)`. Each frequency measures the same layer; light
+    /// along several paths (a table before a wall) turns each frequency's phasor its own way,
+    /// and what that does to ξ shows as the estimates' disagreement, which one frame's
+    /// residuals do not show. With the leave-one-out medians, as text. `None` with fewer than
+    /// three frequencies or no pixel to refit.
+    fn frequency_jackknife(
+        &self,
+        frame: &PhasorFrame,
+        pixels: &[usize],
+        results: &[PixelResult],
+    ) -> Option<(f64, String)> {
+        let k = self.left_out.len();
+        if k < 3 || pixels.is_empty() {
+            return None;
+        }
+        let step = pixels.len().div_ceil(SHARE_SAMPLES).max(1);
+        let mut per_left_out: Vec<Vec<f64>> = vec![vec![]; k];
+        for &i in pixels.iter().step_by(step) {
+            let Some(p) = self.pixel_inputs(frame, i) else { continue };
+            let d1 = results[i].distance_mm;
+            let window = (
+                d1 * (1.0 - GROWTH_REACH),
+                (d1 * (1.0 + GROWTH_REACH)).min((d1 + p.background_distance_mm) / 2.0),
+            );
+            for (out, inversion) in self.left_out.iter().enumerate() {
+                let mut measured = [Phasor::default(); MAX_FREQUENCIES];
+                let mut background = [Phasor::default(); MAX_FREQUENCIES];
+                let mut noise = [0.0; MAX_FREQUENCIES];
+                for (j, kept) in (0..k).filter(|&j| j != out).enumerate() {
+                    (measured[j], background[j], noise[j]) =
+                        (p.measured[kept], p.background[kept], p.noise_sigma[kept]);
+                }
+                // The background enters as its phasors; its distance only bounds the search,
+                // which the window bounds nearer (two frequencies' common range may be shorter
+                // than the background's distance, not than the window's).
+                let px = PixelPhasors {
+                    measured: &measured[..k - 1],
+                    background: &background[..k - 1],
+                    background_distance_mm: p
+                        .background_distance_mm
+                        .min(window.1 + self.config.scan.min_separation_mm),
+                    noise_sigma: &noise[..k - 1],
+                };
+                if let Ok(f) = inversion.layer_within(&px, window) {
+                    per_left_out[out].push(f.translucency);
+                }
+            }
+        }
+        let medians: Vec<f64> = per_left_out.iter_mut().map(|v| median_select(v)).collect();
+        if medians.iter().any(|m| !m.is_finite()) {
+            return None;
+        }
+        let mean = medians.iter().sum::<f64>() / k as f64;
+        let variance = (k - 1) as f64 / k as f64 * medians.iter().map(|m| (m - mean).powi(2)).sum::<f64>();
+        let moved = medians.iter().map(|m| format!("{m:.4}")).collect::<Vec<_>>().join(", ");
+        Some((student_t975(k - 1) * variance.sqrt(), moved))
     }
 
     /// Adds ξ's share to each layer pixel's σ, in quadrature: the spread of the layer's
@@ -2267,6 +2380,50 @@ albedo = 0.7
         // Ray distance: z times up to 1.07 in this field of view.
         assert!((25.0..27.5).contains(&shifted), "{shifted}");
         assert!(least >= 23.0, "{least}");
+    }
+
+    /// Light along several paths turns each frequency's phasor its own way; here the sheet's
+    /// 100 MHz phasors turned by 4 degrees. Every pixel still fits a layer, and the region's
+    /// interval from its pixels' scatter misses ξ; with each frequency left out in turn ξ
+    /// moves, and the interval widened by that holds it. Unturned, the widening is small.
+    #[test]
+    fn a_frequency_the_model_misfits_widens_the_interval_by_the_jackknife() {
+        let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
+        let all = frames(&scene);
+        let s = latched_stage(&scene, &all);
+        let (p, d, truth) = &all[6];
+        let sheet_region = |p: &PhasorFrame| {
+            let out = s.process(p, d).expect("frame");
+            out.frame
+                .regions
+                .iter()
+                .filter(|r| !r.opaque)
+                .max_by_key(|r| r.pixels)
+                .map(|r| r.xi.clone())
+                .expect("a layer region")
+        };
+        let plain = sheet_region(p);
+        let mut turned = p.clone();
+        let (c, s4) = (4f32.to_radians().cos(), 4f32.to_radians().sin());
+        for (i, &t) in truth.data.iter().enumerate() {
+            if t < 1150.0 {
+                let [a, b] = turned.phasors[2].data[i];
+                turned.phasors[2].data[i] = [a * c - b * s4, a * s4 + b * c];
+            }
+        }
+        let misfit = sheet_region(&turned);
+        println!(
+            "plain {:.4} {:?}; turned {:.4} {:?} ({})",
+            plain.xi, plain.interval, misfit.xi, misfit.interval, misfit.note
+        );
+        let holds = |e: &XiEstimate| e.interval[0] <= 0.75 && 0.75 <= e.interval[1];
+        assert!(
+            holds(&plain) && plain.interval[1] - plain.interval[0] < 0.03,
+            "{:?}",
+            plain.interval
+        );
+        assert!(holds(&misfit), "{:?}", misfit.interval);
+        assert!(misfit.note.contains("left out"), "{}", misfit.note);
     }
 
     /// A changed pixel whose best layer lies at the background's own distance claims nothing:
