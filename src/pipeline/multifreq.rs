@@ -950,8 +950,8 @@ impl MultiFrequencyStage {
         }
         let mut layer = self.surface_prior(&labels, layers, results, &grown);
         if let Some(frame) = latched {
-            let spans = self.widen_by_frequency_jackknife(frame, &labels, layers, results, &mut regions);
-            self.add_translucency_share(frame, &spans, &grown, &mut layer);
+            self.add_translucency_share(frame, &labels, layers, &regions, &grown, &mut layer);
+            self.widen_by_frequency_jackknife(frame, &labels, layers, results, &mut regions);
         }
         for e in &edges {
             layer.sigma_mm[e.pixel] = layer.sigma_mm[e.pixel].max(e.sigma_floor_mm);
@@ -1475,12 +1475,12 @@ impl MultiFrequencyStage {
 
     /// Widens each layer region's ξ interval by what leaving one frequency out does to ξ
     /// ([`Self::frequency_jackknife`]): about ξ, to Student's t (K - 1 degrees of freedom)
-    /// times the jackknife's standard error where that is wider. Returns, per layer region
-    /// with its pixels, the span of ξ whose depths σ is to cover ([`Self::add_translucency_share`]):
-    /// the interval as it was. With the jackknife in σ too (at 1.96 standard errors) σ held
-    /// the error for 98.1 % of two committed renders' recovered pixels (docs/multifrequency.md),
-    /// beyond the 98 % that says σ is no wider than the errors ask; the floor under σ
-    /// ([`PhasorBackground::systematic_mm`]) carries the same misfit in depth.
+    /// times the jackknife's standard error where that is wider. After σ has taken its share
+    /// of the interval ([`Self::add_translucency_share`]): with the jackknife in σ too (at
+    /// 1.96 standard errors) σ held the error for 98.1 % of two committed renders' recovered
+    /// pixels (docs/multifrequency.md), beyond the 98 % that says σ is no wider than the
+    /// errors ask; the floor under σ ([`PhasorBackground::systematic_mm`]) carries the same
+    /// misfit in depth.
     fn widen_by_frequency_jackknife(
         &self,
         frame: &PhasorFrame,
@@ -1488,45 +1488,35 @@ impl MultiFrequencyStage {
         layers: u32,
         results: &[PixelResult],
         regions: &mut [RegionOutput],
-    ) -> Vec<([f64; 2], Vec<usize>)> {
+    ) {
         let mut members: Vec<Vec<usize>> = vec![vec![]; layers as usize];
         for (i, &l) in labels.data.iter().enumerate() {
-            if l > 0 && l <= layers {
+            if l > 0 && l <= layers && results[i].class == PixelClass::Layer {
                 members[l as usize - 1].push(i);
             }
         }
-        let mut spans = Vec::with_capacity(members.len());
-        for (region, px) in regions.iter_mut().zip(members) {
+        for (region, own) in regions.iter_mut().zip(&members) {
             let (xi, [lo, hi]) = (region.xi.xi, region.xi.interval);
-            let own: Vec<usize> = px
-                .iter()
-                .copied()
-                .filter(|&i| results[i].class == PixelClass::Layer)
-                .collect();
-            let jackknife = self.frequency_jackknife(frame, &own, results);
+            let jackknife = self.frequency_jackknife(frame, own, results);
             let Some((se, moved)) = jackknife.filter(|(se, _)| xi.is_finite() && *se > 0.0) else {
-                spans.push(([lo, hi], px));
                 continue;
             };
-            let widened = |half: f64| [lo.min(xi - half).max(0.0), hi.max(xi + half).min(1.0)];
             let half = student_t975(self.left_out.len() - 1) * se;
-            region.xi.interval = widened(half);
+            region.xi.interval = [lo.min(xi - half).max(0.0), hi.max(xi + half).min(1.0)];
             region.xi.note.push_str(&format!(
                 "; with each frequency left out in turn the pixels' median xi is {moved}: a half width of {half:.4} from their scatter (jackknife)"
             ));
-            spans.push(([lo, hi], px));
         }
-        spans
     }
 
     /// The jackknife over the frequencies of a region's ξ: with each frequency left out in
     /// turn, the median ξ of up to [`SHARE_SAMPLES`] of the region's pixels, each refitted
-    /// within [`GROWTH_REACH`] of its own layer (and clear of the background); the jackknife's
-    /// standard error `sqrt((K - 1) / K sum (ξ_(k) - mean)^2)`. Each frequency measures the same layer; light
-    /// along several paths (a table before a wall) turns each frequency's phasor its own way,
-    /// and what that does to ξ shows as the estimates' disagreement, which one frame's
-    /// residuals do not show. With the leave-one-out medians, as text. `None` with fewer than
-    /// three frequencies or no pixel to refit.
+    /// within [`GROWTH_REACH`] of its own layer (and clear of the background); the
+    /// jackknife's standard error `sqrt((K - 1) / K sum (ξ_(k) - mean)^2)`. Each frequency
+    /// measures the same layer; light along several paths (a table before a wall) turns each
+    /// frequency's phasor its own way, and what that does to ξ shows as the estimates'
+    /// disagreement, which one frame's residuals do not show. With the leave-one-out medians,
+    /// as text. `None` with fewer than three frequencies or no pixel to refit.
     fn frequency_jackknife(
         &self,
         frame: &PhasorFrame,
@@ -1581,20 +1571,27 @@ impl MultiFrequencyStage {
     }
 
     /// Adds ξ's share to each layer pixel's σ, in quadrature: the spread of the layer's
-    /// distance over its region's span of ξ (`spans`: the span and the region's pixels, per
-    /// layer region; the interval, whose lower end allows light between the layer and the
-    /// background, shared by the region's pixels and not averaged down by the surface's
-    /// window), as `|d(hi) - d(lo)| / (2 x 1.96)`, the median over up to [`SHARE_SAMPLES`] of
-    /// the region's pixels. A faint layer's distance moves far with ξ.
+    /// distance over the region's ξ interval (whose lower end allows light between the layer
+    /// and the background, shared by the region's pixels and not averaged down by the
+    /// surface's window), as `|d(hi) - d(lo)| / (2 x 1.96)`, the median over up to
+    /// [`SHARE_SAMPLES`] of the region's pixels. A faint layer's distance moves far with ξ.
     fn add_translucency_share(
         &self,
         frame: &PhasorFrame,
-        spans: &[([f64; 2], Vec<usize>)],
+        labels: &ImageBuf<u32>,
+        layers: u32,
+        regions: &[RegionOutput],
         grown: &[(usize, u32)],
         layer: &mut Layer,
     ) {
-        for (r, ([lo, hi], px)) in spans.iter().enumerate() {
-            let (lo, hi) = (*lo, *hi);
+        let mut members: Vec<Vec<usize>> = vec![vec![]; layers as usize];
+        for (i, &l) in labels.data.iter().enumerate() {
+            if l > 0 && l <= layers {
+                members[l as usize - 1].push(i);
+            }
+        }
+        for (r, px) in members.iter().enumerate() {
+            let [lo, hi] = regions[r].xi.interval;
             if !(lo.is_finite() && hi.is_finite() && hi > lo) {
                 continue;
             }
