@@ -435,6 +435,15 @@ struct Pixel<'a> {
     hi: f64,
 }
 
+impl Pixel<'_> {
+    /// The scan's range `[lo, hi]` narrowed to `[near, far]` where that lies inside it.
+    fn within(&self, near: f64, far: f64) -> (f64, f64) {
+        let hi = if far < self.hi { far.max(self.lo) } else { self.hi };
+        let lo = if near > self.lo { near.min(hi) } else { self.lo };
+        (lo, hi)
+    }
+}
+
 /// `(a, t = ξ², chi^2)` at one `d1`.
 #[derive(Debug, Clone, Copy)]
 struct Amplitudes {
@@ -600,8 +609,7 @@ impl MultiFrequencyInversion {
         }
         let p = self.pixel(px)?;
         let t = xi * xi;
-        let hi = if far < p.hi { far.max(p.lo) } else { p.hi };
-        let lo = if near > p.lo { near.min(hi) } else { p.lo };
+        let (lo, hi) = p.within(near, far);
         let (d1, chi_square) = self.minimise(lo, hi, |d| {
             let g = self.gram(&p, d);
             g.chi_square(&p.fixed, g.return_at(t), t)
@@ -625,8 +633,7 @@ impl MultiFrequencyInversion {
         (near, far): (f64, f64),
     ) -> Result<TranslucencyFit, MultiFrequencyError> {
         let p = self.pixel(px)?;
-        let hi = if far < p.hi { far.max(p.lo) } else { p.hi };
-        let lo = if near > p.lo { near.min(hi) } else { p.lo };
+        let (lo, hi) = p.within(near, far);
         let (d1, chi_square) = self.minimise(lo, hi, |d| self.gram(&p, d).two_returns(&p.fixed).chi_square);
         let layer = self.gram(&p, d1).two_returns(&p.fixed);
         Ok(TranslucencyFit {
