@@ -2095,6 +2095,13 @@ albedo = 0.7
         MultiFrequencyStage::new(config, scene_intrinsics(scene)).expect("stage")
     }
 
+    /// The scene of `toml` rendered, and the stage with its background latched.
+    fn latched_on(toml: &str) -> (MultiFrequencyStage, Vec<(PhasorFrame, DepthFrame, ImageBuf<f32>)>) {
+        let scene = Scene::from_toml(toml, "t.toml").expect("scene");
+        let all = frames(&scene);
+        (latched_stage(&scene, &all), all)
+    }
+
     /// The stage with the background latched from the scene's first six frames.
     fn latched_stage(scene: &Scene, all: &[(PhasorFrame, DepthFrame, ImageBuf<f32>)]) -> MultiFrequencyStage {
         let mut s = stage(scene);
@@ -2188,7 +2195,7 @@ albedo = 0.7
     /// its reading), recovered better than read.
     #[test]
     fn a_faint_layer_is_recovered_whole() {
-        let scene = Scene::from_toml(
+        let (s, all) = latched_on(
             &SCENE
                 .replace("distance_mm = 2000", "distance_mm = 3160")
                 .replace("center_mm = [120, 0, 900]", "center_mm = [0, 0, 2320]")
@@ -2196,11 +2203,7 @@ albedo = 0.7
                 .replace("size_mm = [300, 400]", "size_mm = [700, 800]")
                 .replace("xi = 0.75", "xi = 0.935")
                 .replace("center_mm = [-250, 0, 1300]", "center_mm = [-2500, 0, 1300]"),
-            "t.toml",
-        )
-        .expect("scene");
-        let all = frames(&scene);
-        let s = latched_stage(&scene, &all);
+        );
         let (p, d, truth) = &all[6];
         let out = s.process(p, d).expect("frame");
         let (mut sheet, mut in_mask, mut err2, mut raw2) = (0, 0, 0.0, 0.0);
@@ -2238,9 +2241,7 @@ albedo = 0.7
 
     #[test]
     fn a_layer_is_recovered_and_an_opaque_box_kept() {
-        let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
-        let all = frames(&scene);
-        let s = latched_stage(&scene, &all);
+        let (s, all) = latched_on(SCENE);
         let (p, d, truth) = &all[6];
         let out = s.process(p, d).expect("frame");
         let o = &out.frame;
@@ -2261,9 +2262,7 @@ albedo = 0.7
     /// recovered as without them.
     #[test]
     fn a_background_dimmed_beside_a_bright_layer_is_not_grown_into_it() {
-        let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
-        let all = frames(&scene);
-        let s = latched_stage(&scene, &all);
+        let (s, all) = latched_on(SCENE);
         let (p, d, truth) = &all[6];
         let w = truth.width;
         // The six pixels to the right of the sheet's last column, in each of its rows, dimmed;
@@ -2306,7 +2305,7 @@ albedo = 0.7
     /// holds its ξ; pooled they give one ξ between the two.
     #[test]
     fn two_materials_side_by_side_are_two_regions() {
-        let scene = Scene::from_toml(
+        let (s, all) = latched_on(
             &SCENE
                 .replace("center_mm = [120, 0, 900]", "center_mm = [150, 0, 1000]")
                 .replace("tilt_y_deg = 25\n", "")
@@ -2314,11 +2313,7 @@ albedo = 0.7
                 .replace("center_mm = [-250, 0, 1300]", "center_mm = [-150, 0, 1000]")
                 .replace("size_mm = [200, 300]", "size_mm = [300, 400]")
                 .replace("xi = 0.0", "xi = 0.5"),
-            "t.toml",
-        )
-        .expect("scene");
-        let all = frames(&scene);
-        let s = latched_stage(&scene, &all);
+        );
         let (p, d, _) = &all[6];
         let out = s.process(p, d).expect("frame");
         let layers: Vec<&RegionOutput> = out
@@ -2387,9 +2382,7 @@ albedo = 0.7
     /// moves, and the interval widened by that holds it. Unturned, the widening is small.
     #[test]
     fn a_frequency_the_model_misfits_widens_the_interval_by_the_jackknife() {
-        let scene = Scene::from_toml(SCENE, "t.toml").expect("scene");
-        let all = frames(&scene);
-        let s = latched_stage(&scene, &all);
+        let (s, all) = latched_on(SCENE);
         let (p, d, truth) = &all[6];
         let sheet_region = |p: &PhasorFrame| {
             let out = s.process(p, d).expect("frame");
@@ -2464,9 +2457,7 @@ albedo = 0.7
         // mixes the two; with the background latched such a pixel fits a layer at the box's
         // distance whose ξ^2 is the wall's share.
         let text = SCENE.replace("[camera]\n", "[camera]\nsupersample = 4\n");
-        let scene = Scene::from_toml(&text, "t.toml").expect("scene");
-        let all = frames(&scene);
-        let s = latched_stage(&scene, &all);
+        let (s, all) = latched_on(&text);
         let (p, d, truth) = &all[6];
         let out = s.process(p, d).expect("frame");
         let o = &out.frame;
