@@ -1489,12 +1489,7 @@ impl MultiFrequencyStage {
         results: &[PixelResult],
         regions: &mut [RegionOutput],
     ) {
-        let mut members: Vec<Vec<usize>> = vec![vec![]; layers as usize];
-        for (i, &l) in labels.data.iter().enumerate() {
-            if l > 0 && l <= layers && results[i].class == PixelClass::Layer {
-                members[l as usize - 1].push(i);
-            }
-        }
+        let members = label_members(labels, layers, |i| results[i].class == PixelClass::Layer);
         for (region, own) in regions.iter_mut().zip(&members) {
             let (xi, [lo, hi]) = (region.xi.xi, region.xi.interval);
             let jackknife = self.frequency_jackknife(frame, own, results);
@@ -1584,12 +1579,7 @@ impl MultiFrequencyStage {
         grown: &[(usize, u32)],
         layer: &mut Layer,
     ) {
-        let mut members: Vec<Vec<usize>> = vec![vec![]; layers as usize];
-        for (i, &l) in labels.data.iter().enumerate() {
-            if l > 0 && l <= layers {
-                members[l as usize - 1].push(i);
-            }
-        }
+        let members = label_members(labels, layers, |_| true);
         for (r, px) in members.iter().enumerate() {
             let [lo, hi] = regions[r].xi.interval;
             if !(lo.is_finite() && hi.is_finite() && hi > lo) {
@@ -1848,16 +1838,21 @@ struct Filled {
     xi_median: f64,
 }
 
-/// Every region's estimate, in the order of their labels (`layers` layer regions first).
-fn regions(labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult], pixel_sr: f64) -> Vec<RegionOutput> {
-    let count = labels.data.iter().copied().max().unwrap_or(0) as usize;
-    let mut members: Vec<Vec<usize>> = vec![vec![]; count];
+/// The pixels of each of the labels `1..=count`, those `keep` takes, in image order.
+fn label_members(labels: &ImageBuf<u32>, count: u32, keep: impl Fn(usize) -> bool) -> Vec<Vec<usize>> {
+    let mut members: Vec<Vec<usize>> = vec![vec![]; count as usize];
     for (i, &l) in labels.data.iter().enumerate() {
-        if l > 0 {
+        if l > 0 && l <= count && keep(i) {
             members[l as usize - 1].push(i);
         }
     }
     members
+}
+
+/// Every region's estimate, in the order of their labels (`layers` layer regions first).
+fn regions(labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult], pixel_sr: f64) -> Vec<RegionOutput> {
+    let count = labels.data.iter().copied().max().unwrap_or(0);
+    label_members(labels, count, |_| true)
         .iter()
         .enumerate()
         .map(|(r, px)| {
