@@ -855,9 +855,25 @@ impl MultiFrequencyStage {
             Ok(est) if unclaimed(&est, &inputs, self.config.opacity_threshold) => {
                 PixelResult::only(PixelClass::Unclaimed)
             }
+            Ok(est) if self.indirect_explains(&est, &inputs) => PixelResult::only(PixelClass::Unclaimed),
             Ok(est) => self.classify(&est, &inputs),
             Err(_) => PixelResult::only(PixelClass::Failed),
         }
+    }
+
+    /// Whether a layer fitted at a pixel is explained as well (within the opacity level) by
+    /// the background with light behind it blocked or added
+    /// ([`MultiFrequencyInversion::indirect_change`]): an object that shades the light
+    /// between a table and a wall changes the pixels beside it so, and a layer fits that
+    /// change, before the wall, at a ξ near 1.
+    fn indirect_explains(&self, est: &MultiFrequencyEstimate, inputs: &PixelInputs) -> bool {
+        let level = self.config.opacity_threshold;
+        if est.opaque || est.opacity_statistic <= level {
+            return false;
+        }
+        self.inversion
+            .indirect_change_within(&inputs.phasors(), INDIRECT_REACH_MM, est.chi_square + level)
+            .unwrap_or(false)
     }
 
     /// A layer when its opacity statistic passes the configured level, else opaque.
@@ -1801,6 +1817,11 @@ fn too_weak(a: f64, weak_return: f64, inputs: &PixelInputs) -> bool {
     a < GROWTH_RETURN_SHARE * weak_return - 3.0 * sigma
 }
 
+/// How far beyond the background [`MultiFrequencyStage::indirect_explains`] looks for the
+/// light an object blocks or adds (half the extra path of a bounce off a table or a wall
+/// beside the surface a pixel sees), mm.
+const INDIRECT_REACH_MM: f64 = 3000.0;
+
 /// Farthest from the background's distance, beyond three of its own standard deviations,
 /// that one return still counts as the background's ([`PixelClass::Unclaimed`]), mm.
 const DIMMED_TOLERANCE_MM: f64 = 30.0;
@@ -2292,6 +2313,50 @@ albedo = 0.7
         );
         assert!(dimmed.len() > 60, "{} dimmed pixels", dimmed.len());
         assert_eq!((grown, moved), (0, 0));
+        assert!(c.in_mask * 100 >= c.sheet * 95 && c.rms_mm < 15.0, "{c:?}");
+    }
+
+    /// An object that shades the light a wall gets by way of something beside it (a table)
+    /// takes a return from beyond the wall out of the pixels near it: `M = B - c u(d2)`,
+    /// `d2` past the background. A layer before the wall fits that change (without
+    /// [`MultiFrequencyStage::indirect_explains`] every such pixel was a layer, published
+    /// hundreds of mm before the wall); the background with a return behind it changed fits
+    /// it as well, so none of them is claimed, and the sheet is still recovered.
+    #[test]
+    fn light_blocked_from_behind_the_wall_is_no_layer() {
+        let (s, all) = latched_on(SCENE);
+        let (p, d, truth) = &all[6];
+        let w = truth.width;
+        let db = s.background().expect("latched").distance_mm.clone();
+        let shaded: Vec<usize> = (2..12)
+            .flat_map(|row| (36..46).map(move |col| row * w + col))
+            .filter(|&i| !(truth.data[i] < 1900.0))
+            .collect();
+        let mut p = p.clone();
+        for (img, f) in p.phasors.iter_mut().zip(&s.config.frequencies_hz) {
+            let sensor = Sensor::new(*f, crate::physics::Waveform::Sinusoid);
+            for &i in &shaded {
+                let [a, b] = img.data[i].map(f64::from);
+                let blocked = sensor.buckets(0.2 * a.hypot(b), db.data[i] + 1300.0);
+                img.data[i] = [(a - blocked.a) as f32, (b - blocked.b) as f32];
+            }
+        }
+        let out = s.process(&p, d).expect("frame");
+        let claimed = shaded.iter().filter(|&&i| out.frame.mask.data[i]).count();
+        let moved = shaded
+            .iter()
+            .filter(|&&i| out.frame.corrected_z_mm.data[i] != d.z_mm.data[i])
+            .count();
+        let c = SheetAndBox::of(&out, d, truth);
+        println!(
+            "shaded {} pixels: {claimed} in the mask, {moved} moved; sheet {} of {} in the mask, RMS {:.1} mm",
+            shaded.len(),
+            c.in_mask,
+            c.sheet,
+            c.rms_mm
+        );
+        assert!(shaded.len() >= 50, "{} shaded pixels", shaded.len());
+        assert_eq!((claimed, moved), (0, 0));
         assert!(c.in_mask * 100 >= c.sheet * 95 && c.rms_mm < 15.0, "{c:?}");
     }
 
