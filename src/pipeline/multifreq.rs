@@ -32,7 +32,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use super::{DepthFrame, FrameOutput, RegionOutput};
-use crate::physics::coverage::Coverage;
+use crate::physics::coverage::{pooled_along_outline, Coverage, OutlinePixel};
 use crate::physics::multifreq::{
     MultiFrequencyError, MultiFrequencyEstimate, MultiFrequencyInversion, MultiFrequencyModel, Phasor, PixelPhasors,
     ScanSettings, SingleReturn,
@@ -911,7 +911,7 @@ impl MultiFrequencyStage {
         let (mut labels, mut layers) = self.labels(results, &mask, &opaque);
         let pixel_sr = 1.0 / (self.intrinsics.fx * self.intrinsics.fy);
         let mut regions = regions(&labels, layers, results, pixel_sr);
-        let (mut grown, mut edges) = (vec![], vec![]);
+        let (mut grown, mut edges, mut pooled_own) = (vec![], vec![], vec![]);
         let mut opaque_edges = vec![];
         if latched.is_some() {
             let dropped = self.opaque_edge_regions(&labels, layers, results);
@@ -961,7 +961,8 @@ impl MultiFrequencyStage {
                 with_grown.data[i] = r;
             }
             grown.extend(holes);
-            edges = self.covered_edges(frame, &labels, &with_grown, layers, &regions, results);
+            (edges, pooled_own) = self.covered_edges(frame, &labels, &with_grown, layers, &regions, results);
+            pooled_own.sort_unstable_by_key(|&(i, _)| i);
             grown.extend(edges.iter().map(|e| (e.pixel, e.region)));
         }
         let mut layer = self.surface_prior(&labels, layers, results, &grown);
@@ -985,7 +986,11 @@ impl MultiFrequencyStage {
             }
         }
         if latched.is_some() {
-            self.keep_uncovered_outline(&mut mask, &mut labels, layers, &regions, &mut results, &mut layer);
+            let shares = OutlineShares {
+                regions: &regions,
+                pooled: &pooled_own,
+            };
+            self.keep_uncovered_outline(&mut mask, &mut labels, layers, &mut results, &mut layer, &shares);
         }
         let count = |c: PixelClass| results.iter().filter(|r| r.class == c).count();
         let mut filled = self.fill(depth, &mask, &results, &layer);
@@ -1308,9 +1313,13 @@ impl MultiFrequencyStage {
     /// (with what was grown into it) alone. The share `c` the layer covers follows from the
     /// background left at the region's distance near the pixel, `t = 1 - c (1 - ξ^2)`
     /// ([`MultiFrequencyInversion::background_share_at`]): the mixed pixels of a layer whose
-    /// own return is under the noise fit neither a layer nor the background. Where `c`'s
-    /// 95 % interval holds one half, the data cannot tell whether the pixel's centre sees
-    /// the layer or the background: its σ is at least half the gap between them.
+    /// own return is under the noise fit neither a layer nor the background. Where one
+    /// pixel's share does not decide, the shares along the outline (these pixels and the
+    /// region's own outline pixels) are pooled ([`pooled_along_outline`]). Where `c`'s 95 %
+    /// interval still holds one half, the data cannot tell whether the pixel's centre sees
+    /// the layer or the background: its σ is at least half the gap between them. Also
+    /// returns the pooled shares of the region's own outline pixels, for
+    /// [`Self::keep_uncovered_outline`].
     fn covered_edges(
         &self,
         frame: &PhasorFrame,
@@ -1319,18 +1328,54 @@ impl MultiFrequencyStage {
         layers: u32,
         regions: &[RegionOutput],
         results: &[PixelResult],
-    ) -> Vec<CoveredEdge> {
+    ) -> (Vec<CoveredEdge>, Vec<(usize, Coverage)>) {
+        let band = self.outline_band(frame, labels, with_grown, layers, regions, results);
+        let mut edges = vec![];
+        let mut own = vec![];
+        for region in 1..=layers {
+            let members: Vec<&BandPixel> = band.iter().filter(|b| b.region == region).collect();
+            let at: Vec<OutlinePixel> = members.iter().map(|b| b.at).collect();
+            for (b, cov) in members.iter().zip(pooled_along_outline(&at)) {
+                match b.gap_mm {
+                    None => own.push((b.pixel, cov)),
+                    Some(gap) if cov.centre_covered() => edges.push(CoveredEdge {
+                        pixel: b.pixel,
+                        region,
+                        sigma_floor_mm: cov.sigma_floor_mm(gap),
+                    }),
+                    Some(_) => {}
+                }
+            }
+        }
+        edges.sort_unstable_by_key(|e| e.pixel);
+        (edges, own)
+    }
+
+    /// The outline pixels of each layer region with their own covered shares: the pixels
+    /// beside it ([`Self::covered_edges`]) and its own pixels with a neighbour outside it
+    /// (their `ξ_p^2` is the background's share left, [`Self::keep_uncovered_outline`]).
+    fn outline_band(
+        &self,
+        frame: &PhasorFrame,
+        labels: &ImageBuf<u32>,
+        with_grown: &ImageBuf<u32>,
+        layers: u32,
+        regions: &[RegionOutput],
+        results: &[PixelResult],
+    ) -> Vec<BandPixel> {
         let (w, h) = (labels.width, labels.height);
         let open = |i: usize| with_grown.data[i] == 0 && unclaimed_by_a_region(results[i].class);
-        let neighbour_region = |i: usize| {
+        let neighbours = |i: usize| {
             let (c, r) = ((i % w) as isize, (i / w) as isize);
-            let mut seen = None;
-            for (dc, dr) in NEIGHBOURS_8 {
+            NEIGHBOURS_8.iter().filter_map(move |(dc, dr)| {
                 let (cc, rr) = (c + dc, r + dr);
-                if cc < 0 || rr < 0 || cc >= w as isize || rr >= h as isize {
-                    continue;
-                }
-                match with_grown.data[rr as usize * w + cc as usize] {
+                (cc >= 0 && rr >= 0 && cc < w as isize && rr < h as isize).then(|| rr as usize * w + cc as usize)
+            })
+        };
+        let neighbour_region = |i: usize| {
+            let mut seen = None;
+            for n in neighbours(i) {
+                match with_grown.data[n] {
                     0 => {}
                     l if l > layers || seen.is_some_and(|s| s != l) => return None,
                     l => seen = Some(l),
@@ -1338,22 +1383,40 @@ impl MultiFrequencyStage {
             }
             seen
         };
-        (0..w * h)
-            .filter(|&i| open(i))
-            .filter_map(|i| {
-                let region = neighbour_region(i)?;
-                let xi = regions.get(region as usize - 1)?.xi.xi;
-                let near = self.local_layer(i, region, labels, results)?.distance_mm;
-                let p = self.pixel_inputs(frame, i)?;
-                let (t, sd) = self.inversion.background_share_at(&p.phasors(), near).ok()?;
-                let cov = Coverage::from_background_share(t, sd, xi)?;
-                cov.centre_covered().then(|| CoveredEdge {
-                    pixel: i,
-                    region,
-                    sigma_floor_mm: cov.sigma_floor_mm(p.background_distance_mm - near),
-                })
+        let at = |i: usize, coverage: Coverage| OutlinePixel {
+            x: (i % w) as f64,
+            y: (i / w) as f64,
+            coverage,
+        };
+        let beside = (0..w * h).filter(|&i| open(i)).filter_map(|i| {
+            let region = neighbour_region(i)?;
+            let xi = regions.get(region as usize - 1)?.xi.xi;
+            let near = self.local_layer(i, region, labels, results)?.distance_mm;
+            let p = self.pixel_inputs(frame, i)?;
+            let (t, sd) = self.inversion.background_share_at(&p.phasors(), near).ok()?;
+            let cov = Coverage::from_background_share(t, sd, xi)?;
+            Some(BandPixel {
+                pixel: i,
+                region,
+                at: at(i, cov),
+                gap_mm: Some(p.background_distance_mm - near),
             })
-            .collect()
+        });
+        let inside = (0..w * h).filter_map(|i| {
+            let region = labels.data[i];
+            if region == 0 || region > layers || neighbours(i).all(|n| with_grown.data[n] == region) {
+                return None;
+            }
+            let (p, xi) = (&results[i], regions.get(region as usize - 1)?.xi.xi);
+            let cov = Coverage::from_background_share(p.xi * p.xi, 2.0 * p.xi * p.xi_sigma, xi)?;
+            Some(BandPixel {
+                pixel: i,
+                region,
+                at: at(i, cov),
+                gap_mm: None,
+            })
+        });
+        beside.chain(inside).collect()
     }
 
     /// A layer region's own pixels on its outline (an 8-neighbour outside the mask) that the
@@ -1362,25 +1425,25 @@ impl MultiFrequencyStage {
     /// that a layer of `ξ` covers by a share `c` fits a layer at the layer's distance with
     /// `ξ_p^2 = 1 - c (1 - ξ^2)` ([`Self::covered_edges`] is the same from the other side):
     /// its centre sees the background where `c < 1/2`, and the reading is nearer the truth
-    /// there than the layer's distance.
+    /// there than the layer's distance. Where the pixel's own share does not decide, the
+    /// share pooled along the outline does ([`OutlineShares`]).
     fn keep_uncovered_outline(
         &self,
         mask: &mut ImageBuf<bool>,
         labels: &mut ImageBuf<u32>,
         layers: u32,
-        regions: &[RegionOutput],
         results: &mut [PixelResult],
         layer: &mut Layer,
+        shares: &OutlineShares,
     ) {
         let edge = outline_pixels(mask, false);
         let mut uncovered = vec![];
         for i in (0..edge.data.len()).filter(|&i| edge.data[i]) {
             let (l, p) = (labels.data[i], &results[i]);
-            let Some(region) = (l >= 1 && l <= layers).then(|| &regions[l as usize - 1]) else {
+            if l < 1 || l > layers {
                 continue;
-            };
-            // The pixel's own ξ^2 is the background's share left there.
-            let Some(cov) = Coverage::from_background_share(p.xi * p.xi, 2.0 * p.xi * p.xi_sigma, region.xi.xi) else {
+            }
+            let Some(cov) = shares.of(i, p, l) else {
                 continue;
             };
             if !cov.centre_covered() {
@@ -1679,6 +1742,36 @@ struct LocalLayer {
     distance_mm: f64,
     /// The lower quartile of their returns, counts (NaN where none has one).
     weak_return: f64,
+}
+
+/// The covered shares of layer regions' own outline pixels: pooled along the outline
+/// ([`MultiFrequencyStage::covered_edges`]), else the pixel's own.
+struct OutlineShares<'a> {
+    regions: &'a [RegionOutput],
+    /// `(pixel, share)` sorted by pixel.
+    pooled: &'a [(usize, Coverage)],
+}
+
+impl OutlineShares<'_> {
+    /// Pixel `i`'s share of region `label`: the pooled one, else from its own `ξ_p^2`, the
+    /// background's share left there.
+    fn of(&self, i: usize, p: &PixelResult, label: u32) -> Option<Coverage> {
+        if let Ok(k) = self.pooled.binary_search_by_key(&i, |&(j, _)| j) {
+            return Some(self.pooled[k].1);
+        }
+        let region = self.regions.get(label as usize - 1)?;
+        Coverage::from_background_share(p.xi * p.xi, 2.0 * p.xi * p.xi_sigma, region.xi.xi)
+    }
+}
+
+/// A pixel of a layer region's outline ([`MultiFrequencyStage::outline_band`]).
+struct BandPixel {
+    pixel: usize,
+    region: u32,
+    at: OutlinePixel,
+    /// The gap from the layer to the background, mm, for a pixel beside the region; `None`
+    /// for the region's own.
+    gap_mm: Option<f64>,
 }
 
 /// A pixel on a layer region's outline that the layer covers by half or more
