@@ -548,6 +548,8 @@ struct PixelResult {
     gap_mm: f64,
     /// The layer's own return (the one return's, when opaque), counts (NaN where not fitted).
     first_return: f64,
+    /// The fit's `chi^2` against the background (NaN where not fitted against one).
+    chi_square: f64,
 }
 
 impl PixelResult {
@@ -562,6 +564,7 @@ impl PixelResult {
             layer_to_background: f64::NAN,
             gap_mm: f64::NAN,
             first_return: f64::NAN,
+            chi_square: f64::NAN,
         }
     }
 }
@@ -792,6 +795,7 @@ impl MultiFrequencyStage {
             layer_to_background: f64::NAN,
             gap_mm: f64::NAN,
             first_return: two.near_strength,
+            chi_square: f64::NAN,
         }
     }
 
@@ -895,6 +899,7 @@ impl MultiFrequencyStage {
             layer_to_background: layer_to_background(est, inputs),
             gap_mm: inputs.background_distance_mm - est.foreground_distance_mm,
             first_return: est.first_return,
+            chi_square: est.chi_square,
         }
     }
 
@@ -907,8 +912,27 @@ impl MultiFrequencyStage {
         results: &[PixelResult],
         latched: Option<&PhasorFrame>,
     ) -> MultiFrequencyOutput {
-        let (mut mask, opaque) = self.masks(results, latched.is_none());
+        let (mut mask, mut opaque) = self.masks(results, latched.is_none());
         let (mut labels, mut layers) = self.labels(results, &mask, &opaque);
+        let misfit_classed: Vec<PixelResult>;
+        let misfits = if latched.is_some() {
+            let dof = (2 * self.config.frequencies_hz.len()).saturating_sub(3).max(1) as f64;
+            region_misfits(&labels, layers, results, (dof, self.config.change_sigmas))
+        } else {
+            vec![]
+        };
+        let results = if misfits.is_empty() {
+            results
+        } else {
+            let mut reclassed = results.to_vec();
+            for &i in &misfits {
+                reclassed[i] = PixelResult::only(PixelClass::Unclaimed);
+            }
+            misfit_classed = reclassed;
+            (mask, opaque) = self.masks(&misfit_classed, false);
+            (labels, layers) = self.labels(&misfit_classed, &mask, &opaque);
+            &misfit_classed[..]
+        };
         let pixel_sr = 1.0 / (self.intrinsics.fx * self.intrinsics.fy);
         let mut regions = regions(&labels, layers, results, pixel_sr);
         let (mut grown, mut edges, mut pooled_own) = (vec![], vec![], vec![]);
@@ -1952,6 +1976,32 @@ struct Filled {
     xi_median: f64,
 }
 
+/// The layer pixels that misfit their region: `chi^2` over the quantile of chi-square with
+/// `2K - 3` degrees of freedom `sigmas` standard deviations out, scaled by how far the
+/// region's median `chi^2` exceeds chi-square's median (at least 1). A model misfit that
+/// every pixel of a region shares (a diffuse transmitter, light between walls) scales its
+/// level with it; a surface of another kind among its pixels (an opaque box beside a sheet,
+/// whose light on it fits a layer better than one return, and neither well) stands out.
+fn region_misfits(
+    labels: &ImageBuf<u32>,
+    layers: u32,
+    results: &[PixelResult],
+    (dof, sigmas): (f64, f64),
+) -> Vec<usize> {
+    let mut misfits = vec![];
+    for pixels in label_members(labels, layers, |i| results[i].chi_square.is_finite()) {
+        if pixels.is_empty() {
+            continue;
+        }
+        let mut chi: Vec<f64> = pixels.iter().map(|&i| results[i].chi_square).collect();
+        let scale = (median_select(&mut chi) / chi_square_quantile(dof, 0.0)).max(1.0);
+        let level = scale * chi_square_quantile(dof, sigmas);
+        misfits.extend(pixels.iter().copied().filter(|&i| results[i].chi_square > level));
+    }
+    misfits.sort_unstable();
+    misfits
+}
+
 /// The pixels of each of the labels `1..=count`, those `keep` takes, in image order.
 fn label_members(labels: &ImageBuf<u32>, count: u32, keep: impl Fn(usize) -> bool) -> Vec<Vec<usize>> {
     let mut members: Vec<Vec<usize>> = vec![vec![]; count as usize];
@@ -2451,6 +2501,51 @@ albedo = 0.7
         assert!(shaded.len() >= 50, "{} shaded pixels", shaded.len());
         assert_eq!((claimed, moved), (0, 0));
         assert!(c.in_mask * 100 >= c.sheet * 95 && c.rms_mm < 15.0, "{c:?}");
+    }
+
+    /// A region of 400 layer pixels whose `chi^2` follow chi-square with 3 degrees of
+    /// freedom, scaled by 1 or by 6 (a misfit every pixel shares), with 20 pixels of an
+    /// opaque box among them fitting 15 times worse than the region's median: the box's are
+    /// the misfits in both, and of the others no more than chance at the level flags.
+    #[test]
+    fn pixels_that_misfit_their_region_are_told_from_a_misfit_the_region_shares() {
+        use rand::{Rng, SeedableRng};
+        use rand_chacha::ChaCha8Rng;
+        use rand_distr::StandardNormal;
+        let mut rng = ChaCha8Rng::seed_from_u64(38);
+        let (w, h) = (21, 20);
+        let labels = ImageBuf {
+            width: w,
+            height: h,
+            data: vec![1u32; w * h],
+        };
+        let level = (3.0, 3.09);
+        for scale in [1.0, 6.0] {
+            let mut results: Vec<PixelResult> = (0..w * h)
+                .map(|_| {
+                    let chi: f64 = (0..3).map(|_| rng.sample::<f64, _>(StandardNormal).powi(2)).sum();
+                    PixelResult {
+                        chi_square: scale * chi,
+                        ..PixelResult::only(PixelClass::Layer)
+                    }
+                })
+                .collect();
+            let boxed: Vec<usize> = (0..20).map(|k| 5 * w + k).collect();
+            for &i in &boxed {
+                results[i].chi_square = 15.0 * scale * 2.37;
+            }
+            let misfits = region_misfits(&labels, 1, &results, level);
+            let others = misfits.iter().filter(|i| !boxed.contains(i)).count();
+            println!(
+                "scale {scale}: {} misfits, {others} of them not the box's",
+                misfits.len()
+            );
+            assert!(boxed.iter().all(|i| misfits.contains(i)), "scale {scale}: {misfits:?}");
+            assert!(
+                others <= 3,
+                "scale {scale}: {others} of the region's own pixels flagged"
+            );
+        }
     }
 
     /// Two sheets side by side at one distance, ξ 0.5 and 0.8: one region by their
