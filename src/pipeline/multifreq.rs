@@ -985,7 +985,8 @@ impl MultiFrequencyStage {
                 with_grown.data[i] = r;
             }
             grown.extend(holes);
-            (edges, pooled_own) = self.covered_edges(frame, &labels, &with_grown, layers, &regions, results);
+            let band = self.outline_band(frame, &labels, &with_grown, layers, &regions, results);
+            (edges, pooled_own) = Self::covered_edges(&band, layers);
             pooled_own.sort_unstable_by_key(|&(i, _)| i);
             grown.extend(edges.iter().map(|e| (e.pixel, e.region)));
         }
@@ -1059,13 +1060,7 @@ impl MultiFrequencyStage {
     /// interior.
     fn opaque_edge_regions(&self, labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> Vec<u32> {
         let (w, h) = (labels.width, labels.height);
-        let neighbours = |i: usize| {
-            let (c, r) = ((i % w) as isize, (i / w) as isize);
-            NEIGHBOURS_8.iter().filter_map(move |(dc, dr)| {
-                let (cc, rr) = (c + dc, r + dr);
-                (cc >= 0 && rr >= 0 && cc < w as isize && rr < h as isize).then(|| rr as usize * w + cc as usize)
-            })
-        };
+        let neighbours = |i: usize| neighbours_8(i, w, h);
         // Per layer region: pixels, interior pixels, pixels touching an opaque region, and
         // those of them at the opaque neighbour's distance.
         let mut tally = vec![[0usize; 4]; layers as usize + 1];
@@ -1341,19 +1336,10 @@ impl MultiFrequencyStage {
     /// pixel's share does not decide, the shares along the outline (these pixels and the
     /// region's own outline pixels) are pooled ([`pooled_along_outline`]). Where `c`'s 95 %
     /// interval still holds one half, the data cannot tell whether the pixel's centre sees
-    /// the layer or the background: its σ is at least half the gap between them. Also
-    /// returns the pooled shares of the region's own outline pixels, for
-    /// [`Self::keep_uncovered_outline`].
-    fn covered_edges(
-        &self,
-        frame: &PhasorFrame,
-        labels: &ImageBuf<u32>,
-        with_grown: &ImageBuf<u32>,
-        layers: u32,
-        regions: &[RegionOutput],
-        results: &[PixelResult],
-    ) -> (Vec<CoveredEdge>, Vec<(usize, Coverage)>) {
-        let band = self.outline_band(frame, labels, with_grown, layers, regions, results);
+    /// the layer or the background: its σ is at least half the gap between them. `band` is
+    /// [`Self::outline_band`]'s. Also returns the pooled shares of the regions' own outline
+    /// pixels, for [`Self::keep_uncovered_outline`].
+    fn covered_edges(band: &[BandPixel], layers: u32) -> (Vec<CoveredEdge>, Vec<(usize, Coverage)>) {
         let mut edges = vec![];
         let mut own = vec![];
         for region in 1..=layers {
@@ -1389,13 +1375,7 @@ impl MultiFrequencyStage {
     ) -> Vec<BandPixel> {
         let (w, h) = (labels.width, labels.height);
         let open = |i: usize| with_grown.data[i] == 0 && unclaimed_by_a_region(results[i].class);
-        let neighbours = |i: usize| {
-            let (c, r) = ((i % w) as isize, (i / w) as isize);
-            NEIGHBOURS_8.iter().filter_map(move |(dc, dr)| {
-                let (cc, rr) = (c + dc, r + dr);
-                (cc >= 0 && rr >= 0 && cc < w as isize && rr < h as isize).then(|| rr as usize * w + cc as usize)
-            })
-        };
+        let neighbours = |i: usize| neighbours_8(i, w, h);
         let neighbour_region = |i: usize| {
             let mut seen = None;
             for n in neighbours(i) {
@@ -2002,6 +1982,15 @@ fn region_misfits(
     misfits
 }
 
+/// The 8-neighbours of pixel `i` inside a `w` x `h` image.
+fn neighbours_8(i: usize, w: usize, h: usize) -> impl Iterator<Item = usize> {
+    let (c, r) = ((i % w) as isize, (i / w) as isize);
+    NEIGHBOURS_8.iter().filter_map(move |(dc, dr)| {
+        let (cc, rr) = (c + dc, r + dr);
+        (cc >= 0 && rr >= 0 && cc < w as isize && rr < h as isize).then(|| rr as usize * w + cc as usize)
+    })
+}
+
 /// The pixels of each of the labels `1..=count`, those `keep` takes, in image order.
 fn label_members(labels: &ImageBuf<u32>, count: u32, keep: impl Fn(usize) -> bool) -> Vec<Vec<usize>> {
     let mut members: Vec<Vec<usize>> = vec![vec![]; count as usize];
@@ -2419,6 +2408,16 @@ albedo = 0.7
     /// region's ξ fits those pixels with a return near zero, where the layer's own pixels
     /// return brightly. They are not grown into the layer and keep their readings; the layer is
     /// recovered as without them.
+    /// Of `pixels`, how many are in the mask and how many are published otherwise than read.
+    fn masked_and_moved(out: &MultiFrequencyOutput, depth: &DepthFrame, pixels: &[usize]) -> (usize, usize) {
+        let masked = pixels.iter().filter(|&&i| out.frame.mask.data[i]).count();
+        let moved = pixels
+            .iter()
+            .filter(|&&i| out.frame.corrected_z_mm.data[i] != depth.z_mm.data[i])
+            .count();
+        (masked, moved)
+    }
+
     #[test]
     fn a_background_dimmed_beside_a_bright_layer_is_not_grown_into_it() {
         let (s, all) = latched_on(SCENE);
@@ -2441,11 +2440,7 @@ albedo = 0.7
             }
         }
         let out = s.process(&p, d).expect("frame");
-        let grown = dimmed.iter().filter(|&&i| out.frame.mask.data[i]).count();
-        let moved = dimmed
-            .iter()
-            .filter(|&&i| out.frame.corrected_z_mm.data[i] != d.z_mm.data[i])
-            .count();
+        let (grown, moved) = masked_and_moved(&out, d, &dimmed);
         let c = SheetAndBox::of(&out, d, truth);
         println!(
             "dimmed {} pixels: {grown} in the mask, {moved} moved; sheet {} of {} in the mask, RMS {:.1} mm",
@@ -2485,11 +2480,7 @@ albedo = 0.7
             }
         }
         let out = s.process(&p, d).expect("frame");
-        let claimed = shaded.iter().filter(|&&i| out.frame.mask.data[i]).count();
-        let moved = shaded
-            .iter()
-            .filter(|&&i| out.frame.corrected_z_mm.data[i] != d.z_mm.data[i])
-            .count();
+        let (claimed, moved) = masked_and_moved(&out, d, &shaded);
         let c = SheetAndBox::of(&out, d, truth);
         println!(
             "shaded {} pixels: {claimed} in the mask, {moved} moved; sheet {} of {} in the mask, RMS {:.1} mm",
