@@ -561,9 +561,20 @@ impl MultiFrequencyInversion {
             layer_minima.push(d, if d <= p.hi { two(g) } else { f64::INFINITY });
             single_minima.push(d, one(g));
         });
-        let (d1, _) = self.refine(layer_minima.lowest(), p.lo, p.hi, h, |d| two(self.gram(&p, d)));
+        // Both objectives' searches stepped together (the same points as one after the other).
+        let [l0, l1] = self.searches(layer_minima.lowest(), p.lo, p.hi, h);
+        let [s0, s1] = self.searches(single_minima.lowest(), p.lo, db, h);
+        let [l0, l1, s0, s1] = search_together([l0, l1, s0, s1], |i, d| {
+            let g = self.gram(&p, d);
+            if i < 2 {
+                two(g)
+            } else {
+                one(g)
+            }
+        });
+        let (d1, _) = lowest_found(&[l0, l1], p.lo);
         let layer = self.gram(&p, d1).two_returns(&p.fixed);
-        let (d0, single_chi_square) = self.refine(single_minima.lowest(), p.lo, db, h, |d| one(self.gram(&p, d)));
+        let (d0, single_chi_square) = lowest_found(&[s0, s1], p.lo);
         let opacity_statistic = (single_chi_square - layer.chi_square).max(0.0);
         if opacity_statistic <= CHI_SQUARE_1_95 {
             return Ok(self.opaque_estimate(&p, d0, single_chi_square, opacity_statistic));
@@ -1177,16 +1188,54 @@ impl MultiFrequencyInversion {
     /// search over the cells either side of it within `[lo, hi]`, seeded with the grid's
     /// three points.
     fn refine(&self, lowest: [GridPoint; 2], lo: f64, hi: f64, h: f64, f: impl Fn(f64) -> f64) -> (f64, f64) {
+        let found = search_together(self.searches(lowest, lo, hi, h), |_, x| f(x));
+        lowest_found(&found, lo)
+    }
+
+    /// Brent's searches of [`Self::refine`], not yet stepped: one over the cells either side
+    /// of each finite grid minimum within `[lo, hi]`, seeded with the grid's three points.
+    fn searches(&self, lowest: [GridPoint; 2], lo: f64, hi: f64, h: f64) -> [Option<BrentSearch>; 2] {
         let tol = self.settings.tolerance_mm;
-        let mut best = (lo, f64::INFINITY);
-        for m in lowest.into_iter().filter(|m| m.value.is_finite()) {
-            let bracket = ((m.x - h).max(lo), (m.x + h).min(hi));
-            let refined = brent_minimum(bracket, m.seed(h), tol, &f);
-            if refined.1 < best.1 {
-                best = refined;
+        lowest.map(|m| {
+            m.value
+                .is_finite()
+                .then(|| BrentSearch::new(((m.x - h).max(lo), (m.x + h).min(hi)), m.seed(h), tol))
+        })
+    }
+}
+
+/// The lowest point the searches found, in order (the first of equals), or `(lo, inf)`
+/// where there were none.
+fn lowest_found(found: &[Option<BrentSearch>], lo: f64) -> (f64, f64) {
+    let mut best = (lo, f64::INFINITY);
+    for refined in found.iter().flatten().map(BrentSearch::best) {
+        if refined.1 < best.1 {
+            best = refined;
+        }
+    }
+    best
+}
+
+/// Brent's searches stepped together to their ends: in each round every unfinished search
+/// names its next point, all of them are evaluated (`f(i, u)` for search `i`), then each
+/// takes its value. Each search follows the same points as alone; a round's evaluations
+/// do not depend on one another, so the core overlaps them where a search alone waits on
+/// each of its own.
+fn search_together<const N: usize>(
+    mut searches: [Option<BrentSearch>; N],
+    f: impl Fn(usize, f64) -> f64,
+) -> [Option<BrentSearch>; N] {
+    loop {
+        let points = searches.each_mut().map(|s| s.as_mut().and_then(BrentSearch::next));
+        if points.iter().all(Option::is_none) {
+            return searches;
+        }
+        let values: [Option<f64>; N] = std::array::from_fn(|i| points[i].map(|u| f(i, u)));
+        for ((s, u), fu) in searches.iter_mut().zip(points).zip(values) {
+            if let (Some(s), Some(u), Some(fu)) = (s, u, fu) {
+                s.take(u, fu);
             }
         }
-        best
     }
 }
 
@@ -1272,67 +1321,131 @@ impl GridMinima {
     }
 }
 
-/// Brent's search for the minimum of `f` on `[lo, hi]` (golden section with parabolic
-/// steps where the parabola through the last three points is trustworthy), to a bracket
-/// about `tol` wide: a smooth minimum takes a handful of evaluations where golden section
+/// Brent's search for the minimum of `f` on `[lo, hi]` to a bracket about `tol` wide
+/// ([`BrentSearch`]): a smooth minimum takes a handful of evaluations where golden section
 /// alone takes one per factor 1.618 of narrowing. `seed` holds the three best points known,
 /// best first; the point returned is never worse than the first (the search moves only to
 /// lower values).
-fn brent_minimum((mut lo, mut hi): (f64, f64), seed: [(f64, f64); 3], tol: f64, f: &impl Fn(f64) -> f64) -> (f64, f64) {
-    const GOLDEN: f64 = 0.381_966_011_250_105_1; // (3 - sqrt 5) / 2
-    const MAX_STEPS: usize = 100;
-    let step_min = 0.25 * tol;
-    // The best point and the second and third best so far: the seed's, which a first
-    // parabolic step may use.
-    let [(mut x, mut fx), (mut w, mut fw), (mut v, mut fv)] = seed;
-    // This step and the one before the last (a parabolic step must halve it).
-    let (mut step, mut older) = (hi - lo, hi - lo);
-    for _ in 0..MAX_STEPS {
-        let mid = 0.5 * (lo + hi);
-        if (x - mid).abs() <= 2.0 * step_min - 0.5 * (hi - lo) {
-            break;
+fn brent_minimum(bracket: (f64, f64), seed: [(f64, f64); 3], tol: f64, f: &impl Fn(f64) -> f64) -> (f64, f64) {
+    let mut search = BrentSearch::new(bracket, seed, tol);
+    while let Some(u) = search.next() {
+        search.take(u, f(u));
+    }
+    search.best()
+}
+
+/// Brent's search for a minimum on a bracket (golden section with parabolic steps where
+/// the parabola through the last three points is trustworthy), one evaluation at a time:
+/// [`BrentSearch::next`] names the point to evaluate, [`BrentSearch::take`] takes its
+/// value, so that several searches can be stepped together ([`search_together`]).
+#[derive(Debug, Clone, Copy)]
+struct BrentSearch {
+    /// The bracket's ends.
+    lo: f64,
+    hi: f64,
+    /// The best point so far and the second and third best, with their values.
+    x: f64,
+    fx: f64,
+    w: f64,
+    fw: f64,
+    v: f64,
+    fv: f64,
+    /// This step and the one before the last (a parabolic step must halve it).
+    step: f64,
+    older: f64,
+    /// The shortest step: a quarter of the tolerance.
+    step_min: f64,
+    /// Evaluations taken so far.
+    evaluations: usize,
+}
+
+impl BrentSearch {
+    /// Evaluations after which the search stops wherever it is.
+    const MAX_EVALUATIONS: usize = 100;
+    /// `(3 - sqrt 5) / 2`: golden section's share of the longer side.
+    const GOLDEN: f64 = 0.381_966_011_250_105_1;
+
+    /// A search of `[lo, hi]` to about `tol` from `seed`, the three best points known, best
+    /// first (a first parabolic step may use them).
+    fn new((lo, hi): (f64, f64), seed: [(f64, f64); 3], tol: f64) -> Self {
+        let [(x, fx), (w, fw), (v, fv)] = seed;
+        Self {
+            lo,
+            hi,
+            x,
+            fx,
+            w,
+            fw,
+            v,
+            fv,
+            step: hi - lo,
+            older: hi - lo,
+            step_min: 0.25 * tol,
+            evaluations: 0,
         }
-        let last = older;
-        older = step;
+    }
+
+    /// The best point so far and its value.
+    fn best(&self) -> (f64, f64) {
+        (self.x, self.fx)
+    }
+
+    /// The next point to evaluate, to be answered by [`Self::take`]; `None` (and nothing
+    /// changed) once the bracket is about `tol` wide or the evaluations are spent.
+    fn next(&mut self) -> Option<f64> {
+        let (lo, hi, x, step_min) = (self.lo, self.hi, self.x, self.step_min);
+        let mid = 0.5 * (lo + hi);
+        if self.evaluations >= Self::MAX_EVALUATIONS || (x - mid).abs() <= 2.0 * step_min - 0.5 * (hi - lo) {
+            return None;
+        }
+        let last = self.older;
+        self.older = self.step;
         let parabolic = (last.abs() > step_min)
-            .then(|| parabola_step(x, fx, w, fw, v, fv))
+            .then(|| parabola_step(x, self.fx, self.w, self.fw, self.v, self.fv))
             .flatten()
             .filter(|&p| p.abs() < 0.5 * last.abs() && x + p > lo && x + p < hi);
-        step = match parabolic {
+        self.step = match parabolic {
             Some(p) if x + p - lo < 2.0 * step_min || hi - (x + p) < 2.0 * step_min => step_min.copysign(mid - x),
             Some(p) => p,
             None => {
-                older = if x >= mid { lo - x } else { hi - x };
-                GOLDEN * older
+                self.older = if x >= mid { lo - x } else { hi - x };
+                Self::GOLDEN * self.older
             }
         };
-        let u = x + if step.abs() >= step_min {
-            step
-        } else {
-            step_min.copysign(step)
-        };
-        let fu = f(u);
-        if fu <= fx {
-            if u >= x {
-                lo = x;
+        let step = self.step;
+        Some(
+            x + if step.abs() >= step_min {
+                step
             } else {
-                hi = x;
-            }
-            ((v, fv), (w, fw), (x, fx)) = ((w, fw), (x, fx), (u, fu));
-        } else {
-            if u < x {
-                lo = u;
+                step_min.copysign(step)
+            },
+        )
+    }
+
+    /// The value `fu` at `u`, the point [`Self::next`] named: the bracket narrowed and the
+    /// three best points kept.
+    fn take(&mut self, u: f64, fu: f64) {
+        self.evaluations += 1;
+        if fu <= self.fx {
+            if u >= self.x {
+                self.lo = self.x;
             } else {
-                hi = u;
+                self.hi = self.x;
             }
-            if fu <= fw || w == x {
-                ((v, fv), (w, fw)) = ((w, fw), (u, fu));
-            } else if fu <= fv || v == x || v == w {
-                (v, fv) = (u, fu);
+            ((self.v, self.fv), (self.w, self.fw), (self.x, self.fx)) = ((self.w, self.fw), (self.x, self.fx), (u, fu));
+        } else {
+            if u < self.x {
+                self.lo = u;
+            } else {
+                self.hi = u;
+            }
+            if fu <= self.fw || self.w == self.x {
+                ((self.v, self.fv), (self.w, self.fw)) = ((self.w, self.fw), (u, fu));
+            } else if fu <= self.fv || self.v == self.x || self.v == self.w {
+                (self.v, self.fv) = (u, fu);
             }
         }
     }
-    (x, fx)
 }
 
 /// The step from `x` to the vertex of the parabola through `(x, fx)`, `(w, fw)`, `(v, fv)`;
