@@ -32,6 +32,7 @@ use nalgebra::{Matrix3, Matrix4};
 
 use super::model::{ForwardModel, LayerScene, Measurement, Return, MAX_BOUNCES};
 use super::sensor::{Buckets, Sensor, Waveform, SPEED_OF_LIGHT_MM_PER_S};
+use super::trig;
 
 /// A complex phasor at one frequency: in-phase `a = Q1 - Q2` and quadrature
 /// `b = Q3 - Q4` (the bucket differences of Eq. 5).
@@ -433,9 +434,22 @@ struct Pixel<'a> {
     fixed: Fixed,
     lo: f64,
     hi: f64,
+    /// `1 / sigma_k^2` of the first [`HELD_WEIGHTS`] frequencies, worked out once.
+    weights: [f64; HELD_WEIGHTS],
 }
 
+/// Frequencies whose weights `1 / sigma_k^2` a [`Pixel`] holds (more are worked out where used).
+const HELD_WEIGHTS: usize = 8;
+
 impl Pixel<'_> {
+    /// `1 / sigma_k^2`, the weight of frequency `k`.
+    fn weight(&self, k: usize) -> f64 {
+        self.weights.get(k).copied().unwrap_or_else(|| {
+            let sigma = self.px.noise_sigma[k];
+            1.0 / (sigma * sigma)
+        })
+    }
+
     /// The scan's range `[lo, hi]` narrowed to `[near, far]` where that lies inside it.
     fn within(&self, near: f64, far: f64) -> (f64, f64) {
         let hi = if far < self.hi { far.max(self.lo) } else { self.hi };
@@ -980,7 +994,17 @@ impl MultiFrequencyInversion {
         if !(fixed.bb > 0.0) {
             return Err(MultiFrequencyError::NoBackgroundReturn);
         }
-        Ok(Pixel { px, fixed, lo, hi })
+        let mut weights = [0.0; HELD_WEIGHTS];
+        for (w, sigma) in weights.iter_mut().zip(px.noise_sigma) {
+            *w = 1.0 / (sigma * sigma);
+        }
+        Ok(Pixel {
+            px,
+            fixed,
+            lo,
+            hi,
+            weights,
+        })
     }
 
     /// `[d_min, db - separation]`, checked against the common unambiguous range.
@@ -1020,8 +1044,14 @@ impl MultiFrequencyInversion {
     }
 
     /// `u_k(d1)`: the phasor of a unit return at `d1` (with the model's
-    /// subsurface delay) at frequency `k`.
+    /// subsurface delay) at frequency `k`. For the sinusoid `(cos phi, sin phi)` by
+    /// [`trig::sin_cos`] (within an ulp of the platform's, and inlined), else the
+    /// sensor's buckets.
     fn unit_return(&self, sensor: &Sensor, d1: f64) -> Phasor {
+        if sensor.waveform == Waveform::Sinusoid {
+            let (sin, cos) = trig::sin_cos(sensor.phase(d1 + self.delay_mm));
+            return Phasor { a: cos, b: sin };
+        }
         sensor.buckets(1.0, d1 + self.delay_mm)
     }
 
@@ -1056,14 +1086,8 @@ impl MultiFrequencyInversion {
             um: 0.0,
         };
         let px = p.px;
-        for (((s, b), m), sigma) in self
-            .sensors
-            .iter()
-            .zip(px.background)
-            .zip(px.measured)
-            .zip(px.noise_sigma)
-        {
-            let w = 1.0 / (sigma * sigma);
+        for (k, ((s, b), m)) in self.sensors.iter().zip(px.background).zip(px.measured).enumerate() {
+            let w = p.weight(k);
             let u = self.unit_return(s, d1);
             g.uu += w * dot(u, u);
             g.ub += w * dot(u, *b);
@@ -1155,8 +1179,7 @@ impl MultiFrequencyInversion {
                 ub: 0.0,
                 um: 0.0,
             };
-            for (((u, b), m), sigma) in unit[..k].iter().zip(px.background).zip(px.measured).zip(px.noise_sigma) {
-                let w = 1.0 / (sigma * sigma);
+            for (((u, b), m), &w) in unit[..k].iter().zip(px.background).zip(px.measured).zip(&p.weights) {
                 g.uu += w * dot(*u, *u);
                 g.ub += w * dot(*u, *b);
                 g.um += w * dot(*u, *m);
