@@ -572,12 +572,16 @@ impl MultiFrequencyInversion {
         let (cells, h) = self.grid(p.lo, db);
         let (mut layer_minima, mut single_minima) = (GridMinima::default(), GridMinima::default());
         self.scan_grams(&p, p.lo, h, cells, |d, g| {
-            layer_minima.push(d, if d <= p.hi { two(g) } else { f64::INFINITY });
-            single_minima.push(d, one(g));
+            layer_minima.push(d, if d <= p.hi { two(g) } else { f64::INFINITY }, Some(g));
+            single_minima.push(d, one(g), Some(g));
         });
+        // A second minimum is searched only where it could beat the first.
+        let slack = self.cell_slack(&p, h);
+        let layer_lowest = worth_refining(layer_minima.lowest(), slack.map(|s| s.layer), &p.fixed, two);
+        let single_lowest = worth_refining(single_minima.lowest(), slack.map(|s| s.single), &p.fixed, one);
         // Both objectives' searches stepped together (the same points as one after the other).
-        let [l0, l1] = self.searches(layer_minima.lowest(), p.lo, p.hi, h);
-        let [s0, s1] = self.searches(single_minima.lowest(), p.lo, db, h);
+        let [l0, l1] = self.searches(layer_lowest, p.lo, p.hi, h);
+        let [s0, s1] = self.searches(single_lowest, p.lo, db, h);
         let [l0, l1, s0, s1] = search_together([l0, l1, s0, s1], |i, d| {
             let g = self.gram(&p, d);
             if i < 2 {
@@ -1202,7 +1206,7 @@ impl MultiFrequencyInversion {
         let mut minima = GridMinima::default();
         for j in 0..=cells {
             let x = lo + j as f64 * h;
-            minima.push(x, f(x));
+            minima.push(x, f(x), None);
         }
         self.refine(minima.lowest(), lo, hi, h, f)
     }
@@ -1215,6 +1219,30 @@ impl MultiFrequencyInversion {
         lowest_found(&found, lo)
     }
 
+    /// How far `<u(d), M - t B>` can rise between two grid points `h` apart above the larger
+    /// of its values there, for `t` in `[0, 1]` (the layer's objective) and for `t = 0` (the
+    /// single return's): `h^2 / 8` times a bound on its second derivative,
+    /// `sum_k w_k omega_k^2 |M_k - t B_k|`. Sinusoids only (`None` otherwise): there
+    /// `u_k(d)` turns at `omega_k = 2 pi / R_k` a millimetre and `<u, u>` is the same at every `d`.
+    fn cell_slack(&self, p: &Pixel, h: f64) -> Option<CellSlack> {
+        if !self.sensors.iter().all(|s| s.waveform == Waveform::Sinusoid) {
+            return None;
+        }
+        let (mut layer, mut single) = (0.0, 0.0);
+        for (k, ((s, m), b)) in self.sensors.iter().zip(p.px.measured).zip(p.px.background).enumerate() {
+            let omega = s.phase(1.0);
+            let curvature = p.weight(k) * omega * omega;
+            let (m, b) = (m.a.hypot(m.b), b.a.hypot(b.b));
+            single += curvature * m;
+            layer += curvature * (m + b);
+        }
+        let q = h * h / 8.0;
+        Some(CellSlack {
+            layer: layer * q,
+            single: single * q,
+        })
+    }
+
     /// Brent's searches of [`Self::refine`], not yet stepped: one over the cells either side
     /// of each finite grid minimum within `[lo, hi]`, seeded with the grid's three points.
     fn searches(&self, lowest: [GridPoint; 2], lo: f64, hi: f64, h: f64) -> [Option<BrentSearch>; 2] {
@@ -1225,6 +1253,57 @@ impl MultiFrequencyInversion {
                 .then(|| BrentSearch::new(((m.x - h).max(lo), (m.x + h).min(hi)), m.seed(h), tol))
         })
     }
+}
+
+/// [`MultiFrequencyInversion::cell_slack`]: how far `<u(d), M - t B>` can rise within a
+/// grid cell above its values at the cell's ends, for either objective.
+#[derive(Debug, Clone, Copy)]
+struct CellSlack {
+    layer: f64,
+    single: f64,
+}
+
+/// `lowest` with the second minimum dropped where no point of its cells can come below the
+/// first's grid value (which the first's search only lowers, so the second's search could
+/// not win): where [`cells_lower_bound`] exceeds it by more than the arithmetic's rounding.
+fn worth_refining(
+    [first, second]: [GridPoint; 2],
+    slack: Option<f64>,
+    fixed: &Fixed,
+    objective: impl Fn(Gram) -> f64,
+) -> [GridPoint; 2] {
+    let Some(slack) = slack else {
+        return [first, second];
+    };
+    if !(first.value.is_finite() && second.value.is_finite()) {
+        return [first, second];
+    }
+    // Rounding: the scan's turned phasors and the search's own are a few ulp apart.
+    let rounding = 1e-9 * fixed.mm;
+    match cells_lower_bound(&second, slack, fixed, objective) {
+        Some(bound) if bound > first.value + rounding => [first, GridPoint::NONE],
+        _ => [first, second],
+    }
+}
+
+/// A lower bound of `objective` (the layer's or the single return's chi^2, each the least
+/// squares over `a >= 0` and `t`) on the cells either side of grid minimum `m`: its value
+/// at each grid point there with `<u, M>` raised by `slack`, the lowest. Within a cell
+/// `<u(d), M - t B>` stays below the larger of its ends' values plus `slack` for every `t`,
+/// and `<u, u>` is the same, so the least squares at `d` is no lower than at one of the
+/// ends with that raised correlation. `None` (no bound) where a point's Gram is missing or
+/// `u` is nearly parallel to `B` (the closed form then leaves the interior out).
+fn cells_lower_bound(m: &GridPoint, slack: f64, f: &Fixed, objective: impl Fn(Gram) -> f64) -> Option<f64> {
+    m.grams[1]?;
+    let mut bound = f64::INFINITY;
+    for g in m.grams.iter().flatten() {
+        let det = g.uu * f.bb - g.ub * g.ub;
+        if !(det > 1e-6 * g.uu * f.bb) {
+            return None;
+        }
+        bound = bound.min(objective(Gram { um: g.um + slack, ..*g }));
+    }
+    Some(bound)
 }
 
 /// The lowest point the searches found, in order (the first of equals), or `(lo, inf)`
@@ -1266,13 +1345,15 @@ fn search_together<const N: usize>(
 const ROTATED_FREQUENCIES: usize = 8;
 
 /// A local minimum of a grid: its point, value and its neighbours' values (infinite past
-/// an end).
+/// an end), and the Gram products at the three points where the scan gave them (`None`
+/// past an end).
 #[derive(Debug, Clone, Copy)]
 struct GridPoint {
     x: f64,
     value: f64,
     left: f64,
     right: f64,
+    grams: [Option<Gram>; 3],
 }
 
 impl GridPoint {
@@ -1281,6 +1362,7 @@ impl GridPoint {
         value: f64::INFINITY,
         left: f64::INFINITY,
         right: f64::INFINITY,
+        grams: [None; 3],
     };
 
     /// The three points known about the minimum, best first, for [`brent_minimum`].
@@ -1295,15 +1377,15 @@ impl GridPoint {
 /// order (the ends count when no neighbour is lower).
 #[derive(Debug, Clone, Copy)]
 struct GridMinima {
-    before: f64,
-    last: Option<(f64, f64)>,
+    before: (f64, Option<Gram>),
+    last: Option<(f64, f64, Option<Gram>)>,
     lowest: [GridPoint; 2],
 }
 
 impl Default for GridMinima {
     fn default() -> Self {
         Self {
-            before: f64::INFINITY,
+            before: (f64::INFINITY, None),
             last: None,
             lowest: [GridPoint::NONE; 2],
         }
@@ -1311,20 +1393,21 @@ impl Default for GridMinima {
 }
 
 impl GridMinima {
-    /// The next grid point `(x, f(x))`.
-    fn push(&mut self, x: f64, fx: f64) {
-        if let Some((xl, fl)) = self.last {
-            if fl <= self.before && fl <= fx {
+    /// The next grid point `(x, f(x))` and its Gram products, where known.
+    fn push(&mut self, x: f64, fx: f64, gram: Option<Gram>) {
+        if let Some((xl, fl, gl)) = self.last {
+            if fl <= self.before.0 && fl <= fx {
                 self.keep(GridPoint {
                     x: xl,
                     value: fl,
-                    left: self.before,
+                    left: self.before.0,
                     right: fx,
+                    grams: [self.before.1, gl, gram],
                 });
             }
-            self.before = fl;
+            self.before = (fl, gl);
         }
-        self.last = Some((x, fx));
+        self.last = Some((x, fx, gram));
     }
 
     /// Keeps the two lowest, lowest first.
@@ -1339,7 +1422,7 @@ impl GridMinima {
 
     /// The two lowest local minima, lowest first (the last point taken with nothing after it).
     fn lowest(mut self) -> [GridPoint; 2] {
-        self.push(f64::NAN, f64::INFINITY);
+        self.push(f64::NAN, f64::INFINITY, None);
         self.lowest
     }
 }
@@ -1753,6 +1836,51 @@ mod tests {
             seen += 1;
         });
         assert_eq!(seen, cells + 1);
+    }
+
+    #[test]
+    fn a_cells_lower_bound_is_below_its_objective_across_the_cells() {
+        let (mf, inv) = model(Waveform::Sinusoid, &THREE);
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let mut bounded = 0;
+        for &(df, db, xi) in &[(800.0, 3300.0, 0.65), (500.0, 2000.0, 0.9), (1500.0, 4000.0, 0.3)] {
+            for noise in [NOISE_FREE, NOISE] {
+                let mut o = Observed::new(&mf, &scene(df, db, xi), noise);
+                o.add_noise(&mut rng);
+                let px = o.phasors();
+                let p = inv.pixel(&px).expect("a valid pixel");
+                let (cells, h) = inv.grid(p.lo, db);
+                let mut grams = vec![];
+                inv.scan_grams(&p, p.lo, h, cells, |d, g| grams.push((d, g)));
+                let slack = inv.cell_slack(&p, h).expect("sinusoids");
+                let two = |g: Gram| g.two_returns(&p.fixed).chi_square;
+                let one = |g: Gram| g.chi_square(&p.fixed, g.return_at(0.0), 0.0);
+                for j in 0..grams.len() {
+                    let m = GridPoint {
+                        x: grams[j].0,
+                        grams: [
+                            j.checked_sub(1).map(|i| grams[i].1),
+                            Some(grams[j].1),
+                            grams.get(j + 1).map(|g| g.1),
+                        ],
+                        ..GridPoint::NONE
+                    };
+                    let (lo, hi) = ((m.x - h).max(p.lo), (m.x + h).min(db));
+                    for (objective, s) in [(&two as &dyn Fn(Gram) -> f64, slack.layer), (&one, slack.single)] {
+                        let Some(bound) = cells_lower_bound(&m, s, &p.fixed, objective) else {
+                            continue;
+                        };
+                        bounded += 1;
+                        for i in 0..=200 {
+                            let d = lo + (hi - lo) * i as f64 / 200.0;
+                            let f = objective(inv.gram(&p, d));
+                            assert!(bound <= f, "{df} {db} {xi}: bound {bound} above {f} at {d}");
+                        }
+                    }
+                }
+            }
+        }
+        assert!(bounded > 100, "{bounded} cells bounded");
     }
 
     #[test]
