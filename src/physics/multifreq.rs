@@ -32,6 +32,7 @@ use nalgebra::{Matrix3, Matrix4};
 
 use super::model::{ForwardModel, LayerScene, Measurement, Return, MAX_BOUNCES};
 use super::sensor::{Buckets, Sensor, Waveform, SPEED_OF_LIGHT_MM_PER_S};
+use super::trig;
 
 /// A complex phasor at one frequency: in-phase `a = Q1 - Q2` and quadrature
 /// `b = Q3 - Q4` (the bucket differences of Eq. 5).
@@ -328,7 +329,7 @@ impl<'a> IndirectScan<'a> {
         let (mut minima, mut lowest, mut largest, mut uu) = (GridMinima::default(), f64::INFINITY, 0.0_f64, 0.0);
         inv.scan_grams(&p, db, h, cells, |d, g| {
             let chi = scan.fit(g).1;
-            minima.push(d, chi);
+            minima.push(d, chi, None);
             lowest = lowest.min(chi);
             largest = largest.max((g.um - g.ub).abs());
             uu = g.uu;
@@ -521,9 +522,22 @@ struct Pixel<'a> {
     fixed: Fixed,
     lo: f64,
     hi: f64,
+    /// `1 / sigma_k^2` of the first [`HELD_WEIGHTS`] frequencies, worked out once.
+    weights: [f64; HELD_WEIGHTS],
 }
 
+/// Frequencies whose weights `1 / sigma_k^2` a [`Pixel`] holds (more are worked out where used).
+const HELD_WEIGHTS: usize = 8;
+
 impl Pixel<'_> {
+    /// `1 / sigma_k^2`, the weight of frequency `k`.
+    fn weight(&self, k: usize) -> f64 {
+        self.weights.get(k).copied().unwrap_or_else(|| {
+            let sigma = self.px.noise_sigma[k];
+            1.0 / (sigma * sigma)
+        })
+    }
+
     /// The scan's range `[lo, hi]` narrowed to `[near, far]` where that lies inside it.
     fn within(&self, near: f64, far: f64) -> (f64, f64) {
         let hi = if far < self.hi { far.max(self.lo) } else { self.hi };
@@ -646,12 +660,27 @@ impl MultiFrequencyInversion {
         let (cells, h) = self.grid(p.lo, db);
         let (mut layer_minima, mut single_minima) = (GridMinima::default(), GridMinima::default());
         self.scan_grams(&p, p.lo, h, cells, |d, g| {
-            layer_minima.push(d, if d <= p.hi { two(g) } else { f64::INFINITY });
-            single_minima.push(d, one(g));
+            layer_minima.push(d, if d <= p.hi { two(g) } else { f64::INFINITY }, Some(g));
+            single_minima.push(d, one(g), Some(g));
         });
-        let (d1, _) = self.refine(layer_minima.lowest(), p.lo, p.hi, h, |d| two(self.gram(&p, d)));
+        // A second minimum is searched only where it could beat the first.
+        let slack = self.cell_slack(&p, h);
+        let layer_lowest = worth_refining(layer_minima.lowest(), slack.map(|s| s.layer), &p.fixed, two);
+        let single_lowest = worth_refining(single_minima.lowest(), slack.map(|s| s.single), &p.fixed, one);
+        // Both objectives' searches stepped together (the same points as one after the other).
+        let [l0, l1] = self.searches(layer_lowest, p.lo, p.hi, h);
+        let [s0, s1] = self.searches(single_lowest, p.lo, db, h);
+        let [l0, l1, s0, s1] = search_together([l0, l1, s0, s1], |i, d| {
+            let g = self.gram(&p, d);
+            if i < 2 {
+                two(g)
+            } else {
+                one(g)
+            }
+        });
+        let (d1, _) = lowest_found(&[l0, l1], p.lo);
         let layer = self.gram(&p, d1).two_returns(&p.fixed);
-        let (d0, single_chi_square) = self.refine(single_minima.lowest(), p.lo, db, h, |d| one(self.gram(&p, d)));
+        let (d0, single_chi_square) = lowest_found(&[s0, s1], p.lo);
         let opacity_statistic = (single_chi_square - layer.chi_square).max(0.0);
         if opacity_statistic <= CHI_SQUARE_1_95 {
             return Ok(self.opaque_estimate(&p, d0, single_chi_square, opacity_statistic));
@@ -1099,7 +1128,17 @@ impl MultiFrequencyInversion {
         if !(fixed.bb > 0.0) {
             return Err(MultiFrequencyError::NoBackgroundReturn);
         }
-        Ok(Pixel { px, fixed, lo, hi })
+        let mut weights = [0.0; HELD_WEIGHTS];
+        for (w, sigma) in weights.iter_mut().zip(px.noise_sigma) {
+            *w = 1.0 / (sigma * sigma);
+        }
+        Ok(Pixel {
+            px,
+            fixed,
+            lo,
+            hi,
+            weights,
+        })
     }
 
     /// `[d_min, db - separation]`, checked against the common unambiguous range.
@@ -1139,8 +1178,14 @@ impl MultiFrequencyInversion {
     }
 
     /// `u_k(d1)`: the phasor of a unit return at `d1` (with the model's
-    /// subsurface delay) at frequency `k`.
+    /// subsurface delay) at frequency `k`. For the sinusoid `(cos phi, sin phi)` by
+    /// [`trig::sin_cos`] (within an ulp of the platform's, and inlined), else the
+    /// sensor's buckets.
     fn unit_return(&self, sensor: &Sensor, d1: f64) -> Phasor {
+        if sensor.waveform == Waveform::Sinusoid {
+            let (sin, cos) = trig::sin_cos(sensor.phase(d1 + self.delay_mm));
+            return Phasor { a: cos, b: sin };
+        }
         sensor.buckets(1.0, d1 + self.delay_mm)
     }
 
@@ -1175,14 +1220,8 @@ impl MultiFrequencyInversion {
             um: 0.0,
         };
         let px = p.px;
-        for (((s, b), m), sigma) in self
-            .sensors
-            .iter()
-            .zip(px.background)
-            .zip(px.measured)
-            .zip(px.noise_sigma)
-        {
-            let w = 1.0 / (sigma * sigma);
+        for (k, ((s, b), m)) in self.sensors.iter().zip(px.background).zip(px.measured).enumerate() {
+            let w = p.weight(k);
             let u = self.unit_return(s, d1);
             g.uu += w * dot(u, u);
             g.ub += w * dot(u, *b);
@@ -1274,8 +1313,7 @@ impl MultiFrequencyInversion {
                 ub: 0.0,
                 um: 0.0,
             };
-            for (((u, b), m), sigma) in unit[..k].iter().zip(px.background).zip(px.measured).zip(px.noise_sigma) {
-                let w = 1.0 / (sigma * sigma);
+            for (((u, b), m), &w) in unit[..k].iter().zip(px.background).zip(px.measured).zip(&p.weights) {
                 g.uu += w * dot(*u, *u);
                 g.ub += w * dot(*u, *b);
                 g.um += w * dot(*u, *m);
@@ -1298,7 +1336,7 @@ impl MultiFrequencyInversion {
         let mut minima = GridMinima::default();
         for j in 0..=cells {
             let x = lo + j as f64 * h;
-            minima.push(x, f(x));
+            minima.push(x, f(x), None);
         }
         self.refine(minima.lowest(), lo, hi, h, f)
     }
@@ -1307,16 +1345,129 @@ impl MultiFrequencyInversion {
     /// search over the cells either side of it within `[lo, hi]`, seeded with the grid's
     /// three points.
     fn refine(&self, lowest: [GridPoint; 2], lo: f64, hi: f64, h: f64, f: impl Fn(f64) -> f64) -> (f64, f64) {
+        let found = search_together(self.searches(lowest, lo, hi, h), |_, x| f(x));
+        lowest_found(&found, lo)
+    }
+
+    /// How far `<u(d), M - t B>` can rise between two grid points `h` apart above the larger
+    /// of its values there, for `t` in `[0, 1]` (the layer's objective) and for `t = 0` (the
+    /// single return's): `h^2 / 8` times a bound on its second derivative,
+    /// `sum_k w_k omega_k^2 |M_k - t B_k|`. Sinusoids only (`None` otherwise): there
+    /// `u_k(d)` turns at `omega_k = 2 pi / R_k` a millimetre and `<u, u>` is the same at every `d`.
+    fn cell_slack(&self, p: &Pixel, h: f64) -> Option<CellSlack> {
+        if !self.sensors.iter().all(|s| s.waveform == Waveform::Sinusoid) {
+            return None;
+        }
+        let (mut layer, mut single) = (0.0, 0.0);
+        for (k, ((s, m), b)) in self.sensors.iter().zip(p.px.measured).zip(p.px.background).enumerate() {
+            let omega = s.phase(1.0);
+            let curvature = p.weight(k) * omega * omega;
+            let (m, b) = (m.a.hypot(m.b), b.a.hypot(b.b));
+            single += curvature * m;
+            layer += curvature * (m + b);
+        }
+        let q = h * h / 8.0;
+        Some(CellSlack {
+            layer: layer * q,
+            single: single * q,
+        })
+    }
+
+    /// Brent's searches of [`Self::refine`], not yet stepped: one over the cells either side
+    /// of each finite grid minimum within `[lo, hi]`, seeded with the grid's three points.
+    fn searches(&self, lowest: [GridPoint; 2], lo: f64, hi: f64, h: f64) -> [Option<BrentSearch>; 2] {
         let tol = self.settings.tolerance_mm;
-        let mut best = (lo, f64::INFINITY);
-        for m in lowest.into_iter().filter(|m| m.value.is_finite()) {
-            let bracket = ((m.x - h).max(lo), (m.x + h).min(hi));
-            let refined = brent_minimum(bracket, m.seed(h), tol, &f);
-            if refined.1 < best.1 {
-                best = refined;
+        lowest.map(|m| {
+            m.value
+                .is_finite()
+                .then(|| BrentSearch::new(((m.x - h).max(lo), (m.x + h).min(hi)), m.seed(h), tol))
+        })
+    }
+}
+
+/// [`MultiFrequencyInversion::cell_slack`]: how far `<u(d), M - t B>` can rise within a
+/// grid cell above its values at the cell's ends, for either objective.
+#[derive(Debug, Clone, Copy)]
+struct CellSlack {
+    layer: f64,
+    single: f64,
+}
+
+/// `lowest` with the second minimum dropped where no point of its cells can come below the
+/// first's grid value (which the first's search only lowers, so the second's search could
+/// not win): where [`cells_lower_bound`] exceeds it by more than the arithmetic's rounding.
+fn worth_refining(
+    [first, second]: [GridPoint; 2],
+    slack: Option<f64>,
+    fixed: &Fixed,
+    objective: impl Fn(Gram) -> f64,
+) -> [GridPoint; 2] {
+    let Some(slack) = slack else {
+        return [first, second];
+    };
+    if !(first.value.is_finite() && second.value.is_finite()) {
+        return [first, second];
+    }
+    // Rounding: the scan's turned phasors and the search's own are a few ulp apart.
+    let rounding = 1e-9 * fixed.mm;
+    match cells_lower_bound(&second, slack, fixed, objective) {
+        Some(bound) if bound > first.value + rounding => [first, GridPoint::NONE],
+        _ => [first, second],
+    }
+}
+
+/// A lower bound of `objective` (the layer's or the single return's chi^2, each the least
+/// squares over `a >= 0` and `t`) on the cells either side of grid minimum `m`: its value
+/// at each grid point there with `<u, M>` raised by `slack`, the lowest. Within a cell
+/// `<u(d), M - t B>` stays below the larger of its ends' values plus `slack` for every `t`,
+/// and `<u, u>` is the same, so the least squares at `d` is no lower than at one of the
+/// ends with that raised correlation. `None` (no bound) where a point's Gram is missing or
+/// `u` is nearly parallel to `B` (the closed form then leaves the interior out).
+fn cells_lower_bound(m: &GridPoint, slack: f64, f: &Fixed, objective: impl Fn(Gram) -> f64) -> Option<f64> {
+    m.grams[1]?;
+    let mut bound = f64::INFINITY;
+    for g in m.grams.iter().flatten() {
+        let det = g.uu * f.bb - g.ub * g.ub;
+        if !(det > 1e-6 * g.uu * f.bb) {
+            return None;
+        }
+        bound = bound.min(objective(Gram { um: g.um + slack, ..*g }));
+    }
+    Some(bound)
+}
+
+/// The lowest point the searches found, in order (the first of equals), or `(lo, inf)`
+/// where there were none.
+fn lowest_found(found: &[Option<BrentSearch>], lo: f64) -> (f64, f64) {
+    let mut best = (lo, f64::INFINITY);
+    for refined in found.iter().flatten().map(BrentSearch::best) {
+        if refined.1 < best.1 {
+            best = refined;
+        }
+    }
+    best
+}
+
+/// Brent's searches stepped together to their ends: in each round every unfinished search
+/// names its next point, all of them are evaluated (`f(i, u)` for search `i`), then each
+/// takes its value. Each search follows the same points as alone; a round's evaluations
+/// do not depend on one another, so the core overlaps them where a search alone waits on
+/// each of its own.
+fn search_together<const N: usize>(
+    mut searches: [Option<BrentSearch>; N],
+    f: impl Fn(usize, f64) -> f64,
+) -> [Option<BrentSearch>; N] {
+    loop {
+        let points = searches.each_mut().map(|s| s.as_mut().and_then(BrentSearch::next));
+        if points.iter().all(Option::is_none) {
+            return searches;
+        }
+        let values: [Option<f64>; N] = std::array::from_fn(|i| points[i].map(|u| f(i, u)));
+        for ((s, u), fu) in searches.iter_mut().zip(points).zip(values) {
+            if let (Some(s), Some(u), Some(fu)) = (s, u, fu) {
+                s.take(u, fu);
             }
         }
-        best
     }
 }
 
@@ -1324,13 +1475,15 @@ impl MultiFrequencyInversion {
 const ROTATED_FREQUENCIES: usize = 8;
 
 /// A local minimum of a grid: its point, value and its neighbours' values (infinite past
-/// an end).
+/// an end), and the Gram products at the three points where the scan gave them (`None`
+/// past an end).
 #[derive(Debug, Clone, Copy)]
 struct GridPoint {
     x: f64,
     value: f64,
     left: f64,
     right: f64,
+    grams: [Option<Gram>; 3],
 }
 
 impl GridPoint {
@@ -1339,6 +1492,7 @@ impl GridPoint {
         value: f64::INFINITY,
         left: f64::INFINITY,
         right: f64::INFINITY,
+        grams: [None; 3],
     };
 
     /// The three points known about the minimum, best first, for [`brent_minimum`].
@@ -1353,15 +1507,15 @@ impl GridPoint {
 /// order (the ends count when no neighbour is lower).
 #[derive(Debug, Clone, Copy)]
 struct GridMinima {
-    before: f64,
-    last: Option<(f64, f64)>,
+    before: (f64, Option<Gram>),
+    last: Option<(f64, f64, Option<Gram>)>,
     lowest: [GridPoint; 2],
 }
 
 impl Default for GridMinima {
     fn default() -> Self {
         Self {
-            before: f64::INFINITY,
+            before: (f64::INFINITY, None),
             last: None,
             lowest: [GridPoint::NONE; 2],
         }
@@ -1369,20 +1523,21 @@ impl Default for GridMinima {
 }
 
 impl GridMinima {
-    /// The next grid point `(x, f(x))`.
-    fn push(&mut self, x: f64, fx: f64) {
-        if let Some((xl, fl)) = self.last {
-            if fl <= self.before && fl <= fx {
+    /// The next grid point `(x, f(x))` and its Gram products, where known.
+    fn push(&mut self, x: f64, fx: f64, gram: Option<Gram>) {
+        if let Some((xl, fl, gl)) = self.last {
+            if fl <= self.before.0 && fl <= fx {
                 self.keep(GridPoint {
                     x: xl,
                     value: fl,
-                    left: self.before,
+                    left: self.before.0,
                     right: fx,
+                    grams: [self.before.1, gl, gram],
                 });
             }
-            self.before = fl;
+            self.before = (fl, gl);
         }
-        self.last = Some((x, fx));
+        self.last = Some((x, fx, gram));
     }
 
     /// Keeps the two lowest, lowest first.
@@ -1397,72 +1552,136 @@ impl GridMinima {
 
     /// The two lowest local minima, lowest first (the last point taken with nothing after it).
     fn lowest(mut self) -> [GridPoint; 2] {
-        self.push(f64::NAN, f64::INFINITY);
+        self.push(f64::NAN, f64::INFINITY, None);
         self.lowest
     }
 }
 
-/// Brent's search for the minimum of `f` on `[lo, hi]` (golden section with parabolic
-/// steps where the parabola through the last three points is trustworthy), to a bracket
-/// about `tol` wide: a smooth minimum takes a handful of evaluations where golden section
+/// Brent's search for the minimum of `f` on `[lo, hi]` to a bracket about `tol` wide
+/// ([`BrentSearch`]): a smooth minimum takes a handful of evaluations where golden section
 /// alone takes one per factor 1.618 of narrowing. `seed` holds the three best points known,
 /// best first; the point returned is never worse than the first (the search moves only to
 /// lower values).
-fn brent_minimum((mut lo, mut hi): (f64, f64), seed: [(f64, f64); 3], tol: f64, f: &impl Fn(f64) -> f64) -> (f64, f64) {
-    const GOLDEN: f64 = 0.381_966_011_250_105_1; // (3 - sqrt 5) / 2
-    const MAX_STEPS: usize = 100;
-    let step_min = 0.25 * tol;
-    // The best point and the second and third best so far: the seed's, which a first
-    // parabolic step may use.
-    let [(mut x, mut fx), (mut w, mut fw), (mut v, mut fv)] = seed;
-    // This step and the one before the last (a parabolic step must halve it).
-    let (mut step, mut older) = (hi - lo, hi - lo);
-    for _ in 0..MAX_STEPS {
-        let mid = 0.5 * (lo + hi);
-        if (x - mid).abs() <= 2.0 * step_min - 0.5 * (hi - lo) {
-            break;
+fn brent_minimum(bracket: (f64, f64), seed: [(f64, f64); 3], tol: f64, f: &impl Fn(f64) -> f64) -> (f64, f64) {
+    let mut search = BrentSearch::new(bracket, seed, tol);
+    while let Some(u) = search.next() {
+        search.take(u, f(u));
+    }
+    search.best()
+}
+
+/// Brent's search for a minimum on a bracket (golden section with parabolic steps where
+/// the parabola through the last three points is trustworthy), one evaluation at a time:
+/// [`BrentSearch::next`] names the point to evaluate, [`BrentSearch::take`] takes its
+/// value, so that several searches can be stepped together ([`search_together`]).
+#[derive(Debug, Clone, Copy)]
+struct BrentSearch {
+    /// The bracket's ends.
+    lo: f64,
+    hi: f64,
+    /// The best point so far and the second and third best, with their values.
+    x: f64,
+    fx: f64,
+    w: f64,
+    fw: f64,
+    v: f64,
+    fv: f64,
+    /// This step and the one before the last (a parabolic step must halve it).
+    step: f64,
+    older: f64,
+    /// The shortest step: a quarter of the tolerance.
+    step_min: f64,
+    /// Evaluations taken so far.
+    evaluations: usize,
+}
+
+impl BrentSearch {
+    /// Evaluations after which the search stops wherever it is.
+    const MAX_EVALUATIONS: usize = 100;
+    /// `(3 - sqrt 5) / 2`: golden section's share of the longer side.
+    const GOLDEN: f64 = 0.381_966_011_250_105_1;
+
+    /// A search of `[lo, hi]` to about `tol` from `seed`, the three best points known, best
+    /// first (a first parabolic step may use them).
+    fn new((lo, hi): (f64, f64), seed: [(f64, f64); 3], tol: f64) -> Self {
+        let [(x, fx), (w, fw), (v, fv)] = seed;
+        Self {
+            lo,
+            hi,
+            x,
+            fx,
+            w,
+            fw,
+            v,
+            fv,
+            step: hi - lo,
+            older: hi - lo,
+            step_min: 0.25 * tol,
+            evaluations: 0,
         }
-        let last = older;
-        older = step;
+    }
+
+    /// The best point so far and its value.
+    fn best(&self) -> (f64, f64) {
+        (self.x, self.fx)
+    }
+
+    /// The next point to evaluate, to be answered by [`Self::take`]; `None` (and nothing
+    /// changed) once the bracket is about `tol` wide or the evaluations are spent.
+    fn next(&mut self) -> Option<f64> {
+        let (lo, hi, x, step_min) = (self.lo, self.hi, self.x, self.step_min);
+        let mid = 0.5 * (lo + hi);
+        if self.evaluations >= Self::MAX_EVALUATIONS || (x - mid).abs() <= 2.0 * step_min - 0.5 * (hi - lo) {
+            return None;
+        }
+        let last = self.older;
+        self.older = self.step;
         let parabolic = (last.abs() > step_min)
-            .then(|| parabola_step(x, fx, w, fw, v, fv))
+            .then(|| parabola_step(x, self.fx, self.w, self.fw, self.v, self.fv))
             .flatten()
             .filter(|&p| p.abs() < 0.5 * last.abs() && x + p > lo && x + p < hi);
-        step = match parabolic {
+        self.step = match parabolic {
             Some(p) if x + p - lo < 2.0 * step_min || hi - (x + p) < 2.0 * step_min => step_min.copysign(mid - x),
             Some(p) => p,
             None => {
-                older = if x >= mid { lo - x } else { hi - x };
-                GOLDEN * older
+                self.older = if x >= mid { lo - x } else { hi - x };
+                Self::GOLDEN * self.older
             }
         };
-        let u = x + if step.abs() >= step_min {
-            step
-        } else {
-            step_min.copysign(step)
-        };
-        let fu = f(u);
-        if fu <= fx {
-            if u >= x {
-                lo = x;
+        let step = self.step;
+        Some(
+            x + if step.abs() >= step_min {
+                step
             } else {
-                hi = x;
-            }
-            ((v, fv), (w, fw), (x, fx)) = ((w, fw), (x, fx), (u, fu));
-        } else {
-            if u < x {
-                lo = u;
+                step_min.copysign(step)
+            },
+        )
+    }
+
+    /// The value `fu` at `u`, the point [`Self::next`] named: the bracket narrowed and the
+    /// three best points kept.
+    fn take(&mut self, u: f64, fu: f64) {
+        self.evaluations += 1;
+        if fu <= self.fx {
+            if u >= self.x {
+                self.lo = self.x;
             } else {
-                hi = u;
+                self.hi = self.x;
             }
-            if fu <= fw || w == x {
-                ((v, fv), (w, fw)) = ((w, fw), (u, fu));
-            } else if fu <= fv || v == x || v == w {
-                (v, fv) = (u, fu);
+            ((self.v, self.fv), (self.w, self.fw), (self.x, self.fx)) = ((self.w, self.fw), (self.x, self.fx), (u, fu));
+        } else {
+            if u < self.x {
+                self.lo = u;
+            } else {
+                self.hi = u;
+            }
+            if fu <= self.fw || self.w == self.x {
+                ((self.v, self.fv), (self.w, self.fw)) = ((self.w, self.fw), (u, fu));
+            } else if fu <= self.fv || self.v == self.x || self.v == self.w {
+                (self.v, self.fv) = (u, fu);
             }
         }
     }
-    (x, fx)
 }
 
 /// The step from `x` to the vertex of the parabola through `(x, fx)`, `(w, fw)`, `(v, fv)`;
@@ -1817,6 +2036,51 @@ mod tests {
             seen += 1;
         });
         assert_eq!(seen, cells + 1);
+    }
+
+    #[test]
+    fn a_cells_lower_bound_is_below_its_objective_across_the_cells() {
+        let (mf, inv) = model(Waveform::Sinusoid, &THREE);
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let mut bounded = 0;
+        for &(df, db, xi) in &[(800.0, 3300.0, 0.65), (500.0, 2000.0, 0.9), (1500.0, 4000.0, 0.3)] {
+            for noise in [NOISE_FREE, NOISE] {
+                let mut o = Observed::new(&mf, &scene(df, db, xi), noise);
+                o.add_noise(&mut rng);
+                let px = o.phasors();
+                let p = inv.pixel(&px).expect("a valid pixel");
+                let (cells, h) = inv.grid(p.lo, db);
+                let mut grams = vec![];
+                inv.scan_grams(&p, p.lo, h, cells, |d, g| grams.push((d, g)));
+                let slack = inv.cell_slack(&p, h).expect("sinusoids");
+                let two = |g: Gram| g.two_returns(&p.fixed).chi_square;
+                let one = |g: Gram| g.chi_square(&p.fixed, g.return_at(0.0), 0.0);
+                for j in 0..grams.len() {
+                    let m = GridPoint {
+                        x: grams[j].0,
+                        grams: [
+                            j.checked_sub(1).map(|i| grams[i].1),
+                            Some(grams[j].1),
+                            grams.get(j + 1).map(|g| g.1),
+                        ],
+                        ..GridPoint::NONE
+                    };
+                    let (lo, hi) = ((m.x - h).max(p.lo), (m.x + h).min(db));
+                    for (objective, s) in [(&two as &dyn Fn(Gram) -> f64, slack.layer), (&one, slack.single)] {
+                        let Some(bound) = cells_lower_bound(&m, s, &p.fixed, objective) else {
+                            continue;
+                        };
+                        bounded += 1;
+                        for i in 0..=200 {
+                            let d = lo + (hi - lo) * i as f64 / 200.0;
+                            let f = objective(inv.gram(&p, d));
+                            assert!(bound <= f, "{df} {db} {xi}: bound {bound} above {f} at {d}");
+                        }
+                    }
+                }
+            }
+        }
+        assert!(bounded > 100, "{bounded} cells bounded");
     }
 
     #[test]
