@@ -813,6 +813,12 @@ impl MultiFrequencyInversion {
         reach_mm: f64,
         limit: f64,
     ) -> Result<bool, MultiFrequencyError> {
+        if self
+            .amplitude_spread(&self.pixel(px)?)
+            .is_some_and(|spread| spread > limit)
+        {
+            return Ok(false);
+        }
         let scan = IndirectScan::new(self, px, reach_mm)?;
         if scan.lowest_on_grid <= limit {
             return Ok(true);
@@ -823,6 +829,27 @@ impl MultiFrequencyInversion {
             }
         }
         Ok(self.indirect_change(px, reach_mm)?.chi_square <= limit)
+    }
+
+    /// A bound under [`Self::indirect_change`]'s `chi^2` at every `d2`, for the sinusoid
+    /// (`None` otherwise): one return has the same amplitude at every frequency (`|u_k| = 1`),
+    /// so `|D_k - c u_k| >= | |D_k| - |c| |` with `D = M - B`, and `chi^2` is at least the
+    /// weighted spread of the amplitudes `|D_k|` about their weighted mean. A layer's return
+    /// and the background's dimming interfere differently at each frequency, which spreads
+    /// them; a change one return behind the background makes does not.
+    fn amplitude_spread(&self, p: &Pixel) -> Option<f64> {
+        if !self.sensors.iter().all(|s| s.waveform == Waveform::Sinusoid) {
+            return None;
+        }
+        let px = p.px;
+        let amplitude = |k: usize| {
+            let (m, b) = (px.measured[k], px.background[k]);
+            (m.a - b.a).hypot(m.b - b.b)
+        };
+        let k = self.sensors.len();
+        let total: f64 = (0..k).map(|j| p.weight(j)).sum();
+        let mean = (0..k).map(|j| p.weight(j) * amplitude(j)).sum::<f64>() / total;
+        Some((0..k).map(|j| p.weight(j) * (amplitude(j) - mean).powi(2)).sum())
     }
 
     /// The frequencies' common unambiguous range, mm.
@@ -1969,6 +1996,12 @@ mod tests {
                 explained += usize::from(indirect.chi_square - est.chi_square <= LEVEL);
                 let within = inv.indirect_change_within(&o.phasors(), 3000.0, est.chi_square + LEVEL);
                 assert_eq!(within.ok(), Some(indirect.chi_square <= est.chi_square + LEVEL));
+                let px = o.phasors();
+                let spread = inv.amplitude_spread(&inv.pixel(&px).expect("pixel")).expect("sinusoid");
+                assert!(
+                    spread <= indirect.chi_square * (1.0 + 1e-12),
+                    "{spread} over {indirect:?}"
+                );
                 draws += 1;
             }
         }
@@ -1988,6 +2021,12 @@ mod tests {
                     let indirect = inv.indirect_change(&o.phasors(), 3000.0).expect("indirect");
                     let within = inv.indirect_change_within(&o.phasors(), 3000.0, est.chi_square + LEVEL);
                     assert_eq!(within.ok(), Some(false), "the grid's bound and the refined fit differ");
+                    let px = o.phasors();
+                    let spread = inv.amplitude_spread(&inv.pixel(&px).expect("pixel")).expect("sinusoid");
+                    assert!(
+                        spread <= indirect.chi_square * (1.0 + 1e-12),
+                        "{spread} over {indirect:?}"
+                    );
                     assert!(
                         indirect.chi_square - est.chi_square > LEVEL,
                         "a layer of xi {xi} at {df} mm explained: {indirect:?} against {est:?}"
