@@ -91,12 +91,17 @@ const OUTLINE_MODEL_SIGMA: f64 = 0.15;
 /// (ξ near 1) dims the background so little that one pixel's share is a coin's toss where
 /// a run of them is not. `band` is one layer's outline; the result is in its order.
 pub fn pooled_along_outline(band: &[OutlinePixel]) -> Vec<Coverage> {
+    // The band by row, so that each pixel looks only at the rows within the radius.
+    let mut by_row: Vec<OutlinePixel> = band.to_vec();
+    by_row.sort_by(|a, b| a.y.total_cmp(&b.y));
     band.iter()
         .map(|p| {
             if p.coverage.decided() {
                 return p.coverage;
             }
-            plane_at(p, band).unwrap_or(p.coverage)
+            let first = by_row.partition_point(|q| q.y < p.y - OUTLINE_RADIUS_PX);
+            let last = by_row.partition_point(|q| q.y <= p.y + OUTLINE_RADIUS_PX);
+            plane_at(p, &by_row[first..last]).unwrap_or(p.coverage)
         })
         .collect()
 }

@@ -1392,20 +1392,24 @@ impl MultiFrequencyStage {
             y: (i / w) as f64,
             coverage,
         };
-        let beside = (0..w * h).filter(|&i| open(i)).filter_map(|i| {
-            let region = neighbour_region(i)?;
-            let xi = regions.get(region as usize - 1)?.xi.xi;
-            let near = self.local_layer(i, region, labels, results)?.distance_mm;
-            let p = self.pixel_inputs(frame, i)?;
-            let (t, sd) = self.inversion.background_share_at(&p.phasors(), near).ok()?;
-            let cov = Coverage::from_background_share(t, sd, xi)?;
-            Some(BandPixel {
-                pixel: i,
-                region,
-                at: at(i, cov),
-                gap_mm: Some(p.background_distance_mm - near),
+        let beside: Vec<BandPixel> = (0..w * h)
+            .into_par_iter()
+            .filter(|&i| open(i))
+            .filter_map(|i| {
+                let region = neighbour_region(i)?;
+                let xi = regions.get(region as usize - 1)?.xi.xi;
+                let near = self.local_layer(i, region, labels, results)?.distance_mm;
+                let p = self.pixel_inputs(frame, i)?;
+                let (t, sd) = self.inversion.background_share_at(&p.phasors(), near).ok()?;
+                let cov = Coverage::from_background_share(t, sd, xi)?;
+                Some(BandPixel {
+                    pixel: i,
+                    region,
+                    at: at(i, cov),
+                    gap_mm: Some(p.background_distance_mm - near),
+                })
             })
-        });
+            .collect();
         let inside = (0..w * h).filter_map(|i| {
             let region = labels.data[i];
             if region == 0 || region > layers || neighbours(i).all(|n| with_grown.data[n] == region) {
@@ -1420,7 +1424,7 @@ impl MultiFrequencyStage {
                 gap_mm: None,
             })
         });
-        beside.chain(inside).collect()
+        beside.into_iter().chain(inside).collect()
     }
 
     /// A layer region's own pixels on its outline (an 8-neighbour outside the mask) that the
