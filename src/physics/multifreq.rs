@@ -303,60 +303,55 @@ struct IndirectScan<'a> {
 }
 
 impl<'a> IndirectScan<'a> {
-    fn new(
-        inv: &MultiFrequencyInversion,
-        px: &'a PixelPhasors<'a>,
-        reach_mm: f64,
-    ) -> Result<Self, MultiFrequencyError> {
-        let p = inv.pixel(px)?;
-        let db = px.background_distance_mm;
+    /// The grid over `[db, db + reach_mm]` (within the common range) of a validated pixel.
+    fn new(inv: &MultiFrequencyInversion, p: Pixel<'a>, reach_mm: f64) -> Self {
+        let db = p.px.background_distance_mm;
         let hi = (db + reach_mm.max(0.0))
             .min(inv.settings.min_distance_mm + inv.common_range_mm)
             .max(db);
         let f = &p.fixed;
+        let dd = (f.mm - 2.0 * f.bm + f.bb).max(0.0);
         let (cells, h) = inv.grid(db, hi);
-        let mut scan = Self {
+        let (mut minima, mut lowest_on_grid, mut largest_ud, mut uu) =
+            (GridMinima::default(), f64::INFINITY, 0.0_f64, 0.0);
+        inv.scan_grams(&p, db, h, cells, |d, g| {
+            let chi = Self::fit_with(dd, g).1;
+            minima.push(d, chi, None);
+            lowest_on_grid = lowest_on_grid.min(chi);
+            largest_ud = largest_ud.max((g.um - g.ub).abs());
+            uu = g.uu;
+        });
+        Self {
             p,
             db,
             hi,
             h,
-            dd: (f.mm - 2.0 * f.bm + f.bb).max(0.0),
-            minima: GridMinima::default(),
-            lowest_on_grid: f64::INFINITY,
-            largest_ud: 0.0,
-            uu: 0.0,
-        };
-        let (mut minima, mut lowest, mut largest, mut uu) = (GridMinima::default(), f64::INFINITY, 0.0_f64, 0.0);
-        inv.scan_grams(&p, db, h, cells, |d, g| {
-            let chi = scan.fit(g).1;
-            minima.push(d, chi, None);
-            lowest = lowest.min(chi);
-            largest = largest.max((g.um - g.ub).abs());
-            uu = g.uu;
-        });
-        (scan.minima, scan.lowest_on_grid, scan.largest_ud, scan.uu) = (minima, lowest, largest, uu);
-        Ok(scan)
+            dd,
+            minima,
+            lowest_on_grid,
+            largest_ud,
+            uu,
+        }
     }
 
     /// `(c, chi^2)` at one `d2`: `c = <u, D> / <u, u>`, `chi^2 = <D, D> - c <u, D>`.
     fn fit(&self, g: Gram) -> (f64, f64) {
+        Self::fit_with(self.dd, g)
+    }
+
+    fn fit_with(dd: f64, g: Gram) -> (f64, f64) {
         let ud = g.um - g.ub;
         let c = if g.uu > 0.0 { ud / g.uu } else { 0.0 };
-        (c, (self.dd - c * ud).max(0.0))
+        (c, (dd - c * ud).max(0.0))
     }
 
     /// A bound under `chi^2` everywhere on `[db, hi]` (the sinusoid only; `None` otherwise).
     fn lower_bound(&self, inv: &MultiFrequencyInversion) -> Option<f64> {
-        if !(self.uu > 0.0 && inv.sensors.iter().all(|s| s.waveform == Waveform::Sinusoid)) {
+        if !(self.uu > 0.0 && inv.sinusoid()) {
             return None;
         }
-        let px = self.p.px;
-        let slope: f64 = inv
-            .sensors
-            .iter()
-            .zip(px.measured.iter().zip(px.background))
-            .zip(px.noise_sigma)
-            .map(|((s, (m, b)), sigma)| s.phase(1.0).abs() * (m.a - b.a).hypot(m.b - b.b) / (sigma * sigma))
+        let slope: f64 = (0..inv.sensors.len())
+            .map(|k| inv.sensors[k].phase(1.0).abs() * self.p.weight(k) * self.p.change_amplitude(k))
             .sum();
         let ud = self.largest_ud + slope * self.h / 2.0;
         Some((self.dd - ud * ud / self.uu).max(0.0))
@@ -536,6 +531,12 @@ impl Pixel<'_> {
             let sigma = self.px.noise_sigma[k];
             1.0 / (sigma * sigma)
         })
+    }
+
+    /// `|M_k - B_k|`: how far the phasor at frequency `k` moved from the background's.
+    fn change_amplitude(&self, k: usize) -> f64 {
+        let (m, b) = (self.px.measured[k], self.px.background[k]);
+        (m.a - b.a).hypot(m.b - b.b)
     }
 
     /// The scan's range `[lo, hi]` narrowed to `[near, far]` where that lies inside it.
@@ -791,44 +792,44 @@ impl MultiFrequencyInversion {
     /// light changes a pixel's phasors by a return at or beyond its background: no layer
     /// stands before it.
     pub fn indirect_change(&self, px: &PixelPhasors, reach_mm: f64) -> Result<IndirectChange, MultiFrequencyError> {
-        let scan = IndirectScan::new(self, px, reach_mm)?;
+        Ok(self.refined(&IndirectScan::new(self, self.pixel(px)?, reach_mm)))
+    }
+
+    /// [`Self::indirect_change`] refined from its grid.
+    fn refined(&self, scan: &IndirectScan) -> IndirectChange {
         let (d2, chi_square) = self.refine(scan.minima.lowest(), scan.db, scan.hi, scan.h, |d| {
             scan.fit(self.gram(&scan.p, d)).1
         });
-        Ok(IndirectChange {
+        IndirectChange {
             distance_mm: d2,
             strength: scan.fit(self.gram(&scan.p, d2)).0,
             chi_square,
-        })
+        }
     }
 
     /// Whether [`Self::indirect_change`]'s `chi^2` is at most `limit`, refining only where
     /// the grid cannot tell: a grid point at or under it says yes; for the sinusoid,
     /// `chi^2(d2) = <D, D> - <u, D>^2 / <u, u>` with `|d <u, D> / d d2| <= sum_k w_k omega_k
     /// |D_k|`, so no point within half a cell of the grid falls under a bound the grid
-    /// gives, and a bound above `limit` says no.
+    /// gives, and a bound above `limit` says no; nor does [`Self::amplitude_spread`] above it.
     pub fn indirect_change_within(
         &self,
         px: &PixelPhasors,
         reach_mm: f64,
         limit: f64,
     ) -> Result<bool, MultiFrequencyError> {
-        if self
-            .amplitude_spread(&self.pixel(px)?)
-            .is_some_and(|spread| spread > limit)
-        {
+        let p = self.pixel(px)?;
+        if self.amplitude_spread(&p).is_some_and(|spread| spread > limit) {
             return Ok(false);
         }
-        let scan = IndirectScan::new(self, px, reach_mm)?;
+        let scan = IndirectScan::new(self, p, reach_mm);
         if scan.lowest_on_grid <= limit {
             return Ok(true);
         }
-        if let Some(bound) = scan.lower_bound(self) {
-            if bound > limit {
-                return Ok(false);
-            }
+        if scan.lower_bound(self).is_some_and(|bound| bound > limit) {
+            return Ok(false);
         }
-        Ok(self.indirect_change(px, reach_mm)?.chi_square <= limit)
+        Ok(self.refined(&scan).chi_square <= limit)
     }
 
     /// A bound under [`Self::indirect_change`]'s `chi^2` at every `d2`, for the sinusoid
@@ -838,18 +839,23 @@ impl MultiFrequencyInversion {
     /// and the background's dimming interfere differently at each frequency, which spreads
     /// them; a change one return behind the background makes does not.
     fn amplitude_spread(&self, p: &Pixel) -> Option<f64> {
-        if !self.sensors.iter().all(|s| s.waveform == Waveform::Sinusoid) {
+        if !self.sinusoid() {
             return None;
         }
-        let px = p.px;
-        let amplitude = |k: usize| {
-            let (m, b) = (px.measured[k], px.background[k]);
-            (m.a - b.a).hypot(m.b - b.b)
-        };
         let k = self.sensors.len();
         let total: f64 = (0..k).map(|j| p.weight(j)).sum();
-        let mean = (0..k).map(|j| p.weight(j) * amplitude(j)).sum::<f64>() / total;
-        Some((0..k).map(|j| p.weight(j) * (amplitude(j) - mean).powi(2)).sum())
+        let mean = (0..k).map(|j| p.weight(j) * p.change_amplitude(j)).sum::<f64>() / total;
+        Some(
+            (0..k)
+                .map(|j| p.weight(j) * (p.change_amplitude(j) - mean).powi(2))
+                .sum(),
+        )
+    }
+
+    /// Every frequency's correlation is the sinusoid (unit returns of one amplitude, turning
+    /// at a constant rate): what the scans' rotation and their bounds rely on.
+    fn sinusoid(&self) -> bool {
+        self.sensors.iter().all(|s| s.waveform == Waveform::Sinusoid)
     }
 
     /// The frequencies' common unambiguous range, mm.
@@ -1318,7 +1324,7 @@ impl MultiFrequencyInversion {
     /// (no trigonometry inside the scan); other waveforms are evaluated at each point.
     fn scan_grams(&self, p: &Pixel, lo: f64, h: f64, cells: usize, mut visit: impl FnMut(f64, Gram)) {
         let k = self.sensors.len();
-        let sinusoid = k <= ROTATED_FREQUENCIES && self.sensors.iter().all(|s| s.waveform == Waveform::Sinusoid);
+        let sinusoid = k <= ROTATED_FREQUENCIES && self.sinusoid();
         if !sinusoid {
             for j in 0..=cells {
                 let d = lo + j as f64 * h;
@@ -1382,7 +1388,7 @@ impl MultiFrequencyInversion {
     /// `sum_k w_k omega_k^2 |M_k - t B_k|`. Sinusoids only (`None` otherwise): there
     /// `u_k(d)` turns at `omega_k = 2 pi / R_k` a millimetre and `<u, u>` is the same at every `d`.
     fn cell_slack(&self, p: &Pixel, h: f64) -> Option<CellSlack> {
-        if !self.sensors.iter().all(|s| s.waveform == Waveform::Sinusoid) {
+        if !self.sinusoid() {
             return None;
         }
         let (mut layer, mut single) = (0.0, 0.0);

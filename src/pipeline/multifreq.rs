@@ -553,6 +553,12 @@ struct PixelResult {
 }
 
 impl PixelResult {
+    /// The share of this layer pixel that a layer of `xi` covers, from its own `ξ_p^2`: the
+    /// background's share left there.
+    fn own_share(&self, xi: f64) -> Option<Coverage> {
+        Coverage::from_background_share(self.xi * self.xi, 2.0 * self.xi * self.xi_sigma, xi)
+    }
+
     fn only(class: PixelClass) -> Self {
         Self {
             class,
@@ -1415,8 +1421,7 @@ impl MultiFrequencyStage {
             if region == 0 || region > layers || neighbours(i).all(|n| with_grown.data[n] == region) {
                 return None;
             }
-            let (p, xi) = (&results[i], regions.get(region as usize - 1)?.xi.xi);
-            let cov = Coverage::from_background_share(p.xi * p.xi, 2.0 * p.xi * p.xi_sigma, xi)?;
+            let cov = results[i].own_share(regions.get(region as usize - 1)?.xi.xi)?;
             Some(BandPixel {
                 pixel: i,
                 region,
@@ -1768,7 +1773,7 @@ impl OutlineShares<'_> {
             return Some(self.pooled[k].1);
         }
         let region = self.regions.get(label as usize - 1)?;
-        Coverage::from_background_share(p.xi * p.xi, 2.0 * p.xi * p.xi_sigma, region.xi.xi)
+        p.own_share(region.xi.xi)
     }
 }
 
