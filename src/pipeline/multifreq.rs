@@ -956,6 +956,18 @@ impl MultiFrequencyStage {
                 regions = self::regions(&labels, layers, results, pixel_sr);
             }
         }
+        if latched.is_some() {
+            let rims = self.opaque_edge_pixels(&labels, layers, results, &regions);
+            if !rims.is_empty() {
+                (labels, layers) = without_pixels(&labels, layers, &rims);
+                for &i in &rims {
+                    mask.data[i] = false;
+                }
+                opaque_edges.extend(rims);
+                opaque_edges.sort_unstable();
+                regions = self::regions(&labels, layers, results, pixel_sr);
+            }
+        }
         // An opaque edge's pixels are the object's: no layer grows into them.
         let edge_classed: Vec<PixelResult>;
         let results = if opaque_edges.is_empty() {
@@ -1079,14 +1091,7 @@ impl MultiFrequencyStage {
             t[0] += 1;
             let all_inside = neighbours(i).count() == 8 && neighbours(i).all(|n| labels.data[n] == l);
             t[1] += usize::from(all_inside);
-            let (p, d) = (&results[i], results[i].distance_mm);
-            let (mut touching, mut beside) = (false, false);
-            for n in neighbours(i).filter(|&n| labels.data[n] > layers) {
-                let q = &results[n];
-                let tol = (3.0 * p.distance_sigma_mm.hypot(q.distance_sigma_mm)).max(0.02 * d);
-                touching = true;
-                beside |= (d - q.distance_mm).abs() <= tol;
-            }
+            let (touching, beside) = beside_opaque(i, labels, layers, results);
             t[2] += usize::from(touching);
             t[3] += usize::from(beside);
         }
@@ -1094,6 +1099,36 @@ impl MultiFrequencyStage {
             .filter(|&l| {
                 let [n, inside, touching, beside] = tally[l as usize];
                 n > 0 && inside == 0 && 2 * touching >= n && 2 * beside >= touching
+            })
+            .collect()
+    }
+
+    /// Where an opaque object's edge runs along a sheet and joins the sheet's region: the
+    /// region's pixels off its interior, beside an opaque region at that region's distance
+    /// (as in [`Self::opaque_edge_regions`]), that hide more of the background than the
+    /// region's material could over the whole pixel (a share of it beyond 1 by more than
+    /// `change_sigmas` of its σ). Such a pixel's `1 - ξ_p^2` is the object's share of it; a
+    /// layer pixel of the region's material hides at most `1 - ξ^2`.
+    fn opaque_edge_pixels(
+        &self,
+        labels: &ImageBuf<u32>,
+        layers: u32,
+        results: &[PixelResult],
+        regions: &[RegionOutput],
+    ) -> Vec<usize> {
+        let (w, h) = (labels.width, labels.height);
+        let z = self.config.change_sigmas;
+        (0..labels.len())
+            .filter(|&i| {
+                let l = labels.data[i];
+                let Some(region) = (l >= 1 && l <= layers).then(|| regions.get(l as usize - 1)).flatten() else {
+                    return false;
+                };
+                let beyond_whole = results[i]
+                    .own_share(region.xi.xi)
+                    .is_some_and(|c| c.share - 1.0 > z * c.share_sigma);
+                let by_background = neighbours_8(i, w, h).any(|n| labels.data[n] == 0);
+                by_background && beyond_whole && beside_opaque(i, labels, layers, results).1
             })
             .collect()
     }
@@ -1809,6 +1844,41 @@ struct Growth {
 
 /// `labels` without the layer regions `dropped` (their pixels 0), the others numbered again
 /// from 1 in order, the opaque regions after them; and the new layer count.
+/// Whether layer pixel `i` touches an opaque region (one of the 8 neighbours labelled past
+/// `layers`), and whether its fitted distance is that neighbour's (within 3 σ of the two, or
+/// 2 % of the distance).
+fn beside_opaque(i: usize, labels: &ImageBuf<u32>, layers: u32, results: &[PixelResult]) -> (bool, bool) {
+    let (p, d) = (&results[i], results[i].distance_mm);
+    let (mut touching, mut beside) = (false, false);
+    for n in neighbours_8(i, labels.width, labels.height).filter(|&n| labels.data[n] > layers) {
+        let q = &results[n];
+        let tol = (3.0 * p.distance_sigma_mm.hypot(q.distance_sigma_mm)).max(0.02 * d);
+        touching = true;
+        beside |= (d - q.distance_mm).abs() <= tol;
+    }
+    (touching, beside)
+}
+
+/// `labels` with `pixels` taken off their regions, and the layer regions left empty dropped.
+fn without_pixels(labels: &ImageBuf<u32>, layers: u32, pixels: &[usize]) -> (ImageBuf<u32>, u32) {
+    let mut out = labels.clone();
+    for &i in pixels {
+        out.data[i] = 0;
+    }
+    let mut left = vec![false; layers as usize + 1];
+    for &l in &out.data {
+        if l >= 1 && l <= layers {
+            left[l as usize] = true;
+        }
+    }
+    let empty: Vec<u32> = (1..=layers).filter(|&l| !left[l as usize]).collect();
+    if empty.is_empty() {
+        (out, layers)
+    } else {
+        drop_layer_regions(&out, layers, &empty)
+    }
+}
+
 fn drop_layer_regions(labels: &ImageBuf<u32>, layers: u32, dropped: &[u32]) -> (ImageBuf<u32>, u32) {
     let mut new_id = vec![0u32; layers as usize + 1];
     let mut next = 0;
@@ -2749,6 +2819,58 @@ albedo = 0.7
         // The sheet is still a layer.
         let c = SheetAndBox::of(&out, d, truth);
         assert!(c.in_mask * 100 >= c.sheet * 90, "{c:?}");
+    }
+
+    #[test]
+    fn an_opaque_edge_that_runs_into_a_sheet_takes_what_its_centre_sees() {
+        // A faint sheet (ξ 0.9, 1280 mm) taller than the box (1300 mm) it touches: the box's
+        // top and bottom outlines run into the sheet, and their mixed pixels (a layer at the
+        // box's distance hiding the wall's share 1 - ξ_p^2) join the sheet's region. The
+        // sheet hides at most 1 - 0.81 of the wall; where an outline pixel hides more, the
+        // rest is the box's, and its centre sees the box or the wall as that share says.
+        let text = SCENE
+            .replace("[camera]\n", "[camera]\nsupersample = 4\n")
+            .replace("center_mm = [120, 0, 900]", "center_mm = [150, 0, 1280]")
+            .replace("tilt_y_deg = 25\nxi = 0.75", "tilt_y_deg = 0\nxi = 0.9")
+            .replace("center_mm = [-250, 0, 1300]", "center_mm = [-100, 0, 1300]");
+        let (s, all) = latched_on(&text);
+        let (p, d, truth) = &all[6];
+        let out = s.process(p, d).expect("frame");
+        let (w, h) = (truth.width, truth.height);
+        // The wall's pixels beside the box's top and bottom (the box's pixel above or below),
+        // away from the sheet (no sheet pixel within two columns).
+        let at = |r: isize, c: isize| {
+            (r >= 0 && c >= 0 && (r as usize) < h && (c as usize) < w)
+                .then(|| f64::from(truth.data[r as usize * w + c as usize]))
+        };
+        let is_box = |t: Option<f64>| t.is_some_and(|t| (t - 1300.0).abs() < 5.0);
+        let is_sheet = |t: Option<f64>| t.is_some_and(|t| (t - 1280.0).abs() < 5.0);
+        let (mut n, mut raw2, mut pub2) = (0, 0.0, 0.0);
+        for i in 0..truth.data.len() {
+            let (r, c) = ((i / w) as isize, (i % w) as isize);
+            let wall = !truth.data[i].is_finite() || truth.data[i] > 1900.0;
+            let rim = is_box(at(r - 1, c)) || is_box(at(r + 1, c));
+            let by_sheet = (-2..=2).any(|dc| (-1..=1).any(|dr| is_sheet(at(r + dr, c + dc))));
+            if !wall || !rim || by_sheet {
+                continue;
+            }
+            n += 1;
+            raw2 += (f64::from(d.z_mm.data[i]) - 2000.0).powi(2);
+            pub2 += (f64::from(out.frame.corrected_z_mm.data[i]) - 2000.0).powi(2);
+        }
+        let (raw, published) = ((raw2 / n.max(1) as f64).sqrt(), (pub2 / n.max(1) as f64).sqrt());
+        assert!(n >= 10, "{n} outline pixels");
+        assert!(
+            published < raw,
+            "{published:.1} against {raw:.1} mm read over {n} pixels whose centre sees the wall"
+        );
+        // The sheet stays a layer.
+        let sheet = (0..truth.data.len()).filter(|&i| is_sheet(Some(f64::from(truth.data[i]))));
+        let (count, masked) = sheet.fold((0, 0), |a, i| (a.0 + 1, a.1 + usize::from(out.frame.mask.data[i])));
+        assert!(
+            masked * 100 >= count * 90,
+            "{masked} of {count} sheet pixels in the mask"
+        );
     }
 
     #[test]
