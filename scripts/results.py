@@ -136,6 +136,10 @@ def evaluate(bag, replay_args, exe):
     opaque_raw_err = defaultdict(list)
     # Each translucent material's per-frame RMS over its pixels with truth: published, raw.
     object_rms, object_raw = defaultdict(list), defaultdict(list)
+    # The same away from the object's outline (no 8-neighbour of another material): what
+    # is left where a pixel holds one object, not two.
+    inner_rms, inner_raw = defaultdict(list), defaultdict(list)
+    width = side.get("sensor", {}).get("width")
     stages = defaultdict(set)
     for stamp, truth_msg in sorted(inp["ground_truth/depth"].items()):
         if stamp not in inp["ground_truth/material"] or stamp not in inp["depth/image_raw"]:
@@ -154,6 +158,7 @@ def evaluate(bag, replay_args, exe):
         xi_img = image_values(res["translucency_image"][stamp]) if stamp in res["translucency_image"] else None
         frame_xi = defaultdict(list)
         obj_sq = defaultdict(lambda: [0.0, 0.0, 0])
+        inner_sq = defaultdict(lambda: [0.0, 0.0, 0])
         e2, r2, n = 0.0, 0.0, 0
         a2, ar2, an = 0.0, 0.0, 0
         off = [0.0, 0.0, 0]
@@ -193,6 +198,11 @@ def evaluate(bag, replay_args, exe):
                 o[0] += (z[i] - truth[i]) ** 2
                 o[1] += (raw[i] - truth[i]) ** 2
                 o[2] += 1
+                if width and not on_outline(mat, i, width):
+                    o = inner_sq[m]
+                    o[0] += (z[i] - truth[i]) ** 2
+                    o[1] += (raw[i] - truth[i]) ** 2
+                    o[2] += 1
             if corr is not None and mask[i] and math.isfinite(z[i]):
                 covered += 1
                 if math.isfinite(sigma[i]):
@@ -212,6 +222,9 @@ def evaluate(bag, replay_args, exe):
         for m, (e, r_, k) in obj_sq.items():
             object_rms[m].append(math.sqrt(e / k))
             object_raw[m].append(math.sqrt(r_ / k))
+        for m, (e, r_, k) in inner_sq.items():
+            inner_rms[m].append(math.sqrt(e / k))
+            inner_raw[m].append(math.sqrt(r_ / k))
         if n:
             frame_rms.append(math.sqrt(e2 / n))
             frame_raw.append(math.sqrt(r2 / n))
@@ -284,6 +297,9 @@ def evaluate(bag, replay_args, exe):
             # every pixel of the object with truth: the mean over frames of each frame's RMS
             row["rms_mm"] = statistics.fmean(object_rms[mid])
             row["rms_raw_mm"] = statistics.fmean(object_raw[mid])
+        if inner_rms.get(mid):
+            row["rms_inner_mm"] = statistics.fmean(inner_rms[mid])
+            row["rms_inner_raw_mm"] = statistics.fmean(inner_raw[mid])
         if not xi_measured:
             row["xi_not_measured"] = True
         if e:
@@ -297,6 +313,14 @@ def evaluate(bag, replay_args, exe):
             row["xi_pixel_frame_medians"] = [min(pixel_xi[mid]), max(pixel_xi[mid])]
         out["materials"].append(row)
     return out
+
+
+def on_outline(mat, i, width):
+    """Whether pixel `i` has an 8-neighbour of another material (or of none)."""
+    r, c = divmod(i, width)
+    height = len(mat) // width
+    return any(0 <= r + dr < height and 0 <= c + dc < width and mat[(r + dr) * width + c + dc] != mat[i]
+               for dr in (-1, 0, 1) for dc in (-1, 0, 1))
 
 
 def latched_background(side, inp, replay_args):
@@ -420,7 +444,9 @@ def print_row(r):
          f"xi {m['xi_true']:.2f}: not measured (no background latched)" if m.get("xi_not_measured") else
          f"xi {m['xi_true']:.2f}: {fmt(m.get('xi'), '.3f')} [{fmt((m.get('xi_interval') or [None])[0], '.2f')}, "
          f"{fmt((m.get('xi_interval') or [None, None])[1], '.2f')}]{'' if m.get('inside') else ' MISS'}")
-        + (f" ({fmt(m['rms_raw_mm'])} -> {fmt(m['rms_mm'])} mm)" if "rms_mm" in m else "")
+        + (f" ({fmt(m['rms_raw_mm'])} -> {fmt(m['rms_mm'])} mm" if "rms_mm" in m else "")
+        + (f", off its outline {fmt(m['rms_inner_raw_mm'])} -> {fmt(m['rms_inner_mm'])} mm" if "rms_inner_mm" in m else "")
+        + (")" if "rms_mm" in m else "")
         for m in r["materials"]
     )
     opq = "; ".join(

@@ -188,6 +188,7 @@ fn frame_row(out: &MultiFrequencyOutput, f: &DepthFrame, rec: &Recording, errors
             "xi_interval": r.xi.interval,
             "pixels": r.pixels,
             "opaque": r.opaque,
+            "note": r.xi.note,
         })).collect::<Vec<_>>(),
     });
     let Some(truth) = rec.truth.get(&f.stamp_ns) else {
