@@ -139,6 +139,7 @@ def evaluate(bag, replay_args, exe):
     # The same away from the object's outline (no 8-neighbour of another material): what
     # is left where a pixel holds one object, not two.
     inner_rms, inner_raw = defaultdict(list), defaultdict(list)
+    object_sigma = defaultdict(lambda: [0, 0])  # material -> [within 2 sigma, with a sigma]
     width = side.get("sensor", {}).get("width")
     stages = defaultdict(set)
     for stamp, truth_msg in sorted(inp["ground_truth/depth"].items()):
@@ -208,6 +209,8 @@ def evaluate(bag, replay_args, exe):
                 if math.isfinite(sigma[i]):
                     with_sigma += 1
                     within_2sigma += abs(z[i] - truth[i]) <= 2.0 * sigma[i]
+                    object_sigma[m][0] += abs(z[i] - truth[i]) <= 2.0 * sigma[i]
+                    object_sigma[m][1] += 1
                 e2 += (z[i] - truth[i]) ** 2
                 r2 += (raw[i] - truth[i]) ** 2 if math.isfinite(raw[i]) else 0.0
                 n += 1
@@ -297,6 +300,8 @@ def evaluate(bag, replay_args, exe):
             # every pixel of the object with truth: the mean over frames of each frame's RMS
             row["rms_mm"] = statistics.fmean(object_rms[mid])
             row["rms_raw_mm"] = statistics.fmean(object_raw[mid])
+        if object_sigma[mid][1]:
+            row["within_2sigma"] = object_sigma[mid]
         if inner_rms.get(mid):
             row["rms_inner_mm"] = statistics.fmean(inner_rms[mid])
             row["rms_inner_raw_mm"] = statistics.fmean(inner_raw[mid])
@@ -447,6 +452,7 @@ def print_row(r):
         + (f" ({fmt(m['rms_raw_mm'])} -> {fmt(m['rms_mm'])} mm" if "rms_mm" in m else "")
         + (f", off its outline {fmt(m['rms_inner_raw_mm'])} -> {fmt(m['rms_inner_mm'])} mm" if "rms_inner_mm" in m else "")
         + (")" if "rms_mm" in m else "")
+        + (f", sigma holds {100 * m['within_2sigma'][0] / m['within_2sigma'][1]:.0f} %" if m.get("within_2sigma") else "")
         for m in r["materials"]
     )
     opq = "; ".join(

@@ -1105,11 +1105,12 @@ impl MultiFrequencyStage {
     }
 
     /// Where an opaque object's edge runs along a sheet and joins the sheet's region: the
-    /// region's pixels off its interior, beside an opaque region at that region's distance
-    /// (as in [`Self::opaque_edge_regions`]), that hide more of the background than the
-    /// region's material could over the whole pixel (a share of it beyond 1 by more than
-    /// `change_sigmas` of its σ). Such a pixel's `1 - ξ_p^2` is the object's share of it; a
-    /// layer pixel of the region's material hides at most `1 - ξ^2`.
+    /// region's pixels beside the background (an 8-neighbour in no region) and beside an
+    /// opaque region at that region's distance (as in [`Self::opaque_edge_regions`]), that
+    /// hide more of the background than the region's material could over the whole pixel (a
+    /// share of it beyond 1 by more than `change_sigmas` of its σ). Such a pixel's
+    /// `1 - ξ_p^2` is the object's share of it; a pixel of the region's material hides at
+    /// most `1 - ξ^2`, and one that the object partly covers has the sheet beside it.
     fn opaque_edge_pixels(
         &self,
         labels: &ImageBuf<u32>,
