@@ -1754,12 +1754,11 @@ impl MultiFrequencyStage {
         (regions, layer): (&mut [RegionOutput], &mut Layer),
     ) {
         let dof = (2 * self.config.frequencies_hz.len()).saturating_sub(3).max(1) as f64;
-        let fitted = label_members(labels, layers, |i| results[i].chi_square.is_finite());
-        let members = label_members(labels, layers, |_| true);
-        for (r, px) in fitted.iter().enumerate() {
-            let mut chi: Vec<f64> = px.iter().map(|&i| results[i].chi_square).collect();
+        for (r, px) in label_members(labels, layers, |_| true).iter().enumerate() {
+            let fitted = || px.iter().filter(|&&i| results[i].chi_square.is_finite());
+            let mut chi: Vec<f64> = fitted().map(|&i| results[i].chi_square).collect();
             let phi = median_select(&mut chi) / chi_square_quantile(dof, 0.0);
-            let mut noise: Vec<f64> = px.iter().map(|&i| results[i].distance_sigma_mm).collect();
+            let mut noise: Vec<f64> = fitted().map(|&i| results[i].distance_sigma_mm).collect();
             let share = (phi - 1.0).max(0.0).sqrt() * median_select(&mut noise);
             if !(share.is_finite() && share > 0.0) {
                 continue;
@@ -1771,7 +1770,7 @@ impl MultiFrequencyStage {
             }
             let region = r as u32 + 1;
             let grown_here = grown.iter().filter(|g| g.1 == region).map(|g| g.0);
-            for i in members[r].iter().copied().chain(grown_here) {
+            for i in px.iter().copied().chain(grown_here) {
                 layer.sigma_mm[i] = layer.sigma_mm[i].hypot(share);
             }
         }
@@ -1884,8 +1883,6 @@ struct Growth {
     joined: Vec<(u32, u32)>,
 }
 
-/// `labels` without the layer regions `dropped` (their pixels 0), the others numbered again
-/// from 1 in order, the opaque regions after them; and the new layer count.
 /// Whether layer pixel `i` touches an opaque region (one of the 8 neighbours labelled past
 /// `layers`), and whether its fitted distance is that neighbour's (within 3 σ of the two, or
 /// 2 % of the distance).
@@ -1921,6 +1918,8 @@ fn without_pixels(labels: &ImageBuf<u32>, layers: u32, pixels: &[usize]) -> (Ima
     }
 }
 
+/// `labels` without the layer regions `dropped` (their pixels 0), the others numbered again
+/// from 1 in order, the opaque regions after them; and the new layer count.
 fn drop_layer_regions(labels: &ImageBuf<u32>, layers: u32, dropped: &[u32]) -> (ImageBuf<u32>, u32) {
     let mut new_id = vec![0u32; layers as usize + 1];
     let mut next = 0;
