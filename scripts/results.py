@@ -195,12 +195,8 @@ def evaluate(bag, replay_args, exe):
                 a2 += (z[i] - truth[i]) ** 2
                 ar2 += (raw[i] - truth[i]) ** 2
                 an += 1
-                o = obj_sq[m]
-                o[0] += (z[i] - truth[i]) ** 2
-                o[1] += (raw[i] - truth[i]) ** 2
-                o[2] += 1
-                if width and not on_outline(mat, i, width):
-                    o = inner_sq[m]
+                inner = width and not on_outline(mat, i, width)
+                for o in (obj_sq[m], inner_sq[m]) if inner else (obj_sq[m],):
                     o[0] += (z[i] - truth[i]) ** 2
                     o[1] += (raw[i] - truth[i]) ** 2
                     o[2] += 1

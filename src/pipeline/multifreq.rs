@@ -1010,8 +1010,10 @@ impl MultiFrequencyStage {
         }
         let mut layer = self.surface_prior(&labels, layers, results, &grown);
         if let Some(frame) = latched {
-            self.add_translucency_share(frame, &labels, layers, &regions, &grown, &mut layer);
-            self.add_misfit_share(&labels, layers, results, &grown, (&mut regions, &mut layer));
+            // Each layer region's pixels, for both shares of σ.
+            let members = label_members(&labels, layers, |_| true);
+            self.add_translucency_share(frame, &members, &regions, &grown, &mut layer);
+            self.add_misfit_share(&members, results, &grown, (&mut regions, &mut layer));
             self.widen_by_frequency_jackknife(frame, &labels, layers, results, &mut regions);
         }
         for e in &edges {
@@ -1702,13 +1704,11 @@ impl MultiFrequencyStage {
     fn add_translucency_share(
         &self,
         frame: &PhasorFrame,
-        labels: &ImageBuf<u32>,
-        layers: u32,
+        members: &[Vec<usize>],
         regions: &[RegionOutput],
         grown: &[(usize, u32)],
         layer: &mut Layer,
     ) {
-        let members = label_members(labels, layers, |_| true);
         for (r, px) in members.iter().enumerate() {
             let [lo, hi] = regions[r].xi.interval;
             if !(lo.is_finite() && hi.is_finite() && hi > lo) {
@@ -1747,14 +1747,13 @@ impl MultiFrequencyStage {
     /// region's note says so.
     fn add_misfit_share(
         &self,
-        labels: &ImageBuf<u32>,
-        layers: u32,
+        members: &[Vec<usize>],
         results: &[PixelResult],
         grown: &[(usize, u32)],
         (regions, layer): (&mut [RegionOutput], &mut Layer),
     ) {
         let dof = (2 * self.config.frequencies_hz.len()).saturating_sub(3).max(1) as f64;
-        for (r, px) in label_members(labels, layers, |_| true).iter().enumerate() {
+        for (r, px) in members.iter().enumerate() {
             let fitted = || px.iter().filter(|&&i| results[i].chi_square.is_finite());
             let mut chi: Vec<f64> = fitted().map(|&i| results[i].chi_square).collect();
             let phi = median_select(&mut chi) / chi_square_quantile(dof, 0.0);
