@@ -160,6 +160,9 @@ pub struct NodeStats {
     pub depth_received: u64,
     /// IR images received.
     pub ir_received: u64,
+    /// Phasor images received, by frequency (multi-frequency path; empty otherwise).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub phasor_received: Vec<u64>,
     /// camera_info messages received.
     pub info_received: u64,
     /// Depth + IR pairs queued.
@@ -1022,7 +1025,12 @@ impl Events<'_> {
         match slot {
             Slot::Depth => self.counts.depth_received += 1,
             Slot::Ir => self.counts.ir_received += 1,
-            Slot::Phasor(_) => {}
+            Slot::Phasor(k) => {
+                if self.counts.phasor_received.len() <= k {
+                    self.counts.phasor_received.resize(k + 1, 0);
+                }
+                self.counts.phasor_received[k] += 1;
+            }
         }
         let Some(img) = self.intake.image(topic, img, self.last_info.as_ref()) else {
             return;
@@ -1088,6 +1096,7 @@ fn with_intake_counts(
 ) -> NodeStats {
     stats.depth_received = counts.depth_received;
     stats.ir_received = counts.ir_received;
+    stats.phasor_received.clone_from(&counts.phasor_received);
     stats.info_received = counts.info_received;
     stats.pairs = counts.pairs;
     stats.services = counts.services;
