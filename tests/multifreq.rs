@@ -454,7 +454,7 @@ mod common;
 use common::netns::isolated;
 use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, QosProfile};
 use std::time::{Duration, Instant};
-use translucent_tof::node::peer::Peer;
+use translucent_tof::node::peer::{rearmed, Peer};
 
 /// One rendered frame as a driver publishes it: depth, IR, phasors, and the truth.
 struct Published {
@@ -575,9 +575,9 @@ impl PhasorPeer {
     async fn wait_for_node(&self) {
         let all = async {
             for p in &self.phasors {
-                p.wait_for_subscription(&self.node).await;
+                rearmed(|| p.wait_for_subscription(&self.node)).await;
             }
-            self.translucency.wait_for_publisher(&self.node).await;
+            rearmed(|| self.translucency.wait_for_publisher(&self.node)).await;
         };
         tokio::time::timeout(Duration::from_secs(30), all)
             .await

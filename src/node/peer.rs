@@ -15,6 +15,20 @@ use ros2_client::{
 use crate::msgs::translucent_tof::TranslucencyEstimate;
 use crate::msgs::{CameraInfo, Header, Image, PointCloud2, TriggerRequest, TriggerResponse};
 
+/// Resolves when the match `wait` waits for has happened, made anew every half second.
+///
+/// ros2-client's waits look at the match table when they are made, then only again when a
+/// match event reaches them; those events go through a channel of 8 that drops what does
+/// not fit. A burst of discovery (a node of 20 endpoints, a busy host) can drop the one
+/// event a wait needs, and it then waits for ever. A wait made anew reads the table again.
+pub async fn rearmed<F, Fut>(mut wait: F)
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = ()>,
+{
+    while tokio::time::timeout(Duration::from_millis(500), wait()).await.is_err() {}
+}
+
 /// `img` with a new header stamp (same frame id).
 pub fn restamp(img: &Image, stamp_ns: u64) -> Image {
     Image {
@@ -180,14 +194,14 @@ impl Peer {
     /// latch service is there.
     pub async fn wait_for_node(&self, timeout: Duration) -> Result<()> {
         let all = async {
-            self.depth.wait_for_subscription(&self.node).await;
-            self.ir.wait_for_subscription(&self.node).await;
-            self.info.wait_for_subscription(&self.node).await;
-            self.corrected.wait_for_publisher(&self.node).await;
-            self.points.wait_for_publisher(&self.node).await;
-            self.estimate.wait_for_publisher(&self.node).await;
-            self.latch.wait_for_service(&self.node).await;
-            self.clear.wait_for_service(&self.node).await;
+            rearmed(|| self.depth.wait_for_subscription(&self.node)).await;
+            rearmed(|| self.ir.wait_for_subscription(&self.node)).await;
+            rearmed(|| self.info.wait_for_subscription(&self.node)).await;
+            rearmed(|| self.corrected.wait_for_publisher(&self.node)).await;
+            rearmed(|| self.points.wait_for_publisher(&self.node)).await;
+            rearmed(|| self.estimate.wait_for_publisher(&self.node)).await;
+            rearmed(|| self.latch.wait_for_service(&self.node)).await;
+            rearmed(|| self.clear.wait_for_service(&self.node)).await;
         };
         tokio::time::timeout(timeout, all)
             .await
