@@ -418,14 +418,31 @@ impl<'a> FreeFit<'a> {
     /// Non-negative least squares of the two strengths given their unit returns, in closed
     /// form: the normal equations where both come out >= 0, else the better single one.
     fn pair(&self, u1: &[Phasor], u2: &[Phasor]) -> PairFit {
-        let (mut g11, mut g22, mut g12, mut p1, mut p2) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for (((a, b), m), w) in u1.iter().zip(u2).zip(self.measured).zip(&self.weights) {
-            g11 += w * dot(*a, *a);
-            g22 += w * dot(*b, *b);
-            g12 += w * dot(*a, *b);
-            p1 += w * dot(*a, *m);
-            p2 += w * dot(*b, *m);
+        let (one, two) = (self.alone(u1), self.alone(u2));
+        self.pair_of(one, two, self.cross(u1, u2))
+    }
+
+    /// `(<u, u>, <u, M>)` of one return's unit phasors `u`, weighted.
+    fn alone(&self, u: &[Phasor]) -> (f64, f64) {
+        let (mut g, mut p) = (0.0, 0.0);
+        for ((a, m), w) in u.iter().zip(self.measured).zip(&self.weights) {
+            g += w * dot(*a, *a);
+            p += w * dot(*a, *m);
         }
+        (g, p)
+    }
+
+    /// `<u1, u2>`, weighted.
+    fn cross(&self, u1: &[Phasor], u2: &[Phasor]) -> f64 {
+        u1.iter()
+            .zip(u2)
+            .zip(&self.weights)
+            .fold(0.0, |g, ((a, b), w)| g + w * dot(*a, *b))
+    }
+
+    /// [`Self::pair`] from its inner products: each return's [`Self::alone`] and their
+    /// [`Self::cross`] (a grid of pairs works each return's out once, not at every pair).
+    fn pair_of(&self, (g11, p1): (f64, f64), (g22, p2): (f64, f64), g12: f64) -> PairFit {
         let det = g11 * g22 - g12 * g12;
         if det > 1e-12 * g11 * g22 {
             let (a1, a2) = ((p1 * g22 - p2 * g12) / det, (p2 * g11 - p1 * g12) / det);
@@ -936,10 +953,11 @@ impl MultiFrequencyInversion {
         let k = self.sensors.len();
         let at = |j: usize| &units[j * k..(j + 1) * k];
         let n = cells + 1;
+        let alone: Vec<(f64, f64)> = (0..n).map(|j| fit.alone(at(j))).collect();
         let mut chi = vec![f64::INFINITY; n * n];
         for j1 in 0..cells {
             for j2 in j1 + 1..n {
-                chi[j1 * n + j2] = fit.pair(at(j1), at(j2)).chi_square;
+                chi[j1 * n + j2] = fit.pair_of(alone[j1], alone[j2], fit.cross(at(j1), at(j2))).chi_square;
             }
         }
         let mut starts: Vec<(f64, usize, usize)> = vec![];
