@@ -29,7 +29,7 @@
 //! are two objects. An object that reappears elsewhere is a new one.
 
 use super::stats::median_select;
-use super::translucency::{self, FrameProfile, XiEstimate, XiMethod, XiSettings};
+use super::translucency::{self, FrameProfile, XiEstimate, XiMethod, XiSettings, OPAQUE_XI};
 
 /// Least share of the smaller of two regions that the other must cover for the later to
 /// continue the earlier's object: an object moves across the image by less than half
@@ -229,6 +229,10 @@ pub struct Material {
     /// Where its regions were in the latest frame that had one, and in the one before.
     latest: Footprint,
     before: Footprint,
+    /// The interval of its last estimate that decided (a layer, or opaque short of 1).
+    last_decided: Option<[f64; 2]>,
+    /// Its estimates contradicted each other ([`Material::held_to_its_history`]).
+    contradicted: bool,
 }
 
 impl Material {
@@ -265,7 +269,42 @@ impl Material {
             self.profiles.remove(0);
         }
         self.profiles.push(profile);
-        self.estimate = estimate(&self.profiles, method).or(self.estimate.take());
+        self.estimate = match estimate(&self.profiles, method) {
+            Some(e) => Some(self.held_to_its_history(e)),
+            None => self.estimate.take(),
+        };
+    }
+
+    /// An estimate checked against the object's last one that decided (a layer, or opaque
+    /// with an interval short of 1). Where one of two in a row, from evidence a frame apart,
+    /// is opaque and the other a layer, and their intervals do not meet, they contradict each
+    /// other beyond what either allows: the object's evidence holds what one material does not
+    /// explain (another object took over part of its regions, or the model misfits as it
+    /// moves). Which holds the data cannot tell, so from then on the object is taken as
+    /// opaque with every ξ allowed, as where its near and far poses part and one of them is
+    /// opaque ([`translucency::one_material`]). Two layers a little apart are what narrow
+    /// intervals of one material show as evidence grows: they are left as they are.
+    fn held_to_its_history(&mut self, e: XiEstimate) -> XiEstimate {
+        if e.interval != [0.0, 1.0] {
+            let now = e.interval;
+            if let Some(was) = self.last_decided.replace(now) {
+                let apart = now[1] < was[0] || was[1] < now[0];
+                let one_opaque = (now[0] <= OPAQUE_XI) != (was[0] <= OPAQUE_XI);
+                self.contradicted |= apart && one_opaque;
+            }
+        }
+        if !self.contradicted {
+            return e;
+        }
+        XiEstimate {
+            xi: 0.0,
+            interval: [0.0, 1.0],
+            note: format!(
+                "taken as opaque, the data do not say otherwise: two of its estimates in a row, a frame of evidence apart, one opaque and one a layer, had intervals that do not meet: evidence one material does not explain, so no xi is excluded (now: xi {:.3} [{:.3}, {:.3}], {})",
+                e.xi, e.interval[0], e.interval[1], e.note
+            ),
+            ..e
+        }
     }
 
     /// Frames of evidence at the pose `distance_mm` (within the 5 % and 50 mm that separate
@@ -585,8 +624,13 @@ impl Materials {
             profiles,
             latest: Footprint::default(),
             before: Footprint::default(),
+            last_decided: None,
+            contradicted: false,
         });
-        self.materials.len() - 1
+        let i = self.materials.len() - 1;
+        let m = &mut self.materials[i];
+        m.estimate = m.estimate.take().map(|e| m.held_to_its_history(e));
+        i
     }
 }
 
@@ -626,6 +670,60 @@ mod tests {
     }
 
     const FRAME_NS: u64 = 100_000_000; // 10 Hz
+
+    fn estimate_at(xi: f64, interval: [f64; 2]) -> XiEstimate {
+        XiEstimate {
+            xi,
+            interval,
+            method: XiMethod::OneMaterial,
+            frames: 0,
+            pixels: 0,
+            profile: vec![],
+            note: String::new(),
+        }
+    }
+
+    /// The estimates an object's growing evidence gave, frame by frame, as it holds them.
+    fn held(estimates: &[(f64, [f64; 2])]) -> Vec<(f64, [f64; 2])> {
+        let mut objects = Materials::default();
+        let i = objects.start(evidence(), XiMethod::OneMaterial);
+        let m = &mut objects.materials[i];
+        estimates
+            .iter()
+            .map(|&(xi, iv)| {
+                let e = m.held_to_its_history(estimate_at(xi, iv));
+                (e.xi, e.interval)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn an_object_whose_estimates_turn_from_a_layer_to_opaque_beyond_their_intervals_is_kept_as_read() {
+        // A region that followed a sheet and then a box that took its place (rendered
+        // video_05's, online): a layer twice, then opaque with an interval that does not reach
+        // it, then a layer again. From the contradiction on, every ξ is allowed and none applied.
+        let got = held(&[
+            (0.716, [0.696, 0.737]),
+            (0.713, [0.673, 0.740]),
+            (0.0, [0.0, 0.304]),
+            (0.714, [0.676, 0.747]),
+        ]);
+        assert_eq!(got[..2], [(0.716, [0.696, 0.737]), (0.713, [0.673, 0.740])]);
+        assert!(got[2..].iter().all(|&e| e == (0.0, [0.0, 1.0])), "{got:?}");
+        // One material's evidence near the test's edge (rendered video_00's ξ 0.57 sheet):
+        // opaque with an interval that reaches the layer's, then the layer; and two layers a
+        // little apart as the intervals narrow. Nothing is changed.
+        let steady = [
+            (0.0, [0.0, 0.770]),
+            (0.573, [0.445, 0.682]),
+            (0.0, [0.0, 0.770]),
+            (0.551, [0.417, 0.669]),
+            (0.879, [0.858, 0.893]),
+            (0.914, [0.898, 0.927]),
+            (0.0, [0.0, 1.0]),
+        ];
+        assert_eq!(held(&steady), steady);
+    }
 
     fn add(objects: &mut Materials, frame: u64, regions: Vec<RegionEvidence>) -> Vec<Option<u32>> {
         objects.add_frame(
