@@ -407,6 +407,17 @@ fn a_moving_camera_is_corrected_with_no_latch() {
     );
 }
 
+/// `scripts/results.py --exe EXE ARGS...` run to its end (its output printed by the caller).
+fn results_py(args: &[std::ffi::OsString]) -> std::process::Output {
+    let python = python();
+    Command::new(&python)
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/results.py"))
+        .args(["--exe", exe()])
+        .args(args)
+        .output()
+        .unwrap_or_else(|e| panic!("running {python} scripts/results.py: {e} (scripts/setup-python.sh makes .venv)"))
+}
+
 /// The rows `scripts/results.py --json` makes of `bags` (rendered bags by name).
 fn results_rows(bags: &[&str]) -> Vec<Value> {
     results_rows_with(bags, &[])
@@ -414,18 +425,12 @@ fn results_rows(bags: &[&str]) -> Vec<Value> {
 
 /// `scripts/results` rows of `bags`, each replayed with `replay_args` too.
 fn results_rows_with(bags: &[&str], replay_args: &[&str]) -> Vec<Value> {
-    let python = python();
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().expect("temp dir");
     let json = dir.path().join("rows.json");
-    let out = Command::new(&python)
-        .arg(root.join("scripts/results.py"))
-        .args(["--exe", exe(), "--json"])
-        .arg(&json)
-        .args(replay_args.iter().map(|a| format!("--replay-arg={a}")))
-        .args(bags.iter().map(|b| rendered(b)))
-        .output()
-        .unwrap_or_else(|e| panic!("running {python} scripts/results.py: {e} (scripts/setup-python.sh makes .venv)"));
+    let mut args: Vec<std::ffi::OsString> = vec!["--json".into(), json.clone().into()];
+    args.extend(replay_args.iter().map(|a| format!("--replay-arg={a}").into()));
+    args.extend(bags.iter().map(|b| rendered(b).into()));
+    let out = results_py(&args);
     println!("{}", String::from_utf8_lossy(&out.stdout));
     let rows: Value = serde_json::from_str(&std::fs::read_to_string(&json).expect("rows")).expect("json");
     rows.as_array().expect("rows").clone()
@@ -569,13 +574,9 @@ fn the_rendered_scenes_recovered_online_as_the_node_does_fall_short_of_no_claim(
         .collect();
     bags.sort();
     assert!(bags.len() >= 25, "{bags:?}");
-    let python = python();
-    let out = Command::new(&python)
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/results.py"))
-        .args(["--exe", exe(), "--replay-arg=--xi-mode", "--replay-arg=online"])
-        .args(&bags)
-        .output()
-        .unwrap_or_else(|e| panic!("running {python} scripts/results.py: {e} (scripts/setup-python.sh makes .venv)"));
+    let mut args: Vec<std::ffi::OsString> = vec!["--replay-arg=--xi-mode".into(), "--replay-arg=online".into()];
+    args.extend(bags.into_iter().map(Into::into));
+    let out = results_py(&args);
     let stdout = String::from_utf8_lossy(&out.stdout);
     println!("{stdout}");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
@@ -594,14 +595,7 @@ fn the_rendered_scenes_recovered_online_as_the_node_does_fall_short_of_no_claim(
 /// script (`scripts/results --markdown`).
 #[test]
 fn the_rendered_set_holds_its_baseline() {
-    let python = python();
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let out = Command::new(&python)
-        .arg(root.join("scripts/results.py"))
-        .args(["--exe", exe(), "--check"])
-        .arg(root.join("bags/rendered/baseline.json"))
-        .output()
-        .unwrap_or_else(|e| panic!("running {python} scripts/results.py: {e} (scripts/setup-python.sh makes .venv)"));
+    let out = results_py(&["--check".into(), rendered("baseline.json").into()]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     println!("{stdout}");
     assert!(

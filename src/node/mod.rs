@@ -597,7 +597,10 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         multi: !inputs.phasor_t.is_empty(),
         pairer: StampPairer::new(s.queue_depth.max(4) * 2),
         frame_pairer: FramePairer::new(inputs.phasor_t.len(), s.queue_depth.max(4) * 2),
-        counts: NodeStats::default(),
+        counts: NodeStats {
+            phasor_received: vec![0; inputs.phasor_t.len()],
+            ..NodeStats::default()
+        },
         last_info: None,
         intake: Intake::default(),
     };
@@ -1026,10 +1029,9 @@ impl Events<'_> {
             Slot::Depth => self.counts.depth_received += 1,
             Slot::Ir => self.counts.ir_received += 1,
             Slot::Phasor(k) => {
-                if self.counts.phasor_received.len() <= k {
-                    self.counts.phasor_received.resize(k + 1, 0);
+                if let Some(n) = self.counts.phasor_received.get_mut(k) {
+                    *n += 1;
                 }
-                self.counts.phasor_received[k] += 1;
             }
         }
         let Some(img) = self.intake.image(topic, img, self.last_info.as_ref()) else {
