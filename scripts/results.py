@@ -291,7 +291,8 @@ def evaluate(bag, replay_args, exe):
                     row.update(frames_mf(per_frame))
                 out["opaque"].append(row)
             continue
-        row = {"id": mid, "xi_true": info["xi"], "poses": len(stages[mid]), "region": rid}
+        row = {"id": mid, "xi_true": info["xi"], "poses": len(stages[mid]), "distances": distinct(stages[mid]),
+               "region": rid}
         if object_rms.get(mid):
             # every pixel of the object with truth: the mean over frames of each frame's RMS
             row["rms_mm"] = statistics.fmean(object_rms[mid])
@@ -314,6 +315,16 @@ def evaluate(bag, replay_args, exe):
             row["xi_pixel_frame_medians"] = [min(pixel_xi[mid]), max(pixel_xi[mid])]
         out["materials"].append(row)
     return out
+
+
+def distinct(medians, apart_mm=100.0):
+    """How many of an object's poses (median true depths) lie `apart_mm` or more from the
+    nearer one kept: the distances it was seen at."""
+    kept = []
+    for d in sorted(medians):
+        if not kept or d - kept[-1] >= apart_mm:
+            kept.append(d)
+    return len(kept)
 
 
 def on_outline(mat, i, width):
@@ -353,8 +364,14 @@ COVERAGE_MIN = 0.90        # intervals stated at 95 %: at least 90 % over the se
 SIGMA_BAND = (0.90, 0.98)  # +-2 sigma stated at 95 %
 OPAQUE_NOT_FLAGGED_MIN = 0.90
 OPAQUE_KEPT_MM = 1.0  # an opaque object keeps its reading: no worse than it by more than this
-# Replays are deterministic up to the order of parallel sums: beyond this is a change.
-NOISE_REL, NOISE_MM = 0.05, 1.0
+# Replays are deterministic up to the order of parallel sums: beyond 1 % is a change.
+NOISE_REL, NOISE_MM = 0.01, 0.05
+# An object seen at two or more distances determines its xi (objects.md): an interval no
+# wider than this is informative, and its stated levels.
+DETERMINED_WIDTH = 0.3
+DETERMINED_SHARE_MIN = 0.90
+INFORMATIVE_COVERAGE_MIN = 0.90
+DETERMINED_MEDIAN_WIDTH_MAX = 0.15
 
 
 def worse(now, before):
@@ -371,6 +388,26 @@ def objects(rows):
             elif "inside" in o:
                 out.append(o)
     return out
+
+
+def hit(o):
+    """An interval that holds the truth and says something: [0, 1] holds every xi and is no hit."""
+    return bool(o.get("inside")) and o.get("width", 1.0) < 1.0
+
+
+def determinable(rows):
+    """The translucent objects seen at two or more distances (single-frequency: tracked), each
+    with its interval or none: those whose xi the data determine (objects.md)."""
+    return [m for r in rows for m in r.get("materials", [])
+            if m.get("distances", 0) >= 2 and "per_frame" not in m and not m.get("xi_not_measured")]
+
+
+def determined(rows):
+    """(determinable objects, those given an interval no wider than DETERMINED_WIDTH, those of
+    them that hold the truth)."""
+    d = determinable(rows)
+    narrow = [m for m in d if "width" in m and m["width"] <= DETERMINED_WIDTH]
+    return d, narrow, [m for m in narrow if m.get("inside")]
 
 
 def pooled_sigma(rows):
@@ -402,22 +439,48 @@ def failures(rows):
             if now is not None and raw is not None and now > raw + OPAQUE_KEPT_MM:
                 out[f"{b}:opaque_{o['id']}_moved"] = f"median {now:.1f} mm, the reading's {raw:.1f} mm"
     obj = objects(rows)
-    if obj and sum(o["inside"] for o in obj) / len(obj) < COVERAGE_MIN:
-        out["set:coverage"] = f"{sum(o['inside'] for o in obj)} of {len(obj)}"
+    if obj and sum(hit(o) for o in obj) / len(obj) < COVERAGE_MIN:
+        out["set:coverage"] = f"{sum(hit(o) for o in obj)} of {len(obj)} (no [0, 1] counts)"
+    d, narrow, held = determined(rows)
+    if d and len(narrow) / len(d) < DETERMINED_SHARE_MIN:
+        out["set:determined_share"] = f"{len(narrow)} of {len(d)} objects seen at two distances or more"
+    if narrow and len(held) / len(narrow) < INFORMATIVE_COVERAGE_MIN:
+        out["set:informative_coverage"] = f"{len(held)} of {len(narrow)} determined intervals hold the truth"
+    if narrow and statistics.median(m["width"] for m in narrow) > DETERMINED_MEDIAN_WIDTH_MAX:
+        out["set:determined_width"] = f"median {statistics.median(m['width'] for m in narrow):.3f}"
     share, _ = pooled_sigma(rows)
     if share is not None and not SIGMA_BAND[0] <= share <= SIGMA_BAND[1]:
         out["set:sigma"] = f"{100 * share:.1f} % within 2 sigma"
     return out
 
 
-def regressions(rows, base_rows):
-    """Where this run is worse than the baseline's rows beyond noise: {key: figure}."""
+def vanished(now, before, where):
+    """The figures the baseline had that this run gives as None (or not at all): {key: note}."""
+    out = {}
+    for k, v in before.items():
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and now.get(k) is None:
+            out[f"{where}:{k}_missing"] = f"None, baseline {v:.4g}"
+    return out
+
+
+def regressions(rows, base_rows, whole_set=True):
+    """Where this run is worse than the baseline's rows beyond noise: {key: figure}. With
+    `whole_set`, a bag of the baseline missing from the run is one."""
     out = {}
     before = {r["bag"]: r for r in base_rows}
+    if whole_set:
+        ran = {r["bag"] for r in rows}
+        for b in sorted(set(before) - ran):
+            out[f"{b}:dropped"] = "in the baseline, not in this run"
     for r in rows:
         b = before.get(r["bag"])
         if b is None or "error" in r:
             continue
+        out.update(vanished(r, b, r["bag"]))
+        now_objects = {(o["id"], "xi_true" in o): o for o in r.get("materials", []) + r.get("opaque", [])}
+        for o in b.get("materials", []) + b.get("opaque", []):
+            now = now_objects.get((o["id"], "xi_true" in o), {})
+            out.update(vanished(now, o, f"{r['bag']}:object_{o['id']}"))
         for key in ("all_pixels_rms_mm", "mean_frame_rms_mm"):
             if worse(r.get(key), b.get(key)):
                 out[f"{r['bag']}:{key}"] = f"{r[key]:.1f} mm, baseline {b[key]:.1f} mm"
@@ -425,7 +488,7 @@ def regressions(rows, base_rows):
         for o in r.get("materials", []) + r.get("opaque", []):
             if was.get((o["id"], "xi_true" in o)) and not o.get("inside"):
                 out[f"{r['bag']}:object_{o['id']}_interval"] = f"{o.get('xi_interval')} no longer holds the truth"
-    now_in, base_in = sum(o["inside"] for o in objects(rows)), sum(o["inside"] for o in objects(base_rows))
+    now_in, base_in = sum(hit(o) for o in objects(rows)), sum(hit(o) for o in objects(base_rows))
     if now_in < base_in:
         out["set:coverage_fell"] = f"{now_in} objects inside, baseline {base_in}"
     now_s, base_s = pooled_sigma(rows)[0], pooled_sigma(base_rows)[0]
@@ -472,11 +535,24 @@ def print_row(r):
 def print_summary(rows):
     obj = objects(rows)
     if obj:
-        inside = sum(o["inside"] for o in obj)
-        print(f"coverage: {inside} of {len(obj)} objects' true xi inside their interval "
+        inside = sum(hit(o) for o in obj)
+        print(f"coverage: {inside} of {len(obj)} objects' true xi inside an interval narrower than [0, 1] "
               f"({100 * inside / len(obj):.0f} %; opaque objects count when the interval holds 0; "
               f"on the multi-frequency path each frame's region counts); "
               f"median width {statistics.median(o['width'] for o in obj):.2f}")
+    d, narrow, held = determined(rows)
+    if d:
+        widths = sorted(m["width"] for m in narrow)
+        print(f"determined: {len(narrow)} of {len(d)} objects seen at two or more distances "
+              f"({100 * len(narrow) / len(d):.0f} %) got an interval no wider than {DETERMINED_WIDTH}"
+              + (f" (median width {statistics.median(widths):.3f}); informative coverage: {len(held)} of "
+                 f"{len(narrow)} hold the truth ({100 * len(held) / len(narrow):.0f} %)" if narrow else ""))
+    every = [(r["all_pixels_rms_mm"], r["all_pixels_rms_raw_mm"]) for r in rows
+             if r.get("all_pixels_rms_mm") is not None and r.get("all_pixels_rms_raw_mm")]
+    if every:
+        print(f"every pixel: mean over scenes {statistics.fmean(a for a, _ in every):.1f} mm against raw "
+              f"{statistics.fmean(b for _, b in every):.1f} mm; scenes at or within 1 % of raw (nothing gained): "
+              f"{sum(a >= 0.99 * b for a, b in every)} of {len(every)}")
     share, w = pooled_sigma(rows)
     if share is not None:
         shares = [a / b for a, b in w]
@@ -552,7 +628,7 @@ def main():
         return 0
     base = json.load(open(a.check))
     known = base.get("known_failures", {})
-    fails.update(regressions(rows, base.get("rows", [])))
+    fails.update(regressions(rows, base.get("rows", []), whole_set=not a.bags))
     new = {k: v for k, v in fails.items() if k not in known}
     for k, v in sorted(fails.items()):
         print(f"{'known' if k in known else 'FAILED'}: {k}: {v}")

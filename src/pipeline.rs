@@ -32,7 +32,7 @@ use thiserror::Error;
 use crate::physics::camera::z_to_ray_distance;
 use crate::physics::catalog::{AlbedoReference, AlbedoScale, Catalog, Class, Classification};
 use crate::physics::emitted_light::EmittedLightError;
-use crate::physics::materials::{Material, Materials, PixelReading, RegionEvidence};
+use crate::physics::materials::{Material, Materials, PixelReading, Place, RegionEvidence};
 use crate::physics::segmentation::{
     change_threshold_mm, changed_pixels, label_regions, remove_small_regions, split_reading_modes, wrapped_difference,
     DEFAULT_THRESHOLD_MM, NOISE_SIGMAS,

@@ -1860,8 +1860,17 @@ fn replay_names_its_error_metric() {
         .unwrap()
         .starts_with("mean over frames"));
     let line = format!(
-        "error against ground truth (mean over 8 frame(s) of the per-frame RMS z error over the pixels in the mask with truth and a recovered depth): raw {mean_raw:.1} mm -> recovered {mean:.1} mm"
+        "over the pixels in the mask with truth and a recovered depth (8 frame(s)): raw {mean_raw:.1} mm -> recovered {mean:.1} mm"
     );
+    // Every pixel with truth, a pixel kept as read at its reading: never better than the
+    // recovered pixels' figure would allow, and said in the same line.
+    let every = num(&r, "every_pixel_rmse_mm");
+    let every_raw = num(&r, "every_pixel_rmse_raw_mm");
+    assert!(
+        every.is_finite() && every_raw.is_finite() && every <= every_raw,
+        "{every} {every_raw}"
+    );
+    assert!(stdout_of(&out).contains(&format!("raw {every_raw:.1} mm -> published {every:.1} mm")));
     assert!(stdout_of(&out).contains(&line), "{line}\n{}", describe(&out));
 }
 

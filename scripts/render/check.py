@@ -9,7 +9,9 @@ material the mean raw error (reading - truth) on that material's pixels.
 Multi-frequency bags (mf_*) also: per frequency the background's phasor
 distance against the geometry (wrapped at that frequency's range) and the
 opaque objects', the phasors' spread, and whether the 30 MHz depth and IR
-are the single-frequency bag's. TTOF_RENDER_OUT: another bag directory.
+are the single-frequency bag's. Every bag: its stamps against the sidecar's rate; with
+[[tracks]] (videos, stepped scenes) whether every stage names each tracked object and
+(stepped) the ground truth per pose against the sidecar's. TTOF_RENDER_OUT: another bag directory.
 """
 
 import os
@@ -34,7 +36,7 @@ def read_bag(path):
     for m in read_ros2_messages(path):
         t = m.log_time_ns
         msg = m.ros_msg
-        f = frames.setdefault(t, {})
+        f = frames.setdefault(t, {"t": t})
         if m.channel.topic == "/tof/depth/camera_info":
             f["k"] = list(msg.k)
             continue
@@ -103,8 +105,42 @@ def check_phasors(name, side, spec, frames, bg_truth):
               f"(depth differs at {np.mean(diff != 0) * 100:.3f} % of pixels, max |.| {np.abs(diff).max():.0f} mm)")
 
 
+def check_stamps(side, frames):
+    """Frame k stamped 1 s + floor(k 1e9 / rate) ns (rate: the sidecar's frame_rate_hz, else 10 Hz)."""
+    rate = side.get("frame_rate_hz", 10)
+    want = [1_000_000_000 + k * 1_000_000_000 // rate for k in range(len(frames))]
+    got = [f["t"] for f in frames]
+    bad = sum(a != b for a, b in zip(got, want))
+    print(f"  stamps: {len(frames)} frames at {rate} Hz (period {side['frame_period_s']} s), "
+          f"{'all as stated' if not bad and len(got) == side['frames'] else f'{bad} differ from 1 s + floor(k 1e9 / rate)'}"
+          f"; first {got[0] / 1e9:.6f} s, last {got[-1] / 1e9:.6f} s")
+
+
+def check_tracks(side, frames):
+    """Moving objects ([[tracks]], stages.objects.object): each stage names every tracked object;
+    where a track gives per-pose truth (stepped scenes: truth_median_z_mm), the bag's ground truth
+    on the object's material agrees."""
+    names = [t["object"] for t in side["tracks"]]
+    stages = side.get("stages", [])
+    named = all(sorted(o.get("object", "") for o in st["objects"]) == sorted(names) for st in stages)
+    print(f"  tracks: {', '.join(names)}; every stage lists each once: {named}")
+    for t in side["tracks"]:
+        if "truth_median_z_mm" not in t:
+            continue
+        meds, counts = [], []
+        for st in stages:
+            f = frames[st["frames"][0]]
+            px = f["/tof/ground_truth/material"] == t["material"]
+            counts.append(int(px.sum()))
+            meds.append(float(np.median(f["/tof/ground_truth/depth"][px])) * 1000.0 if px.any() else float("nan"))
+        diff = np.nanmax(np.abs(np.array(meds) - np.array(t["truth_median_z_mm"])))
+        print(f"    {t['object']} (mat {t['material']}): truth median z per pose "
+              f"{', '.join(f'{m:.0f}' for m in meds)} mm ({', '.join(map(str, counts))} px), "
+              f"sidecar's within {diff:.2f} mm; depth steps {t['depth_step_mm']} mm")
+
+
 def check(name):
-    spec = {s["name"]: s for s in scenes.all_specs()}[name]
+    spec = render_set.find_spec(name)
     side = tomllib.load(open(os.path.join(OUT, name + ".toml"), "rb"))
     spec["spp"] = side["spp"]
     frames = read_bag(os.path.join(OUT, name + ".mcap"))
@@ -128,6 +164,9 @@ def check(name):
               f"99th pct {np.nanpercentile(np.abs(e), 99):.3f} mm")
     if "multi_frequency" in side:
         check_phasors(name, side, spec, frames, bg_truth)
+    check_stamps(side, frames)
+    if side.get("tracks"):
+        check_tracks(side, frames)
     for si, st in enumerate(side.get("stages", [])):
         fs = [frames[i] for i in st["frames"]]
         gt = fs[0]["/tof/ground_truth/depth"].astype(np.float64) * 1000.0

@@ -3,7 +3,9 @@
 usage: render_set.py [--list] [--out DIR] [--cache DIR] [NAME ...]
 
 A NAME beyond the set (draw_20, video_3, mf_draw_21, ...) is drawn from the same
-seeded ranges: a scene nothing was tuned on.
+seeded ranges: a scene nothing was tuned on. The stepped scenes (stepped_dev_<i>,
+stepped_<i>, calib_stepped_dev_<i>_<material>; scenes.stepped) are rendered by
+name only: a run with no NAME leaves them out.
 
 Each bag: 10 background-only frames, then its stages (a few frames of one
 geometry each). Each geometry is rendered once (cached by content in
@@ -275,7 +277,7 @@ def _write_bag(spec, out_dir, cache):
              f"physics = {toml_value(PHYSICS_PRESET)}",
              *([f"frame_rate_hz = {rate_hz}",
                 "stamps_note = \"frame k is stamped 1 s + floor(k * 1e9 / frame_rate_hz) ns\""]
-               if rate_hz != 10 else []),
+               if rate_hz != 10 or "frame_rate_hz" in spec else []),  # a drawn rate: stated even at 10 Hz
              *[f"{k} = {toml_value(v)}" for k, v in spec.get("sidecar", {}).items()],
              "", "[sensor]", f"width = {tc.W}", f"height = {tc.H}", f"hfov_deg = {tc.HFOV_DEG}",
              f"vfov_deg = {tc.VFOV_DEG}", f"fx = {tc.FX!r}", f"fy = {tc.FY!r}", f"cx = {tc.CX!r}", f"cy = {tc.CY!r}",
@@ -335,6 +337,18 @@ def _write_bag(spec, out_dir, cache):
     print(f"{name}: {frame} frames, render {total_secs:.1f} s", flush=True)
 
 
+def find_spec(name, specs=None):
+    """The spec of `name`: a stepped scene or its calibration (scenes.stepped_spec, drawn alone:
+    no need to draw the whole set), one of `specs` (by name; scenes.all_specs() if None), or a
+    fresh draw (fresh_spec)."""
+    spec = scenes.stepped_spec(name)
+    if spec is not None:
+        return spec
+    if specs is None:
+        specs = {s["name"]: s for s in scenes.all_specs()}
+    return specs[name] if name in specs else fresh_spec(name)
+
+
 def fresh_spec(name):
     """The spec of `draw_<i>`, `video_<i>` or either with `mf_` before it, for any `i`."""
     mf = name.startswith("mf_")
@@ -354,18 +368,24 @@ def main():
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--spp", type=int, default=0, help="override every bag's spp (quick tests)")
     args = ap.parse_args()
-    specs = scenes.all_specs()
     if args.list:
-        for s in specs:
+        for s in scenes.all_specs():
             print(s["name"], s["spp"], len(s["stages"]))
+        # the stepped scenes and their calibrations: rendered by name only (not in the default run)
+        for s in [scenes.stepped(i, "stepped_dev") for i in range(scenes.STEPPED_SETS["stepped_dev"])] \
+                + scenes.stepped_calibration_specs() \
+                + [scenes.stepped(i, "stepped") for i in range(scenes.STEPPED_SETS["stepped"])]:
+            print(s["name"], s["spp"], len(s["stages"]), "(by name)")
         return
+    # A stepped name (scenes.stepped_spec) is drawn alone; any other needs the set.
+    specs = None if args.names and all(scenes.stepped_spec_name(n) for n in args.names) else scenes.all_specs()
     names = args.names or [s["name"] for s in specs]
-    by = {s["name"]: s for s in specs}
+    by = {s["name"]: s for s in specs} if specs is not None else {}
     # Fresh scenes from the same seeded ranges, beyond the committed set (draw_20,
-    # mf_draw_20, video_3, ...): scenes nothing was tuned on.
+    # mf_draw_20, video_3, stepped_12, ...): scenes nothing was tuned on.
     for n in names:
         if n not in by:
-            by[n] = fresh_spec(n)
+            by[n] = find_spec(n, by)
     os.makedirs(args.cache, exist_ok=True)
     for n in names:
         if args.spp:

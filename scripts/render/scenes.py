@@ -635,3 +635,253 @@ def all_specs():
         hollow_bin("calib_hollow_bin", 97, 4),
         hollow_bin("hollow_bin", 98, 3),
     ] + [draw(i) for i in range(20)] + calibration_specs() + [video(i) for i in range(3)] + mf_specs() + [mf_moving_camera()]
+
+
+# ------------------------------------------------ objects in stepped poses ---
+# Objects followed through stepped poses: after the background frames, ONE
+# frame per pose, 3-5 poses at a drawn frame rate (10-30 Hz). Between
+# consecutive poses every object (translucent or opaque) steps 150-350 mm in
+# depth (sign drawn), 0-150 mm sideways and turns a little; each keeps its
+# identity (`object`) and its own material across the poses. A pose is drawn
+# again until every object is in view, within [700 mm, background - 250 mm]
+# and clear of the others (`apart`). `stepped(i, "stepped_dev")` (seed
+# 5000 + i) is the committed development set, `stepped(i, "stepped")` (seed
+# 6000 + i) the fresh one, rendered outside the repository.
+
+STEPPED_SEEDS = {"stepped_dev": 5000, "stepped": 6000}
+STEPPED_SETS = {"stepped_dev": 8, "stepped": 12}  # the registered names: stepped_dev_00..07, stepped_00..11
+STEPPED_KINDS = ["two_sheets", "two_sheets_box", "sheet_over_box", "frosted", "hollow_bin_sheet"]
+STEP_MM = (150.0, 350.0)  # depth step of every object between consecutive poses
+STEP_LATERAL_MM = 150.0  # at most, in a drawn direction in the image plane
+STEP_TILT_DEG = 2.5  # per axis (x, y, z), so under 5 deg in all
+STEP_NEAR_MM = 700.0  # every point of an object at least this far from the camera
+STEP_BG_MARGIN_MM = 250.0  # every pixel of an object at least this far before the background
+STEP_SHEET_MAX_TILT = 35.0
+STEP_BOX_MAX_TILT = 35.0
+STEP_BIN_MAX_TILT = 10.0  # the hollow bin stays near face-on
+STEP_MIN_VISIBLE_PX = 150  # every object, as the nearest surface among the others
+STEP_OVER_SHARE = 0.25  # sheet_over_box: the front sheet covers at least this share of the box's pixels
+STEPPED_CALIB_SEED = 5500  # calib_stepped_dev_XX_<material>: seed 5500 + 10 i + material id
+
+
+def in_step_range(o, bgz):
+    """In view (>= 300 px), every pixel at least STEP_BG_MARGIN_MM before the background and
+    every point of it at least STEP_NEAR_MM from the camera."""
+    return fits(o, bgz, margin=STEP_BG_MARGIN_MM) and surface_points(o, 2)[:, 2].min() >= STEP_NEAR_MM
+
+
+def _stepped_pose_ok(objs, keys, ids, kind):
+    """Each object seen as the nearest surface on >= STEP_MIN_VISIBLE_PX pixels; sheet_over_box:
+    the front sheet (m1) before the box on at least STEP_OVER_SHARE of the box's own pixels."""
+    import tofcore as tc
+    _, m = tc.ground_truth(objs, ids)
+    if any((m == ids[k]).sum() < STEP_MIN_VISIBLE_PX for k in keys):
+        return False
+    if kind == "sheet_over_box":
+        by = dict(zip(keys, objs))
+        zb, mb = tc.ground_truth([by["box"]], {"box": 1})
+        zs, ms = tc.ground_truth([by["m1"]], {"m1": 1})
+        own = mb > 0
+        over = own & (ms > 0) & (zs < zb)
+        if over.sum() < STEP_OVER_SHARE * own.sum():
+            return False
+    return True
+
+
+def _stepped_move(rng, o, zlo, zhi, max_tilt):
+    """`o` one step on: depth +-150..350 mm (sign drawn; turned back if the centre would leave
+    [zlo, zhi]), 0..150 mm sideways in a drawn direction, each tilt +-2.5 deg."""
+    c = list(o["center_mm"])
+    dz = rng.uniform(*STEP_MM) * rng.choice([-1, 1])
+    if not zlo <= c[2] + dz <= zhi:
+        dz = -dz
+    a, r = rng.uniform(0, 2 * math.pi), rng.uniform(0, STEP_LATERAL_MM)
+    dt = rng.uniform(-STEP_TILT_DEG, STEP_TILT_DEG, size=3)
+    out = dict(o)
+    out["center_mm"] = [c[0] + r * math.cos(a), c[1] + r * math.sin(a), c[2] + dz]
+    for k, d in zip(("tilt_x_deg", "tilt_y_deg", "tilt_z_deg"), dt):
+        out[k] = float(o[k] + d)
+    if max(abs(out["tilt_x_deg"]), abs(out["tilt_y_deg"])) > max_tilt:
+        return None
+    return out
+
+
+def stepped(i, prefix="stepped_dev", n_scene_tries=40, n_pose_tries=200, n_obj_tries=60):
+    """Objects followed through stepped poses (see above); the kind cycles with i
+    (STEPPED_KINDS), so every kind appears in any 5 consecutive indices."""
+    seed = STEPPED_SEEDS[prefix] + i
+    name = f"{prefix}_{i:02d}"
+    rng = np.random.default_rng(seed)
+    kind = STEPPED_KINDS[i % len(STEPPED_KINDS)]
+    bkind, bg, bgm, bgd, bgz, _ = drawn_background(rng, 2400, 2600)
+    # the farthest a centre is drawn: the background's middle part less the margin (fits decides per pixel)
+    zhi = float(np.nanmedian(bgz[30:114, 35:141])) - STEP_BG_MARGIN_MM - 100.0
+    zlo = STEP_NEAR_MM + 150.0
+    bin_size = None
+    if kind in ("two_sheets", "two_sheets_box", "sheet_over_box"):
+        mats = drawn_sheets(rng, 2)
+        if kind != "two_sheets":
+            mats["box"] = mat(3, "opaque_box", 0.0, rng.uniform(0.3, 0.8), "opaque")
+    elif kind == "frosted":
+        mats = {"m1": mat(1, "frosted_slab", rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.7), "difftrans")}
+        if rng.uniform() < 0.5:
+            mats["m2"] = mat(2, "sheet_2", rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.7), "mask")
+    else:
+        bin_mat, bin_size = hollow_object()
+        mats = {"bin": bin_mat, "m2": mat(2, "sheet_2", rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.7), "mask")}
+    ids = {k: m["id"] for k, m in mats.items()}
+    n = int(rng.integers(3, 6))
+    rate = int(rng.integers(10, 31))
+    keys = sorted(mats, key=lambda k: mats[k]["id"])
+    if kind == "sheet_over_box":
+        keys = ["box", "m1", "m2"]  # the box first, the sheet before it next
+    max_tilt = {k: STEP_BIN_MAX_TILT if k == "bin" else STEP_BOX_MAX_TILT if k == "box" else STEP_SHEET_MAX_TILT
+                for k in keys}
+
+    def first_pose():
+        side = rng.choice([-1, 1])
+        if kind == "sheet_over_box":
+            slots = {"box": side * 0.3, "m1": side * 0.3, "m2": -side * 0.35}
+        else:
+            order = list(keys)
+            rng.shuffle(order)
+            slots = {k: (-0.45 + 0.9 * j / (len(order) - 1)) if len(order) > 1 else rng.uniform(-0.2, 0.2)
+                     for j, k in enumerate(order)}
+        objs = []
+        for k in keys:
+            for _ in range(n_obj_tries):
+                if kind == "sheet_over_box" and k == "m1":
+                    zbox = objs[0]["center_mm"][2] - objs[0]["size_mm"][2] / 2
+                    if zbox - 250 < zlo:
+                        return None
+                    z = rng.uniform(zlo, zbox - 250)
+                else:
+                    z = rng.uniform(zlo, max(zlo + 50, zhi))
+                if k == "box":
+                    o = opaque_box(rng, z, slots[k], k)
+                elif k == "bin":
+                    x = slots[k] * TAN_H * z + rng.uniform(-40, 40)
+                    o = box([x, rng.uniform(-0.2, 0.2) * TAN_V * z, z + bin_size[2] / 2], bin_size,
+                            tx=rng.uniform(-3, 3), ty=rng.uniform(-3, 3), tz=rng.uniform(-3, 3), material=k)
+                else:
+                    o = sheet(rng, z, slots[k], k, rng.uniform() < 0.5, max_tilt=STEP_SHEET_MAX_TILT)
+                if kind == "sheet_over_box" and k == "m1":  # straight before the box, a little off its centre
+                    b = objs[0]["center_mm"]
+                    o["center_mm"] = [b[0] + rng.uniform(-60, 60), b[1] + rng.uniform(-60, 60), o["center_mm"][2]]
+                o["object"] = mats[k]["name"]
+                if in_step_range(o, bgz) and all(apart(o, p) for p in objs):
+                    objs.append(o)
+                    break
+            else:
+                return None
+        return objs if _stepped_pose_ok(objs, keys, ids, kind) else None
+
+    def next_pose(prev):
+        objs = []
+        for k, p in zip(keys, prev):
+            for _ in range(n_obj_tries):
+                o = _stepped_move(rng, p, zlo, zhi, max_tilt[k])
+                if o is not None and in_step_range(o, bgz) and all(apart(o, q) for q in objs):
+                    objs.append(o)
+                    break
+            else:
+                return None
+        return objs if _stepped_pose_ok(objs, keys, ids, kind) else None
+
+    for scene_try in range(n_scene_tries):
+        poses, tries = [first_pose()], [1]
+        if poses[0] is None:
+            continue
+        for _ in range(1, n):
+            for t in range(n_pose_tries):
+                nxt = next_pose(poses[-1])
+                if nxt is not None:
+                    poses.append(nxt)
+                    tries.append(t + 1)
+                    break
+            else:
+                break
+        if len(poses) == n:
+            break
+    else:
+        raise RuntimeError(f"{name}: no {n} stepped poses in {n_scene_tries} scenes")
+
+    import tofcore as tc
+    truths = [tc.ground_truth(p, ids) for p in poses]
+    tracks = []
+    for j, k in enumerate(keys):
+        seq = [p[j] for p in poses]
+        cs = [o["center_mm"] for o in seq]
+        med = [round(float(np.median(z[m == ids[k]])) * 1000.0, 1) for z, m in truths]
+        tracks.append({
+            "object": mats[k]["name"], "material": mats[k]["id"], "kind": seq[0]["kind"],
+            "model": mats[k]["model"], "size_mm": [round(float(x), 1) for x in seq[0]["size_mm"]],
+            "depth_mm": [round(float(c[2]), 1) for c in cs],
+            "truth_median_z_mm": med,
+            "depth_step_mm": [round(float(b[2] - a[2]), 1) for a, b in zip(cs, cs[1:])],
+            "lateral_step_mm": [round(float(math.hypot(b[0] - a[0], b[1] - a[1])), 1) for a, b in zip(cs, cs[1:])],
+            "center_mm": [[round(float(x), 1) for x in c] for c in cs],
+            "tilt_deg": [[round(float(o[t]), 2) for t in ("tilt_x_deg", "tilt_y_deg", "tilt_z_deg")] for o in seq]})
+    stages = [{"frames": 1, "objects": p} for p in poses]
+    model = "mixed" if any(m["model"] == "difftrans" for m in mats.values()) else "mask"
+    what = ", ".join(f"{mats[k]['name']} ({'opaque' if mats[k]['model'] == 'opaque' else mats[k]['model'] + ' xi %.2f' % mats[k]['xi']})"
+                     for k in keys)
+    return dict(name=name, seed=seed, model=model, spp=COVERAGE_SPP, background=bg, background_materials=bgm,
+                background_description=bgd, materials=mats, stages=stages, tracks=tracks, frame_rate_hz=rate,
+                zstd_level=19,
+                sidecar={"kind": kind, "poses": n, "moving_frames": n, "pose_draws": tries,
+                         "motion_note": (
+                             "stepped poses: one frame per pose after the background frames (one stage per frame, "
+                             "one render each); between consecutive poses every object steps 150-350 mm in depth "
+                             "(sign drawn), 0-150 mm in the image plane and each tilt by up to 2.5 deg; "
+                             "stages.objects.object names the object; [[tracks]] give each object's material and, per "
+                             "pose, its centre (depth_mm = centre z; truth_median_z_mm = the median ground-truth z of "
+                             "the pixels it is the nearest surface on) and tilts")},
+                spp_note=f"stepped poses: {COVERAGE_SPP} spp per pose (every pose is its own render)",
+                description=f"stepped {prefix} {i}: {kind}: {what} before a {bkind} background, {n} poses, one frame "
+                            f"each at {rate} Hz")
+
+
+def stepped_calibration_specs(n=STEPPED_SETS["stepped_dev"]):
+    """Per-material calibrations (calibration(), the shared calibration wall) for every
+    translucent material of stepped_dev_00 .. n-1: calib_stepped_dev_XX_<material>."""
+    out = []
+    for i in range(n):
+        spec = stepped(i, "stepped_dev")
+        for key in sorted(spec["materials"], key=lambda k: spec["materials"][k]["id"]):
+            if spec["materials"][key]["model"] != "opaque":
+                out.append(_stepped_calibration(i, spec, key))
+    return out
+
+
+def _stepped_calibration(i, spec, key):
+    """calibration() of material `key` of stepped_dev_<i> (`spec`), written at zstd level 19."""
+    c = calibration(lambda: spec, key, STEPPED_CALIB_SEED + 10 * i + spec["materials"][key]["id"])
+    c["zstd_level"] = 19
+    return c
+
+
+STEPPED_NAME = r"(stepped_dev|stepped)_(\d+)"
+STEPPED_CALIB_NAME = r"calib_stepped_dev_(\d+)_(.+)"
+
+
+def stepped_spec_name(name):
+    """Whether `name` is a stepped scene's (stepped_dev_<i>, stepped_<i>) or a stepped_dev
+    calibration's (calib_stepped_dev_<i>_<material>)."""
+    import re
+    return bool(re.fullmatch(STEPPED_NAME, name) or re.fullmatch(STEPPED_CALIB_NAME, name))
+
+
+def stepped_spec(name):
+    """The spec of stepped_dev_<i>, stepped_<i> (any i) or calib_stepped_dev_<i>_<material>;
+    None for another name."""
+    import re
+    m = re.fullmatch(STEPPED_CALIB_NAME, name)
+    if m:
+        spec = stepped(int(m.group(1)), "stepped_dev")
+        for key, mm in spec["materials"].items():
+            if mm["name"] == m.group(2) and mm["model"] != "opaque":
+                return _stepped_calibration(int(m.group(1)), spec, key)
+        raise SystemExit(f"{name}: stepped_dev_{m.group(1)} has no translucent material {m.group(2)!r}")
+    m = re.fullmatch(STEPPED_NAME, name)
+    return stepped(int(m.group(2)), m.group(1)) if m else None

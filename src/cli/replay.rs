@@ -27,6 +27,10 @@ pub struct ReplayArgs {
     /// How to estimate ξ.
     #[arg(long, value_enum, default_value_t = XiMethodArg::OneMaterial)]
     pub xi_method: XiMethodArg,
+    /// The model's error in ξ (sd) that every estimated interval takes in quadrature: what a
+    /// physical scene holds beyond the model (0: the evidence's own intervals).
+    #[arg(long, default_value_t = crate::physics::translucency::XI_MODEL_ERROR_SD)]
+    pub xi_model_error_sd: f64,
     /// Which frames' evidence each frame's ξ pools.
     #[arg(long, value_enum, default_value_t = XiMode::Pooled)]
     pub xi_mode: XiMode,
@@ -147,6 +151,10 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         }
     }
     let mut config = a.pipeline.config()?;
+    if !(a.xi_model_error_sd.is_finite() && (0.0..=1.0).contains(&a.xi_model_error_sd)) {
+        bail!("--xi-model-error-sd must be in [0, 1], got {}", a.xi_model_error_sd);
+    }
+    config.xi_settings.xi_model_error_sd = a.xi_model_error_sd;
     config.prior_radius_px = a.prior_radius_px;
     config.prior_stride_px = a.prior_stride_px as usize;
     config.xi = match a.xi {
@@ -220,6 +228,10 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             pipe.add_xi_evidence(obs);
         }
         let Some(out) = pipe.recover_regions(f, obs) else {
+            if let Some(truth) = rec.truth.get(&f.stamp_ns) {
+                // Published as read: every pixel counts at its reading.
+                errors.add_every(&f.z_mm, &f.z_mm, truth);
+            }
             per_frame.push(json!({"stamp": f.stamp_ns as f64 * 1e-9, "xi": null, "translucent_pixels": obs.translucent_pixels, "note": "no xi yet"}));
             pb.inc(1);
             continue;
@@ -323,7 +335,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         "xi_profile": xi.as_ref().map(|x| x.profile.clone()),
         "translucent_pixels": total_px,
         "materials": pipe.materials().filter_map(|m| {
-            let e = m.estimate.as_ref()?;
+            // What is published for it: its own estimate with its class applied.
+            let e = pipe.published_estimate(m)?;
             let mut object = json!({
                 "id": m.id,
                 "xi": e.xi,
@@ -333,6 +346,10 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 "pixels": m.pixels(),
                 "note": e.note,
             });
+            if let Some(own) = m.estimate.as_ref().filter(|own| own.interval != e.interval || own.xi != e.xi) {
+                object["own_xi"] = json!(own.xi);
+                object["own_xi_interval"] = json!(own.interval);
+            }
             if let Some(c) = pipe.classify(m) {
                 object["class"] = json!({
                     "material": c.name,
@@ -367,7 +384,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         });
         report["eq12_profile"] = json!(profile);
     }
-    if errors.pixels() > 0 {
+    if !errors.every.is_empty() {
         if let serde_json::Value::Object(m) = errors.json() {
             for (k, v) in m {
                 report[k] = v;

@@ -9,14 +9,20 @@
 //! through the scene moves smoothly: its distance changes by no more than
 //! `max_object_speed_m_s` allows between two frames, and, once its speed is
 //! known from two frames, departs from that speed by no more than
-//! `max_object_acceleration_m_s2` allows. A region farther off jumped: the
-//! scene was cut (objects put down elsewhere, taken away, exchanged). After a
-//! cut, an object continues only where that is beyond doubt: one object before
-//! it and one region after. With several in view, the data cannot tell an
-//! object moved from one that took another's place (both fit one ξ at which
-//! their albedos agree, `same_material_statistic` measured), so each region
+//! `max_object_acceleration_m_s2` allows. An object may also be put at another
+//! pose between two captures (one frame a pose, the paper's own protocol): a
+//! region within `max_pose_step_mm` of where the object stood, in 3-D
+//! ([`Place`]: its pixels need not overlap the object's last ones, and a pose
+//! nearer or farther scales its outline), continues it as a step. Moves and
+//! steps are assigned one to one over all regions by least total step; one
+//! stands only where no other identity for its object or its region comes
+//! within [`STEP_DOUBT_MM`] (shared/design/objects.md, "Stepped poses"): with
+//! two objects that could each have gone to either place, the data cannot
+//! tell an object moved from one that took another's place, so each region
 //! then starts a new object: an undetermined ξ is kept as read, a wrongly
-//! pooled one would be corrected wrongly.
+//! pooled one would be corrected wrongly. A region farther off than any step
+//! jumped: the scene was cut, and an object continues only where that is
+//! beyond doubt: one object before it and one region after.
 //!
 //! A region whose median distance stays where a still object stood continues it only where
 //! its pixels show the object's pattern of readings and IR within their noise, the shift and
@@ -25,8 +31,8 @@
 //! change with its motion; the kinematic bounds alone judge it.
 //!
 //! Each object takes at most one region of a frame, and each region one
-//! object, the pairs that share most pixels first: two regions seen at once
-//! are two objects. An object that reappears elsewhere is a new one.
+//! object: two regions seen at once are two objects. An object that reappears
+//! farther than a step from where it was is a new one.
 
 use super::stats::median_select;
 use super::translucency::{self, FrameProfile, XiEstimate, XiMethod, XiSettings, OPAQUE_XI};
@@ -36,6 +42,23 @@ use super::translucency::{self, FrameProfile, XiEstimate, XiMethod, XiSettings, 
 /// its size between two frames (a 300 mm object 2 m away carried at 1 m/s and seen at
 /// 10 Hz moves by a third of its size; one that moved farther jumped: a cut).
 const MIN_OVERLAP: f64 = 0.5;
+
+/// Most a stepped object's size across the view may change between two poses, as a ratio
+/// of its RMS radius: its tilt changes a little between poses, and a translucent layer's
+/// measured distance (which places it) is pulled towards the background by a share that
+/// changes with its distance from it.
+const STEP_SIZE_RATIO: f64 = 2.5;
+
+/// Farthest a stepped object moves across the view, in RMS radii of its footprint: its outline
+/// projected to the new distance then still covers about half of the new one (a square's
+/// half side is 1.2 of its RMS radius). Farther is another object's place (objects put down
+/// elsewhere, exchanged), not a step.
+const STEP_ACROSS_RADII: f64 = 1.5;
+
+/// How much costlier, in mm of 3-D step, another way of continuing the objects must be for
+/// a stepped object's identity to be beyond doubt: the measured distance of a translucent
+/// layer places it off its true place by up to this much more in one pose than in another.
+const STEP_DOUBT_MM: f64 = 150.0;
 
 /// Most materials kept: past it the one seen longest ago is forgotten.
 pub const MAX_MATERIALS: usize = 16;
@@ -139,6 +162,78 @@ struct Footprint {
     pixels: Vec<u32>,
     /// Their readings (empty where the region brought none).
     readings: Vec<PixelReading>,
+    /// Where it stood in 3-D and how large it was ([`RegionEvidence::place`]).
+    place: Place,
+}
+
+/// Where a region stands in 3-D, camera frame, mm: the mean of its pixels' unit rays
+/// (normalised) at its median measured distance, and the RMS lateral radius of its pixels'
+/// rays at that distance (its size across the view). A stepped object is followed by these
+/// (shared/design/objects.md, "Stepped poses"): its pixels need not overlap its last ones.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Place {
+    /// The centre, mm.
+    pub centre_mm: [f64; 3],
+    /// The RMS lateral radius, mm (0 where unknown: no place).
+    pub radius_mm: f64,
+}
+
+impl Place {
+    /// A region's place from its pixels' unit rays and its median distance; the default (no
+    /// place) without finite rays or distance.
+    pub fn of(rays: impl Iterator<Item = [f64; 3]>, distance_mm: f64) -> Self {
+        let (mut sum, mut sq, mut n) = ([0.0; 3], 0.0, 0usize);
+        for r in rays.filter(|r| r.iter().all(|x| x.is_finite())) {
+            for (s, x) in sum.iter_mut().zip(r) {
+                *s += x;
+            }
+            sq += r.iter().map(|x| x * x).sum::<f64>();
+            n += 1;
+        }
+        if n == 0 || !(distance_mm.is_finite() && distance_mm > 0.0) {
+            return Self::default();
+        }
+        let mean = sum.map(|s| s / n as f64);
+        let norm = mean.iter().map(|x| x * x).sum::<f64>().sqrt();
+        if !(norm > 0.0) {
+            return Self::default();
+        }
+        // Mean squared distance of the rays from their mean: sum |r|^2 / n - |mean|^2.
+        let spread = (sq / n as f64 - norm * norm).max(0.0).sqrt();
+        Self {
+            centre_mm: mean.map(|x| x / norm * distance_mm),
+            radius_mm: spread * distance_mm,
+        }
+    }
+
+    fn known(&self) -> bool {
+        self.radius_mm > 0.0
+    }
+
+    /// The 3-D step from `self` to `other`, mm.
+    fn step_to(&self, other: &Place) -> f64 {
+        self.centre_mm
+            .iter()
+            .zip(other.centre_mm)
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt()
+    }
+
+    /// Whether `other` may be this object stepped to another pose: a step of at most
+    /// `max_step_mm`, across the view by at most [`STEP_ACROSS_RADII`] of its size (its
+    /// outline projected to the new distance still covers much of the new one), and a size
+    /// within [`STEP_SIZE_RATIO`] of its own.
+    fn may_step_to(&self, other: &Place, max_step_mm: f64) -> bool {
+        let ratio = other.radius_mm / self.radius_mm;
+        let [dx, dy, _] = [0, 1, 2].map(|k| other.centre_mm[k] - self.centre_mm[k]);
+        let across = (dx * dx + dy * dy).sqrt();
+        self.known()
+            && other.known()
+            && self.step_to(other) <= max_step_mm
+            && across <= STEP_ACROSS_RADII * self.radius_mm.max(other.radius_mm)
+            && (1.0 / STEP_SIZE_RATIO..=STEP_SIZE_RATIO).contains(&ratio)
+    }
 }
 
 /// One region of a frame as the objects stage takes it.
@@ -155,6 +250,8 @@ pub struct RegionEvidence<'a> {
     pub profile: Option<FrameProfile>,
     /// Its pixels' readings, in the order of `pixels` (empty: not compared between frames).
     pub readings: Vec<PixelReading>,
+    /// Where it stands in 3-D (the default: unknown, never followed through a step).
+    pub place: Place,
 }
 
 impl Footprint {
@@ -269,7 +366,7 @@ impl Material {
             self.profiles.remove(0);
         }
         self.profiles.push(profile);
-        self.estimate = match estimate(&self.profiles, method) {
+        self.estimate = match estimate(&self.profiles, method, settings) {
             Some(e) => Some(self.held_to_its_history(e)),
             None => self.estimate.take(),
         };
@@ -361,7 +458,7 @@ impl Material {
             match stood_still.then(|| last.compare(region)).flatten() {
                 // Where it stood, but its pixels show another pattern: another object took
                 // its place.
-                Some(c) if !c.same_pattern => return Some(Motion::Jumped),
+                Some(c) if !c.same_pattern => return Some(Motion::Replaced),
                 // Its pixels moved together by more than noise (the outline's change hides
                 // that from the median): the kinematics judge the move.
                 Some(c) if c.shifted => {}
@@ -380,21 +477,27 @@ impl Material {
 }
 
 /// How a region's distance follows an object's motion.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 enum Motion {
     /// Within reading noise and outline of where it was.
     Still,
     /// As far as it can move between the frames.
     Moving,
-    /// Farther, or another object where it stood (its pixels read otherwise): a cut.
+    /// Farther than it can move between two frames, within a step of `max_pose_step_mm` in
+    /// 3-D: put at another pose between captures (one frame a pose, the paper's protocol).
+    Stepped,
+    /// Farther than that: a cut.
     Jumped,
+    /// Another object where it stood (its pixels read otherwise).
+    Replaced,
 }
 
-/// How fast objects move.
+/// How fast objects move, and how far they are stepped between captures.
 #[derive(Debug, Clone, Copy)]
 struct Kinematics {
     speed_m_s: f64,
     acceleration_m_s2: f64,
+    max_pose_step_mm: f64,
 }
 
 impl Kinematics {
@@ -402,6 +505,7 @@ impl Kinematics {
         Self {
             speed_m_s: settings.max_object_speed_m_s,
             acceleration_m_s2: settings.max_object_acceleration_m_s2,
+            max_pose_step_mm: settings.max_pose_step_mm,
         }
     }
 }
@@ -413,6 +517,10 @@ struct Pair {
     shared: usize,
     /// How far its median distance moved, mm.
     moved: f64,
+    /// Its cost: the step from the object's earlier place (3-D where both places are known,
+    /// else the change of median distance), mm, less the share of it that the pixels both
+    /// hold make up for (the share of the smaller footprint the other covers).
+    step_mm: f64,
     motion: Motion,
     region: usize,
     object: usize,
@@ -465,6 +573,7 @@ impl Materials {
                 spread_mm: region.spread_mm,
                 pixels: region.pixels.to_vec(),
                 readings: region.readings,
+                place: region.place,
             };
             match (pairs[k], region.profile) {
                 (Some(i), profile) => {
@@ -481,7 +590,7 @@ impl Materials {
         }
         // New objects last: starting one may forget the oldest, which moves the indices.
         for (k, p, footprint) in new {
-            let i = self.start(p, method);
+            let i = self.start(p, method, settings);
             let m = &mut self.materials[i];
             m.record(footprint);
             ids[k] = Some(m.id);
@@ -507,10 +616,17 @@ impl Materials {
             .collect()
     }
 
-    /// The pairs where the region covers at least [`MIN_OVERLAP`] of the smaller of it and the
-    /// object's earlier region and the object's motion allows it (after a cut only beyond
-    /// doubt, see the module's note).
+    /// The pairs where the object's motion allows the region to continue it: a region that
+    /// covers at least [`MIN_OVERLAP`] of the smaller of it and the object's earlier region,
+    /// still or moving as it can; or one within a step of `max_pose_step_mm` of its earlier
+    /// place in 3-D (its pixels need not overlap), stepped to another pose. Those that stand
+    /// ([`Self::filter_candidates`]).
     fn candidates(&self, regions: &[RegionEvidence], frame: u64, stamp_ns: u64, limits: &Kinematics) -> Vec<Pair> {
+        let pairs = self.candidates_raw(regions, frame, stamp_ns, limits);
+        self.filter_candidates(pairs, regions, frame, limits)
+    }
+
+    fn candidates_raw(&self, regions: &[RegionEvidence], frame: u64, stamp_ns: u64, limits: &Kinematics) -> Vec<Pair> {
         let mut pairs = vec![];
         for (i, m) in self.materials.iter().enumerate() {
             let Some(before) = m.earlier_than(frame) else {
@@ -519,39 +635,147 @@ impl Materials {
             for (k, r) in regions.iter().enumerate() {
                 let shared = before.overlap(r.pixels);
                 let smaller = before.pixels.len().min(r.pixels.len()).max(1);
-                if (shared as f64 / smaller as f64) < MIN_OVERLAP {
+                let overlaps = shared as f64 / smaller as f64 >= MIN_OVERLAP;
+                // A step is between two captures in a row: an object unseen for a frame that
+                // reappears a step away may as well be another put where it stood.
+                let steps = before.frame + 1 == frame && before.place.may_step_to(&r.place, limits.max_pose_step_mm);
+                if !overlaps && !steps {
                     continue;
                 }
-                if let Some(motion) = m.motion(r, frame, stamp_ns, limits) {
-                    let moved = (r.distance_mm - before.distance_mm).abs();
-                    pairs.push(Pair {
-                        shared,
-                        moved,
-                        motion,
-                        region: k,
-                        object: i,
-                    });
-                }
+                let motion = match m.motion(r, frame, stamp_ns, limits) {
+                    Some(Motion::Replaced) | None => continue,
+                    Some(Motion::Jumped) if steps => Motion::Stepped,
+                    // Without overlap only a step continues it.
+                    Some(Motion::Still | Motion::Moving) if !overlaps => Motion::Stepped,
+                    Some(motion) => motion,
+                };
+                let moved = (r.distance_mm - before.distance_mm).abs();
+                // The pixels it shares with where the object was speak for it as much as
+                // nearness: the cost of a pair is its step less that share of it.
+                let share = shared as f64 / smaller as f64;
+                let step_mm = if before.place.known() && r.place.known() {
+                    before.place.step_to(&r.place)
+                } else {
+                    moved
+                } * (1.0 - share.min(1.0));
+                pairs.push(Pair {
+                    shared,
+                    moved,
+                    step_mm,
+                    motion,
+                    region: k,
+                    object: i,
+                });
             }
         }
-        // A cut: a region where objects were, farther from each than it can have moved, and
-        // at least one of them continued by no other region (it may be that object, moved
-        // away). A region beside an object that another region continues is a new object
-        // entering its outline, not a cut.
-        let continued = |object: usize| pairs.iter().any(|p| p.object == object && p.motion != Motion::Jumped);
-        let cut = (0..regions.len()).any(|k| {
-            let of_region: Vec<&Pair> = pairs.iter().filter(|p| p.region == k).collect();
-            !of_region.is_empty()
-                && of_region.iter().all(|p| p.motion == Motion::Jumped)
-                && of_region.iter().any(|p| !continued(p.object))
-        });
+        pairs
+    }
+
+    /// The pairs that stand among `pairs` ([`Self::candidates`]): still ones; moving and
+    /// stepped ones where the assignment takes them beyond doubt ([`Self::moves_that_stand`]);
+    /// jumps only where one object and one region leave no doubt at all.
+    fn filter_candidates(
+        &self,
+        pairs: Vec<Pair>,
+        regions: &[RegionEvidence],
+        frame: u64,
+        limits: &Kinematics,
+    ) -> Vec<Pair> {
         let beyond_doubt = regions.len() == 1 && self.seen_in_latest_frame(frame) == 1;
-        pairs.retain(|p| match p.motion {
-            Motion::Still => true,
-            Motion::Moving => !cut || beyond_doubt,
-            Motion::Jumped => beyond_doubt,
+        let stands = self.moves_that_stand(&pairs, limits);
+        // A cut: a region where objects were, each farther than it can have moved or stepped
+        // (a step that does not stand counts), and at least one of them continued by no other
+        // region (it may be that object, moved away): then an object that seems to have moved
+        // may as well be another put in its place. A region beside an object that another
+        // region continues is a new object entering its outline, not a cut.
+        let jumped: Vec<bool> = pairs
+            .iter()
+            .zip(&stands)
+            .map(|(p, &ok)| p.motion == Motion::Jumped || (p.motion == Motion::Stepped && !ok))
+            .collect();
+        let continued = |object: usize| pairs.iter().zip(&jumped).any(|(p, &j)| p.object == object && !j);
+        let cut = (0..regions.len()).any(|k| {
+            let of_region: Vec<(&Pair, bool)> = pairs
+                .iter()
+                .zip(jumped.iter().copied())
+                .filter(|(p, _)| p.region == k)
+                .collect();
+            !of_region.is_empty()
+                && of_region.iter().all(|&(_, j)| j)
+                && of_region.iter().any(|(p, _)| !continued(p.object))
         });
         pairs
+            .into_iter()
+            .zip(stands)
+            .filter(|(p, stands)| match p.motion {
+                Motion::Still => true,
+                Motion::Moving => beyond_doubt || (*stands && !cut),
+                Motion::Stepped => beyond_doubt || *stands,
+                Motion::Jumped => beyond_doubt,
+                Motion::Replaced => false,
+            })
+            .map(|(p, _)| p)
+            .collect()
+    }
+
+    /// Which moving and stepped pairs stand (objects.md, "Stepped poses"). Among the objects
+    /// and regions no still pair holds, the one-to-one assignment of least total step (3-D
+    /// where both places are known, else the change of median distance; an object left without
+    /// a region costs `max_pose_step_mm`) is found. A pair stands where that assignment takes
+    /// it and every other identity for its object or its region (the object to another region,
+    /// or another object to this region, the rest assigned at least cost) costs at least
+    /// [`STEP_DOUBT_MM`] more: else two objects could each have gone to either place, and the
+    /// data cannot tell which. One flag a pair, false but for moving and stepped ones.
+    fn moves_that_stand(&self, pairs: &[Pair], limits: &Kinematics) -> Vec<bool> {
+        let moves = |p: &Pair| matches!(p.motion, Motion::Moving | Motion::Stepped);
+        let held_region = |k: usize| pairs.iter().any(|p| p.region == k && p.motion == Motion::Still);
+        let held_object = |i: usize| pairs.iter().any(|p| p.object == i && p.motion == Motion::Still);
+        let open: Vec<&Pair> = pairs
+            .iter()
+            .filter(|p| moves(p) && !held_region(p.region) && !held_object(p.object))
+            .filter(|p| p.step_mm.is_finite())
+            .collect();
+        let mut rows: Vec<usize> = open.iter().map(|p| p.object).collect();
+        let mut cols: Vec<usize> = open.iter().map(|p| p.region).collect();
+        for v in [&mut rows, &mut cols] {
+            v.sort_unstable();
+            v.dedup();
+        }
+        let step = |i: usize, k: usize| {
+            open.iter()
+                .find(|p| p.object == i && p.region == k)
+                .map_or(f64::INFINITY, |p| p.step_mm)
+        };
+        let leave = limits.max_pose_step_mm.max(1.0);
+        let cost = |forced: Option<(usize, usize)>| {
+            let (r, c): (Vec<usize>, Vec<usize>) = match forced {
+                Some((i, k)) => (
+                    rows.iter().copied().filter(|&x| x != i).collect(),
+                    cols.iter().copied().filter(|&x| x != k).collect(),
+                ),
+                None => (rows.clone(), cols.clone()),
+            };
+            let m: Vec<Vec<f64>> = r.iter().map(|&i| c.iter().map(|&k| step(i, k)).collect()).collect();
+            let (total, assigned) = least_cost_assignment(&m, leave);
+            let pairs: Vec<(usize, usize)> = assigned
+                .iter()
+                .enumerate()
+                .filter_map(|(a, b)| Some((r[a], c[(*b)?])))
+                .collect();
+            (total + forced.map_or(0.0, |(i, k)| step(i, k)), pairs)
+        };
+        let (best, chosen) = cost(None);
+        pairs
+            .iter()
+            .map(|p| {
+                moves(p)
+                    && chosen.contains(&(p.object, p.region))
+                    && !open.iter().any(|q| {
+                        let other = (q.object == p.object) != (q.region == p.region);
+                        other && cost(Some((q.object, q.region))).0 < best + STEP_DOUBT_MM
+                    })
+            })
+            .collect()
     }
 
     /// Each region's pair: the objects seen most recently first (an object lost for a frame
@@ -559,10 +783,13 @@ impl Materials {
     /// then least moved; each region and each object taken once.
     fn pick(&self, mut pairs: Vec<Pair>, regions: usize) -> Vec<Option<Pair>> {
         let seen = |p: &Pair| self.materials[p.object].latest.frame;
+        let stepped = |p: &Pair| p.motion == Motion::Stepped;
         pairs.sort_by(|a, b| {
             seen(b)
                 .cmp(&seen(a))
+                .then(stepped(a).cmp(&stepped(b)))
                 .then(b.shared.cmp(&a.shared))
+                .then(a.step_mm.total_cmp(&b.step_mm))
                 .then(a.moved.total_cmp(&b.moved))
         });
         let mut region_to = vec![None; regions];
@@ -610,7 +837,7 @@ impl Materials {
     }
 
     /// A new material of this evidence; the one seen longest ago goes if there are too many.
-    fn start(&mut self, profile: FrameProfile, method: XiMethod) -> usize {
+    fn start(&mut self, profile: FrameProfile, method: XiMethod, settings: &XiSettings) -> usize {
         if self.materials.len() >= MAX_MATERIALS {
             if let Some(oldest) = (0..self.materials.len()).min_by_key(|&i| self.materials[i].last_seen()) {
                 self.materials.remove(oldest);
@@ -620,7 +847,7 @@ impl Materials {
         let profiles = vec![profile];
         self.materials.push(Material {
             id: self.next_id,
-            estimate: estimate(&profiles, method),
+            estimate: estimate(&profiles, method, settings),
             profiles,
             latest: Footprint::default(),
             before: Footprint::default(),
@@ -634,10 +861,93 @@ impl Materials {
     }
 }
 
-fn estimate(profiles: &[FrameProfile], method: XiMethod) -> Option<XiEstimate> {
+/// The least-cost one-to-one assignment of rows to columns (the Hungarian method, Kuhn and
+/// Munkres), each row left unassigned at cost `leave` if that is cheaper; an infinite cost
+/// forbids a pair. Returns the total and each row's column.
+fn least_cost_assignment(cost: &[Vec<f64>], leave: f64) -> (f64, Vec<Option<usize>>) {
+    let n = cost.len();
+    let m = cost.first().map_or(0, Vec::len);
+    // Columns: the m real ones, then one "left" column a row (the others' forbidden).
+    let forbidden = 1e3 * leave * (n + 1) as f64;
+    let at = |i: usize, j: usize| -> f64 {
+        if j < m {
+            cost[i].get(j).copied().filter(|c| c.is_finite()).unwrap_or(forbidden)
+        } else if j - m == i {
+            leave
+        } else {
+            forbidden
+        }
+    };
+    let cols = m + n;
+    // Potentials and matching, 1-based with 0 as the free slot.
+    let (mut u, mut v) = (vec![0.0; n + 1], vec![0.0; cols + 1]);
+    let (mut row_of, mut way) = (vec![0usize; cols + 1], vec![0usize; cols + 1]);
+    for i in 1..=n {
+        row_of[0] = i;
+        let mut j0 = 0;
+        let mut min_v = vec![f64::INFINITY; cols + 1];
+        let mut used = vec![false; cols + 1];
+        loop {
+            used[j0] = true;
+            let i0 = row_of[j0];
+            let (mut delta, mut j1) = (f64::INFINITY, 0);
+            for j in 1..=cols {
+                if used[j] {
+                    continue;
+                }
+                let c = at(i0 - 1, j - 1) - u[i0] - v[j];
+                if c < min_v[j] {
+                    min_v[j] = c;
+                    way[j] = j0;
+                }
+                if min_v[j] < delta {
+                    delta = min_v[j];
+                    j1 = j;
+                }
+            }
+            for j in 0..=cols {
+                if used[j] {
+                    u[row_of[j]] += delta;
+                    v[j] -= delta;
+                } else {
+                    min_v[j] -= delta;
+                }
+            }
+            j0 = j1;
+            if row_of[j0] == 0 {
+                break;
+            }
+        }
+        loop {
+            let j1 = way[j0];
+            row_of[j0] = row_of[j1];
+            j0 = j1;
+            if j0 == 0 {
+                break;
+            }
+        }
+    }
+    let mut assigned = vec![None; n];
+    let mut total = 0.0;
+    for j in 1..=cols {
+        let i = row_of[j];
+        if i == 0 {
+            continue;
+        }
+        total += at(i - 1, j - 1);
+        if j <= m {
+            assigned[i - 1] = Some(j - 1);
+        }
+    }
+    (total, assigned)
+}
+
+fn estimate(profiles: &[FrameProfile], method: XiMethod, settings: &XiSettings) -> Option<XiEstimate> {
     match method {
         XiMethod::Eq12Residual => translucency::eq12_residual(profiles),
-        _ => translucency::one_material(profiles),
+        _ => {
+            translucency::one_material(profiles).map(|e| translucency::with_model_error(e, settings.xi_model_error_sd))
+        }
     }
 }
 
@@ -666,6 +976,18 @@ mod tests {
             spread_mm: 0.0,
             profile: Some(evidence()),
             readings: vec![],
+            place: Place::default(),
+        }
+    }
+
+    /// A region placed in 3-D: centred at `(x, y, z)` mm with an RMS radius of 100 mm.
+    fn placed(pixels: &[u32], x: f64, y: f64, z: f64) -> RegionEvidence<'_> {
+        RegionEvidence {
+            place: Place {
+                centre_mm: [x, y, z],
+                radius_mm: 100.0,
+            },
+            ..region(pixels, (x * x + y * y + z * z).sqrt())
         }
     }
 
@@ -686,7 +1008,7 @@ mod tests {
     /// The estimates an object's growing evidence gave, frame by frame, as it holds them.
     fn held(estimates: &[(f64, [f64; 2])]) -> Vec<(f64, [f64; 2])> {
         let mut objects = Materials::default();
-        let i = objects.start(evidence(), XiMethod::OneMaterial);
+        let i = objects.start(evidence(), XiMethod::OneMaterial, &XiSettings::default());
         let m = &mut objects.materials[i];
         estimates
             .iter()
@@ -1046,9 +1368,91 @@ mod tests {
             spread_mm: 0.0,
             profile: None,
             readings: vec![],
+            place: Place::default(),
         };
         let ids = add(&mut objects, 2, vec![bare(&a), bare(&far)]);
         assert_eq!(ids, vec![first[0], None]);
         assert_eq!(objects.get(first[0].unwrap()).unwrap().frames(), 1);
+    }
+
+    #[test]
+    fn a_place_is_the_mean_ray_at_the_median_distance_and_the_rays_spread() {
+        // Four rays at +-0.1 in x and y about the axis, at 2000 mm.
+        let rays = [[0.1, 0.0, 1.0], [-0.1, 0.0, 1.0], [0.0, 0.1, 1.0], [0.0, -0.1, 1.0]];
+        let p = Place::of(rays.into_iter(), 2000.0);
+        assert!((p.centre_mm[2] - 2000.0).abs() < 1e-9 && p.centre_mm[0].abs() < 1e-9);
+        assert!((p.radius_mm - 200.0).abs() < 1e-9, "{p:?}");
+        assert!(!Place::of(rays.into_iter(), f64::NAN).known());
+        assert!(!Place::of(std::iter::empty(), 2000.0).known());
+    }
+
+    #[test]
+    fn objects_stepped_between_poses_keep_their_identity_with_others_in_view() {
+        // Two sheets 500 mm apart across the view, each stepped 250-300 mm in depth with a
+        // lateral move of 100 mm between frames at 10 Hz (2.5-3 m/s: beyond the speed
+        // limit), their pixels no longer overlapping: one frame a pose.
+        let mut objects = Materials::default();
+        let px: Vec<Vec<u32>> = (0..8).map(|k| (k * 1000..k * 1000 + 400).collect()).collect();
+        let mut ids = vec![];
+        for pose in 0..4u64 {
+            let f = pose as f64;
+            let regions = vec![
+                placed(&px[2 * pose as usize], -250.0 + 100.0 * f, 0.0, 1000.0 + 250.0 * f),
+                placed(&px[2 * pose as usize + 1], 250.0 + 100.0 * f, 0.0, 2000.0 - 300.0 * f),
+            ];
+            ids.push(add(&mut objects, pose + 1, regions));
+        }
+        assert!(ids.iter().all(|i| *i == ids[0]), "{ids:?}");
+        for id in &ids[0] {
+            assert_eq!(objects.get(id.expect("an id")).expect("the object").frames(), 4);
+        }
+    }
+
+    #[test]
+    fn objects_that_could_each_have_stepped_to_either_place_start_new_ones() {
+        // Two sheets side by side 200 mm apart, each stepped 300 mm: each new region is as
+        // near one as the other (within the doubt), so neither identity is kept.
+        let mut objects = Materials::default();
+        let px: Vec<Vec<u32>> = (0..4).map(|k| (k * 1000..k * 1000 + 400).collect()).collect();
+        let first = add(
+            &mut objects,
+            1,
+            vec![placed(&px[0], -100.0, 0.0, 1000.0), placed(&px[1], 100.0, 0.0, 1000.0)],
+        );
+        let second = add(
+            &mut objects,
+            2,
+            vec![placed(&px[2], -100.0, 0.0, 1300.0), placed(&px[3], 100.0, 0.0, 1300.0)],
+        );
+        for s in &second {
+            assert!(!first.contains(s), "{first:?} {second:?}");
+        }
+        // A step beyond max_pose_step_mm with another object in view is a cut too.
+        let mut objects = Materials::default();
+        let first = add(
+            &mut objects,
+            1,
+            vec![placed(&px[0], -600.0, 0.0, 1000.0), placed(&px[1], 600.0, 0.0, 1000.0)],
+        );
+        let second = add(
+            &mut objects,
+            2,
+            vec![placed(&px[2], -600.0, 0.0, 1700.0), placed(&px[3], 600.0, 0.0, 1000.0)],
+        );
+        assert_ne!(second[0], first[0]);
+        assert_eq!(second[1], first[1]);
+    }
+
+    #[test]
+    fn the_least_cost_assignment_takes_the_cheapest_total_and_leaves_what_costs_more() {
+        let inf = f64::INFINITY;
+        // Greedy would take (0, 0) at 1 and leave row 1 at 10: the least total is 2 + 2.
+        let (total, a) = least_cost_assignment(&[vec![1.0, 2.0], vec![2.0, inf]], 10.0);
+        assert_eq!((total, a), (4.0, vec![Some(1), Some(0)]));
+        // A row whose only pairs cost more than leaving is left.
+        let (total, a) = least_cost_assignment(&[vec![1.0], vec![20.0]], 10.0);
+        assert_eq!((total, a), (11.0, vec![Some(0), None]));
+        assert_eq!(least_cost_assignment(&[], 10.0), (0.0, vec![]));
+        assert_eq!(least_cost_assignment(&[vec![], vec![]], 10.0), (20.0, vec![None, None]));
     }
 }

@@ -143,6 +143,17 @@ pub struct XiSettings {
     /// Largest change of an object's speed along the rays, m/s²: once its speed is known
     /// from two frames, a region farther from where that speed puts it jumped.
     pub max_object_acceleration_m_s2: f64,
+    /// Longest 3-D step an object is followed through between two frames where it was put at
+    /// another pose between captures (one frame a pose), mm; shared/design/objects.md
+    /// "Stepped poses". Followed only where no other way of continuing the objects comes near.
+    pub max_pose_step_mm: f64,
+    /// Standard deviation of the one-material estimate's error that its own evidence cannot
+    /// show: the model's misfit to a physical scene (light between a layer and a near wall,
+    /// diffuse transmission, a hollow object's third return, mixed edges), measured on
+    /// physically rendered recordings held out from the scenes it is used on
+    /// (`scripts/xi_model_error.py`). Every interval short of [0, 1] takes it in quadrature
+    /// ([`with_model_error`]). 0 leaves the intervals as their evidence gives them.
+    pub xi_model_error_sd: f64,
 }
 
 impl Default for XiSettings {
@@ -157,6 +168,8 @@ impl Default for XiSettings {
             max_frames_pooled: 64,
             max_object_speed_m_s: 2.0,
             max_object_acceleration_m_s2: 10.0,
+            max_pose_step_mm: 500.0,
+            xi_model_error_sd: XI_MODEL_ERROR_SD,
         }
     }
 }
@@ -892,6 +905,42 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
     Some(across_distance(profiles, pooled))
 }
 
+/// [`XiSettings::xi_model_error_sd`]'s default: `.venv/bin/python scripts/xi_model_error.py`
+/// over every rendered scene `scripts/results` scores (the stepped_dev set among them).
+pub const XI_MODEL_ERROR_SD: f64 = 0.099;
+
+/// An estimate's interval with the model's error `sd` in quadrature on each side, about the
+/// estimate (z 1.96): what a physical scene holds beyond the model, which the evidence of a
+/// few poses cannot show. The model's error moves where ξ lies, not whether the pixels show
+/// a second return at all: a layer whose own evidence rejects opaque stays a layer (its lower
+/// end held just above [`OPAQUE_XI`]), an opaque one widens upwards only. [0, 1] and a given
+/// ξ stay as they are.
+pub fn with_model_error(e: XiEstimate, sd: f64) -> XiEstimate {
+    if !(sd > 0.0) || e.interval == [0.0, 1.0] || e.method == XiMethod::Fixed {
+        return e;
+    }
+    let pad = 1.96 * sd;
+    let widen = |half: f64| (half * half + pad * pad).sqrt();
+    let [lo, hi] = e.interval;
+    let hi = (e.xi + widen(hi - e.xi)).min(1.0);
+    let lo = if e.is_opaque() {
+        lo
+    } else {
+        (e.xi - widen(e.xi - lo)).max(lo.min(OPAQUE_XI + XI_STEP_ABOVE_OPAQUE))
+    };
+    XiEstimate {
+        interval: [lo, hi],
+        note: format!(
+            "{}; the model's error on rendered scenes (sd {sd:.3} in xi) included",
+            e.note
+        ),
+        ..e
+    }
+}
+
+/// How far above [`OPAQUE_XI`] a layer's widened interval stops ([`with_model_error`]).
+const XI_STEP_ABOVE_OPAQUE: f64 = 0.01;
+
 /// Fewest poses an object needs before its near and far poses are compared
 /// ([`across_distance`]): two on each side, as each side must determine ξ by itself.
 pub const POSES_TO_COMPARE: usize = 4;
@@ -1350,6 +1399,34 @@ pub fn albedo_evidence(profiles: &[FrameProfile]) -> Option<AlbedoEvidence> {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn the_model_error_widens_an_interval_about_its_estimate_and_keeps_a_layer_a_layer() {
+        let e = |xi: f64, interval: [f64; 2]| XiEstimate {
+            xi,
+            interval,
+            method: XiMethod::OneMaterial,
+            frames: 3,
+            pixels: 100,
+            profile: vec![],
+            note: String::new(),
+        };
+        // 0.03 on each side and 1.96 * 0.1 of model error: sqrt(0.03^2 + 0.196^2) = 0.198.
+        let w = with_model_error(e(0.6, [0.57, 0.63]), 0.1);
+        assert!((w.interval[0] - (0.6 - 0.198_282)).abs() < 1e-5, "{:?}", w.interval);
+        assert!((w.interval[1] - (0.6 + 0.198_282)).abs() < 1e-5, "{:?}", w.interval);
+        assert!(!w.is_opaque() && w.xi == 0.6);
+        // A layer near opaque stays a layer; an opaque one widens upwards only.
+        let low = with_model_error(e(0.2, [0.15, 0.25]), 0.1);
+        assert!(!low.is_opaque() && (low.interval[0] - 0.11).abs() < 1e-12);
+        let opaque = with_model_error(e(0.0, [0.0, 0.3]), 0.1);
+        assert_eq!(opaque.interval[0], 0.0);
+        assert!(opaque.interval[1] > 0.3 && opaque.is_opaque());
+        // Nothing to widen: every xi, a given xi, or no model error.
+        assert_eq!(with_model_error(e(0.0, [0.0, 1.0]), 0.1).interval, [0.0, 1.0]);
+        assert_eq!(with_model_error(XiEstimate::fixed(0.5), 0.1).interval, [0.5, 0.5]);
+        assert_eq!(with_model_error(e(0.6, [0.57, 0.63]), 0.0).interval, [0.57, 0.63]);
+    }
     use super::*;
 
     #[test]

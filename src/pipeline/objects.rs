@@ -29,12 +29,17 @@ impl Pipeline {
             .iter()
             .map(|pixels| {
                 let (distance_mm, spread_mm) = distance_quartiles(&obs.distance_mm, pixels);
+                let rays = pixels
+                    .iter()
+                    .filter_map(|&p| self.rays.data.get(p as usize))
+                    .map(|r| [r.x, r.y, r.z]);
                 RegionEvidence {
                     pixels,
                     distance_mm,
                     spread_mm,
                     profile: None,
                     readings: self.pixel_readings(obs, pixels),
+                    place: Place::of(rays, distance_mm),
                 }
             })
             .collect();
@@ -139,6 +144,18 @@ impl Pipeline {
         let catalog = self.config.materials.as_ref()?;
         let evidence = translucency::albedo_evidence(material.profiles());
         Some(catalog.classify(evidence.as_ref(), &self.albedo_scale()))
+    }
+
+    /// An object's ξ as it is published: its own estimate with its class applied
+    /// ([`Self::with_class`]). `None` when ξ is given, or the object has no estimate and no
+    /// class gives it one.
+    pub fn published_estimate(&self, material: &Material) -> Option<XiEstimate> {
+        let XiChoice::Estimate(method) = self.config.xi else {
+            return None;
+        };
+        let own = material.estimate.clone();
+        let (xi, class) = self.with_class(material, own.clone().unwrap_or_else(|| without_evidence(method)));
+        (own.is_some() || class.is_some()).then_some(xi)
     }
 
     /// An object's ξ as its class gives it: a known material's calibrated ξ and interval,

@@ -34,7 +34,13 @@ pub struct TruthError {
     pub segmented_with_truth: usize,
     /// Pixels with ground truth, in the mask or not.
     pub with_truth: usize,
+    /// Per frame with truth: the RMS z error over every pixel with truth and a reading,
+    /// published (the reading where nothing was recovered) and raw, mm ([`TRUTH_ERROR_EVERY`]).
+    pub every: Vec<(f64, f64)>,
 }
+
+/// What [`TruthError::every_pixel_rmse_mm`] is, in words: the figure where abstaining counts.
+pub const TRUTH_ERROR_EVERY: &str = "mean over frames of the per-frame RMS z error over every pixel with ground truth and a reading, the published depth where one was recovered and the reading where not (raw: the reading over the same pixels)";
 
 impl TruthError {
     /// Adds one frame: the corrected and raw z (mm), the truth (mm, NaN where
@@ -47,6 +53,7 @@ impl TruthError {
         truth: &ImageBuf<f32>,
         mask: &ImageBuf<bool>,
     ) -> Option<(f64, f64, usize)> {
+        self.add_every(corrected, raw, truth);
         let n = mask.len().min(truth.len()).min(corrected.len());
         let mut recovered = ImageBuf::filled(mask.width, mask.height, false);
         for i in 0..n {
@@ -61,6 +68,34 @@ impl TruthError {
         let (r, _) = rmse_against_truth(raw, truth, &recovered)?;
         self.frames.push((e, r, k));
         Some((e, r, k))
+    }
+
+    /// Adds one frame's every-pixel error ([`TRUTH_ERROR_EVERY`]): `published` is the depth
+    /// as published (the reading itself for a frame passed through).
+    pub fn add_every(&mut self, published: &ImageBuf<f32>, raw: &ImageBuf<f32>, truth: &ImageBuf<f32>) {
+        let (mut e, mut r, mut n) = (0.0, 0.0, 0usize);
+        for ((p, w), t) in published.data.iter().zip(&raw.data).zip(&truth.data) {
+            if t.is_finite() && w.is_finite() {
+                let p = if p.is_finite() { *p } else { *w };
+                e += f64::from(p - t).powi(2);
+                r += f64::from(w - t).powi(2);
+                n += 1;
+            }
+        }
+        if n > 0 {
+            self.every.push(((e / n as f64).sqrt(), (r / n as f64).sqrt()));
+        }
+    }
+
+    /// [`TRUTH_ERROR_EVERY`], published and raw (mm).
+    pub fn every_pixel_rmse_mm(&self) -> Option<(f64, f64)> {
+        let k = self.every.len() as f64;
+        (k > 0.0).then(|| {
+            (
+                self.every.iter().map(|f| f.0).sum::<f64>() / k,
+                self.every.iter().map(|f| f.1).sum::<f64>() / k,
+            )
+        })
     }
 
     /// Pixels compared, all frames.
@@ -101,13 +136,25 @@ impl TruthError {
     }
 
     /// The summary line: the metric named, raw and recovered, and the shares.
+    /// Every frame with truth says something: where nothing was recovered, the raw error
+    /// and a recovered share of 0.
     pub fn summary_line(&self) -> Option<String> {
-        let (e, raw) = self.mean_frame_rmse_mm()?;
+        let (every, every_raw) = self.every_pixel_rmse_mm()?;
+        let every = format!(
+            "every pixel with truth (mean over {} frame(s) of the per-frame RMS z error, a pixel kept as read counting at its reading): raw {every_raw:.1} mm -> published {every:.1} mm",
+            self.every.len()
+        );
+        let recovered = match self.mean_frame_rmse_mm() {
+            Some((e, raw)) => format!(
+                "over the pixels in the mask with truth and a recovered depth ({} frame(s)): raw {raw:.1} mm -> recovered {e:.1} mm",
+                self.frames.len()
+            ),
+            None => "nothing recovered".to_string(),
+        };
         Some(format!(
-            "error against ground truth (mean over {} frame(s) of the per-frame RMS z error over the pixels in the mask with truth and a recovered depth): raw {raw:.1} mm -> recovered {e:.1} mm; recovered depth for {:.1} % of the pixels with truth ({:.1} % of those in the mask)",
-            self.frames.len(),
-            100.0 * self.recovered_of_truth().unwrap_or(f64::NAN),
-            100.0 * self.recovered_of_segmented().unwrap_or(f64::NAN),
+            "error against ground truth: {every}; {recovered}; recovered depth for {:.1} % of the pixels with truth ({:.1} % of those in the mask)",
+            100.0 * self.recovered_of_truth().unwrap_or(0.0),
+            100.0 * self.recovered_of_segmented().unwrap_or(0.0),
         ))
     }
 
@@ -117,6 +164,8 @@ impl TruthError {
         let mean = self.mean_frame_rmse_mm();
         let pooled = self.pooled_rmse_mm();
         serde_json::json!({
+            "every_pixel_rmse_mm": self.every_pixel_rmse_mm().map(|m| m.0),
+            "every_pixel_rmse_raw_mm": self.every_pixel_rmse_mm().map(|m| m.1),
             "mean_frame_rmse_mm": mean.map(|m| m.0),
             "mean_frame_rmse_raw_mm": mean.map(|m| m.1),
             "rmse_mm": pooled.map(|p| p.0),
@@ -127,6 +176,7 @@ impl TruthError {
             "error_metric": {
                 "mean_frame_rmse_mm": TRUTH_ERROR_METRIC,
                 "rmse_mm": TRUTH_ERROR_POOLED,
+                "every_pixel_rmse_mm": TRUTH_ERROR_EVERY,
                 "coverage": "share of the pixels in the mask with truth that got a recovered depth",
                 "recovered_of_truth": "share of the pixels with truth (in the mask or not) that got a recovered depth",
             },
