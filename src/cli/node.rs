@@ -386,6 +386,8 @@ pub fn runtime_settings(p: &Params) -> Result<RuntimeSettings> {
         bail!("parameter material_priors: needs a materials file (parameter materials)");
     }
     config.prior_radius_px = count(p, "prior_radius_px", config.prior_radius_px)?;
+    // The model's error on physical scenes in every estimated interval, as `replay`'s default.
+    config.xi_settings.xi_model_error_sd = crate::physics::translucency::XI_MODEL_ERROR_SD;
     config.xi = match xi {
         Some(x) => XiChoice::Fixed(x),
         None => XiChoice::Estimate(method),

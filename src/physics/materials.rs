@@ -1387,6 +1387,40 @@ mod tests {
     }
 
     #[test]
+    fn a_step_across_the_view_beyond_its_size_or_after_a_frame_unseen_is_no_step() {
+        // Another object put down where one stood, 250 mm across (2.5 radii): not a step.
+        let mut objects = Materials::default();
+        let px: Vec<Vec<u32>> = (0..4).map(|k| (k * 1000..k * 1000 + 400).collect()).collect();
+        let first = add(
+            &mut objects,
+            1,
+            vec![placed(&px[0], -500.0, 0.0, 1000.0), placed(&px[1], 500.0, 0.0, 1000.0)],
+        );
+        let second = add(
+            &mut objects,
+            2,
+            vec![placed(&px[2], -250.0, 0.0, 1200.0), placed(&px[3], 500.0, 0.0, 1200.0)],
+        );
+        assert_ne!(second[0], first[0]);
+        assert_eq!(second[1], first[1]);
+        // Unseen for a frame (another object alone in view), then a step from where it stood.
+        let mut objects = Materials::default();
+        let first = add(
+            &mut objects,
+            1,
+            vec![placed(&px[0], -500.0, 0.0, 1000.0), placed(&px[1], 500.0, 0.0, 1000.0)],
+        );
+        add(&mut objects, 2, vec![placed(&px[1], 500.0, 0.0, 1000.0)]);
+        let third = add(
+            &mut objects,
+            3,
+            vec![placed(&px[2], -500.0, 0.0, 1300.0), placed(&px[1], 500.0, 0.0, 1000.0)],
+        );
+        assert_ne!(third[0], first[0]);
+        assert_eq!(third[1], first[1]);
+    }
+
+    #[test]
     fn objects_stepped_between_poses_keep_their_identity_with_others_in_view() {
         // Two sheets 500 mm apart across the view, each stepped 250-300 mm in depth with a
         // lateral move of 100 mm between frames at 10 Hz (2.5-3 m/s: beyond the speed
@@ -1410,19 +1444,20 @@ mod tests {
 
     #[test]
     fn objects_that_could_each_have_stepped_to_either_place_start_new_ones() {
-        // Two sheets side by side 200 mm apart, each stepped 300 mm: each new region is as
-        // near one as the other (within the doubt), so neither identity is kept.
+        // Two sheets one behind the other, 100 mm apart across the view, each stepped 300 mm:
+        // each new region is as near one as the other (within the doubt), so neither identity
+        // is kept.
         let mut objects = Materials::default();
         let px: Vec<Vec<u32>> = (0..4).map(|k| (k * 1000..k * 1000 + 400).collect()).collect();
         let first = add(
             &mut objects,
             1,
-            vec![placed(&px[0], -100.0, 0.0, 1000.0), placed(&px[1], 100.0, 0.0, 1000.0)],
+            vec![placed(&px[0], -50.0, 0.0, 1000.0), placed(&px[1], 50.0, 0.0, 1000.0)],
         );
         let second = add(
             &mut objects,
             2,
-            vec![placed(&px[2], -100.0, 0.0, 1300.0), placed(&px[3], 100.0, 0.0, 1300.0)],
+            vec![placed(&px[2], -50.0, 0.0, 1300.0), placed(&px[3], 50.0, 0.0, 1300.0)],
         );
         for s in &second {
             assert!(!first.contains(s), "{first:?} {second:?}");

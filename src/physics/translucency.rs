@@ -152,7 +152,9 @@ pub struct XiSettings {
     /// diffuse transmission, a hollow object's third return, mixed edges), measured on
     /// physically rendered recordings held out from the scenes it is used on
     /// (`scripts/xi_model_error.py`). Every interval short of [0, 1] takes it in quadrature
-    /// ([`with_model_error`]). 0 leaves the intervals as their evidence gives them.
+    /// ([`with_model_error`]). 0 (the default here: the model's own simulator) leaves the
+    /// intervals as their evidence gives them; `replay` and the node take
+    /// [`XI_MODEL_ERROR_SD`], measured on physical renders.
     pub xi_model_error_sd: f64,
 }
 
@@ -169,7 +171,7 @@ impl Default for XiSettings {
             max_object_speed_m_s: 2.0,
             max_object_acceleration_m_s2: 10.0,
             max_pose_step_mm: 500.0,
-            xi_model_error_sd: XI_MODEL_ERROR_SD,
+            xi_model_error_sd: 0.0,
         }
     }
 }
@@ -907,7 +909,7 @@ pub fn one_material(profiles: &[FrameProfile]) -> Option<XiEstimate> {
 
 /// [`XiSettings::xi_model_error_sd`]'s default: `.venv/bin/python scripts/xi_model_error.py`
 /// over every rendered scene `scripts/results` scores (the stepped_dev set among them).
-pub const XI_MODEL_ERROR_SD: f64 = 0.099;
+pub const XI_MODEL_ERROR_SD: f64 = 0.082;
 
 /// An estimate's interval with the model's error `sd` in quadrature on each side, about the
 /// estimate (z 1.96): what a physical scene holds beyond the model, which the evidence of a
