@@ -8,6 +8,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::netns::isolated;
+use common::published_width;
 use translucent_tof::bag::BagReader;
 use translucent_tof::image::{depth_mm, CLOUD_POINT_STEP};
 use translucent_tof::msgs::{CameraInfo, Image, PointCloud2};
@@ -56,8 +57,8 @@ fn demo_runs_the_graph_and_recovers_the_document_holder() {
     let xi = r["xi"].as_f64().unwrap();
     assert!((xi - 0.65).abs() <= 0.05, "xi {xi} [{lo}, {hi}] against the true 0.65");
     assert!(
-        hi - lo <= 0.2,
-        "[{lo}, {hi}]: four poses of one sheet should pin xi to +-0.1"
+        hi - lo <= published_width(0.1),
+        "[{lo}, {hi}]: four poses of one sheet should pin xi to +-0.1, with the model's error"
     );
     let passed: u64 = r["node"]["passed_through"]
         .as_object()

@@ -250,3 +250,12 @@ fn mean_finite(v: &[f64]) -> f64 {
     let f: Vec<f64> = v.iter().copied().filter(|e| e.is_finite()).collect();
     f.iter().sum::<f64>() / f.len() as f64
 }
+
+/// Widest interval a node publishes where its evidence pins ξ to `half` either side: the
+/// evidence's half width and the model's error on physical scenes
+/// (`XI_MODEL_ERROR_SD`, which every published interval includes) in quadrature, each side.
+#[allow(dead_code)]
+pub fn published_width(half: f64) -> f64 {
+    let pad = 1.96 * translucent_tof::physics::translucency::XI_MODEL_ERROR_SD;
+    2.0 * (half * half + pad * pad).sqrt()
+}
