@@ -44,11 +44,20 @@ Per bag it reports:
   published standard deviation (`depth/corrected_sigma`), and pooled over
   every bag at the end.
 
+Over the set: coverage (an interval holding the truth, no [0, 1] counted as
+a hit), the determined share (of the translucent objects seen at two or more
+distances 100 mm apart, those given an interval no wider than 0.3),
+informative coverage (of those, the share that hold the truth) and their
+median width, and the mean every-pixel error over the scenes against raw.
+
 `--check BASELINE` compares the run with a committed baseline (the rows of an
 earlier run and the failures known then) and exits 1 on a failure that is
 not known: a scene or a translucent object worse than raw, an opaque object flagged or moved, a
-paper setup above the paper's figure, coverage or σ below their stated
-levels, or a scene or object worse than the baseline beyond noise.
+paper setup above the paper's figure, coverage, the determined share,
+informative coverage or σ below their stated levels, a scene or object
+worse than the baseline beyond 1 % (replays are deterministic), a figure
+the baseline had that this run gives as None, or (with no bag named) a
+bag of the baseline missing from the run.
 `--write-baseline OUT` writes this run as a baseline, its failures as the
 known ones.
 """
