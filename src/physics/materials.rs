@@ -765,15 +765,20 @@ impl Materials {
             (total + forced.map_or(0.0, |(i, k)| step(i, k)), pairs)
         };
         let (best, chosen) = cost(None);
+        // Another identity for a pair's object or region: sharing one of the two, not both.
+        let other = |(i, k): (usize, usize), q: (usize, usize)| (q.0 == i) != (q.1 == k);
+        // The alternatives to the chosen pairs that come near, each assignment solved once.
+        let near: Vec<(usize, usize)> = open
+            .iter()
+            .map(|q| (q.object, q.region))
+            .filter(|&q| chosen.iter().any(|&c| other(c, q)))
+            .filter(|&q| cost(Some(q)).0 < best + STEP_DOUBT_MM)
+            .collect();
         pairs
             .iter()
             .map(|p| {
-                moves(p)
-                    && chosen.contains(&(p.object, p.region))
-                    && !open.iter().any(|q| {
-                        let other = (q.object == p.object) != (q.region == p.region);
-                        other && cost(Some((q.object, q.region))).0 < best + STEP_DOUBT_MM
-                    })
+                let pair = (p.object, p.region);
+                moves(p) && chosen.contains(&pair) && !near.iter().any(|&q| other(pair, q))
             })
             .collect()
     }

@@ -1401,6 +1401,7 @@ pub fn albedo_evidence(profiles: &[FrameProfile]) -> Option<AlbedoEvidence> {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
 
     #[test]
     fn the_model_error_widens_an_interval_about_its_estimate_and_keeps_a_layer_a_layer() {
@@ -1429,7 +1430,6 @@ mod tests {
         assert_eq!(with_model_error(XiEstimate::fixed(0.5), 0.1).interval, [0.5, 0.5]);
         assert_eq!(with_model_error(e(0.6, [0.57, 0.63]), 0.0).interval, [0.57, 0.63]);
     }
-    use super::*;
 
     #[test]
     fn parabola_minimum_is_found_between_grid_points() {

@@ -153,9 +153,15 @@ impl Pipeline {
         let XiChoice::Estimate(method) = self.config.xi else {
             return None;
         };
-        let own = material.estimate.clone();
-        let (xi, class) = self.with_class(material, own.clone().unwrap_or_else(|| without_evidence(method)));
-        (own.is_some() || class.is_some()).then_some(xi)
+        let (xi, class) = self.published_with_class(material, method);
+        (material.estimate.is_some() || class.is_some()).then_some(xi)
+    }
+
+    /// An object's ξ as published, and its class: its own estimate (opaque with every ξ where
+    /// it has none) with its class applied.
+    fn published_with_class(&self, material: &Material, method: XiMethod) -> (XiEstimate, Option<Classification>) {
+        let own = material.estimate.clone().unwrap_or_else(|| without_evidence(method));
+        self.with_class(material, own)
     }
 
     /// An object's ξ as its class gives it: a known material's calibrated ξ and interval,
@@ -230,17 +236,13 @@ impl Pipeline {
             .iter()
             .map(|r| {
                 let material = r.material.and_then(|id| self.materials.get(id));
-                let (id, xi) = match (
-                    self.config.xi,
-                    material.and_then(|m| m.estimate.as_ref().map(|e| (m.id, e))),
-                ) {
-                    (XiChoice::Estimate(_), Some((id, e))) => (id, e.clone()),
-                    (XiChoice::Estimate(method), None) => (0, without_evidence(method)),
-                    (XiChoice::Fixed(_), _) => (0, fallback.clone()),
-                };
-                let (xi, class) = match material.filter(|_| matches!(self.config.xi, XiChoice::Estimate(_))) {
-                    Some(m) => self.with_class(m, xi),
-                    None => (xi, None),
+                let (id, xi, class) = match (self.config.xi, material) {
+                    (XiChoice::Fixed(_), _) => (0, fallback.clone(), None),
+                    (XiChoice::Estimate(method), None) => (0, without_evidence(method), None),
+                    (XiChoice::Estimate(method), Some(m)) => {
+                        let (xi, class) = self.published_with_class(m, method);
+                        (if m.estimate.is_some() { m.id } else { 0 }, xi, class)
+                    }
                 };
                 RegionOutput {
                     id,

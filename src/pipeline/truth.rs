@@ -89,13 +89,7 @@ impl TruthError {
 
     /// [`TRUTH_ERROR_EVERY`], published and raw (mm).
     pub fn every_pixel_rmse_mm(&self) -> Option<(f64, f64)> {
-        let k = self.every.len() as f64;
-        (k > 0.0).then(|| {
-            (
-                self.every.iter().map(|f| f.0).sum::<f64>() / k,
-                self.every.iter().map(|f| f.1).sum::<f64>() / k,
-            )
-        })
+        mean_over_frames(self.every.iter().copied())
     }
 
     /// Pixels compared, all frames.
@@ -105,13 +99,7 @@ impl TruthError {
 
     /// [`TRUTH_ERROR_METRIC`], recovered and raw (mm).
     pub fn mean_frame_rmse_mm(&self) -> Option<(f64, f64)> {
-        let k = self.frames.len() as f64;
-        (k > 0.0).then(|| {
-            (
-                self.frames.iter().map(|f| f.0).sum::<f64>() / k,
-                self.frames.iter().map(|f| f.1).sum::<f64>() / k,
-            )
-        })
+        mean_over_frames(self.frames.iter().map(|&(e, r, _)| (e, r)))
     }
 
     /// [`TRUTH_ERROR_POOLED`], recovered and raw (mm).
@@ -182,6 +170,17 @@ impl TruthError {
             },
         })
     }
+}
+
+/// The mean of per-frame (published, raw) figures; `None` without a frame.
+fn mean_over_frames(frames: impl Iterator<Item = (f64, f64)>) -> Option<(f64, f64)> {
+    let (mut e, mut r, mut k) = (0.0, 0.0, 0usize);
+    for (a, b) in frames {
+        e += a;
+        r += b;
+        k += 1;
+    }
+    (k > 0).then(|| (e / k as f64, r / k as f64))
 }
 
 #[cfg(test)]
