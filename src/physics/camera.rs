@@ -6,6 +6,7 @@ use nalgebra::Vector3;
 
 use super::buffer::ImageBuf;
 pub use super::distortion::{Distortion, DistortionError};
+use super::parallel::map_chunks_ordered;
 
 /// Most pixels a calibrated camera's image may have (a garbage size is refused
 /// before the per-pixel maps are made).
@@ -280,18 +281,16 @@ fn check_k(k: &[f64; 9]) -> Result<(), CameraError> {
 /// Converts a z-depth image (mm) to ray distances (mm); invalid readings
 /// (non-finite or not positive) become NaN.
 pub fn z_to_ray_distance(z_mm: &ImageBuf<f32>, scale: &ImageBuf<f64>) -> ImageBuf<f64> {
-    let data = z_mm
-        .data
-        .iter()
-        .zip(&scale.data)
-        .map(|(&z, &s)| {
-            if z.is_finite() && z > 0.0 {
-                z as f64 * s
-            } else {
-                f64::NAN
-            }
-        })
-        .collect();
+    // By rows over the pool (a frame's first pass, at camera rate).
+    let data = map_chunks_ordered(&z_mm.data, 16 * z_mm.width.max(1), 32 * 1024, |start, zs| {
+        zs.iter()
+            .enumerate()
+            .map(|(k, &z)| match scale.data.get(start + k) {
+                Some(&s) if z.is_finite() && z > 0.0 => z as f64 * s,
+                _ => f64::NAN,
+            })
+            .collect()
+    });
     ImageBuf {
         width: z_mm.width,
         height: z_mm.height,

@@ -2,6 +2,7 @@
 //! reading moved by more than a threshold from the latched background.
 
 use super::buffer::ImageBuf;
+use super::parallel::map_chunks_ordered;
 
 /// Default threshold: 3x the SR4000's ~10 mm background noise (the paper's 30 mm).
 pub const DEFAULT_THRESHOLD_MM: f64 = 30.0;
@@ -39,27 +40,36 @@ pub fn changed_pixels(
     range_mm: f64,
     change_noise_mm: Option<&ImageBuf<f64>>,
 ) -> ImageBuf<bool> {
-    // The common case first, pixel by pixel without branches (a loop the compiler
-    // vectorizes): a difference already within half the range is its own wrapped
-    // difference. The few valid pixels beyond it are wrapped afterwards.
+    // By rows over the pool; in each, the common case first, pixel by pixel without branches
+    // (a loop the compiler vectorizes): a difference already within half the range is its
+    // own wrapped difference. The few valid pixels beyond it are wrapped afterwards.
     let half = range_mm / 2.0;
     // (`move`: the constant copied in, so the loops do not read it back at every pixel.)
     let threshold = move |sigma: f64| change_threshold_mm(threshold_mm, sigma);
-    let (d, b) = (&distance_mm.data, &background_mm.data);
-    let mut data = vec![false; d.len()];
-    let far = match change_noise_mm {
-        Some(n) => changed_within_half(&mut data, d, b, n.data.iter().map(|&s| threshold(s)), half),
-        None => changed_within_half(&mut data, d, b, std::iter::repeat(threshold(0.0)), half),
-    };
-    if far > 0 {
-        for (i, out) in data.iter_mut().enumerate() {
-            let (d, db) = (d[i], b[i]);
-            if valid(d) & valid(db) & !within_half(d, db, half) {
-                let sigma = change_noise_mm.map_or(0.0, |n| n.data[i]);
-                *out = wrapped_difference(d, db, range_mm).abs() > threshold(sigma);
+    let rows = ROWS_PER_TASK * distance_mm.width.max(1);
+    let data = map_chunks_ordered(&distance_mm.data, rows, MIN_PARALLEL_PIXELS, |start, d| {
+        let end = start + d.len();
+        let mut out = vec![false; d.len()];
+        // Readings without their background (an image of another size) stay unchanged.
+        let Some(b) = background_mm.data.get(start..end) else {
+            return out;
+        };
+        let noise = change_noise_mm.and_then(|n| n.data.get(start..end));
+        let far = match noise {
+            Some(n) => changed_within_half(&mut out, d, b, n.iter().map(|&s| threshold(s)), half),
+            None => changed_within_half(&mut out, d, b, std::iter::repeat(threshold(0.0)), half),
+        };
+        if far > 0 {
+            for (k, out) in out.iter_mut().enumerate() {
+                let (d, db) = (d[k], b[k]);
+                if valid(d) & valid(db) & !within_half(d, db, half) {
+                    let sigma = noise.map_or(0.0, |n| n[k]);
+                    *out = wrapped_difference(d, db, range_mm).abs() > threshold(sigma);
+                }
             }
         }
-    }
+        out
+    });
     ImageBuf {
         width: distance_mm.width,
         height: distance_mm.height,
@@ -198,25 +208,37 @@ pub fn outline_pixels(mask: &ImageBuf<bool>, image_edge: bool) -> ImageBuf<bool>
         };
     }
     // Off the mask somewhere in each pixel's row of three (beyond the image: `image_edge`),
-    // then in its column of three such rows: the 3 x 3 square, in two passes of plain loops.
-    let off = |i: usize| !mask.data[i];
-    let mut rows = vec![false; n];
-    for r in 0..h {
-        let row = r * w;
-        for c in 0..w {
-            let left = if c == 0 { image_edge } else { off(row + c - 1) };
-            let right = if c + 1 == w { image_edge } else { off(row + c + 1) };
-            rows[row + c] = left | off(row + c) | right;
+    // then in its column of three such rows: the 3 x 3 square, by rows over the pool.
+    let off_in_row = |r: usize| -> Vec<bool> {
+        let row = &mask.data[r * w..(r + 1) * w];
+        (0..w)
+            .map(|c| {
+                let left = if c == 0 { image_edge } else { !row[c - 1] };
+                let right = if c + 1 == w { image_edge } else { !row[c + 1] };
+                left | !row[c] | right
+            })
+            .collect()
+    };
+    let all_rows: Vec<usize> = (0..h).collect();
+    let rows: Vec<bool> = map_chunks_ordered(&all_rows, ROWS_PER_TASK, MIN_PARALLEL_PIXELS / w.max(1), |_, rs| {
+        rs.iter().flat_map(|&r| off_in_row(r)).collect()
+    });
+    let data = map_chunks_ordered(&all_rows, ROWS_PER_TASK, MIN_PARALLEL_PIXELS / w.max(1), |_, rs| {
+        let mut out = Vec::with_capacity(rs.len() * w);
+        for &r in rs {
+            let at = |rr: usize| &rows[rr * w..(rr + 1) * w];
+            let here = at(r);
+            let up = (r > 0).then(|| at(r - 1));
+            let down = (r + 1 < h).then(|| at(r + 1));
+            let m = &mask.data[r * w..(r + 1) * w];
+            out.extend((0..w).map(|c| {
+                let up = up.map_or(image_edge, |u| u[c]);
+                let down = down.map_or(image_edge, |d| d[c]);
+                m[c] & (up | here[c] | down)
+            }));
         }
-    }
-    let data = (0..n)
-        .map(|i| {
-            let r = i / w;
-            let up = if r == 0 { image_edge } else { rows[i - w] };
-            let down = if r + 1 == h { image_edge } else { rows[i + w] };
-            mask.data[i] & (up | rows[i] | down)
-        })
-        .collect();
+        out
+    });
     ImageBuf {
         width: w,
         height: h,
@@ -290,12 +312,24 @@ pub const EDGE_FLOOR_MM: f64 = 25.0;
 pub fn label_regions(
     mask: &ImageBuf<bool>,
     distance_mm: &ImageBuf<f64>,
-    noise_mm: impl Fn(usize) -> f64,
+    noise_mm: impl Fn(usize) -> f64 + Sync,
     range_mm: f64,
     min_pixels: usize,
 ) -> (ImageBuf<u32>, Vec<usize>) {
+    // Each pixel's noise once (a pixel is compared with up to four neighbours).
+    let noise: Vec<f64> = map_chunks_ordered(
+        &mask.data,
+        ROWS_PER_TASK * mask.width.max(1),
+        MIN_PARALLEL_PIXELS,
+        |start, m| {
+            m.iter()
+                .enumerate()
+                .map(|(k, &on)| if on { noise_mm(start + k) } else { f64::NAN })
+                .collect()
+        },
+    );
     let step = |i: usize, j: usize| wrapped_difference(distance_mm.data[i], distance_mm.data[j], range_mm).abs();
-    let joined = |i: usize, j: usize| step(i, j) <= step_allowed(EDGE_FLOOR_MM, noise_mm(i), noise_mm(j));
+    let joined = |i: usize, j: usize| step(i, j) <= step_allowed(EDGE_FLOOR_MM, noise[i], noise[j]);
     label_regions_by(mask, joined, step, min_pixels)
 }
 
@@ -303,44 +337,152 @@ pub fn label_regions(
 /// deviation each) that keeps them in one region: [`EDGE_SIGMAS`] times the noise of the
 /// difference, at least `floor`.
 pub fn step_allowed(floor: f64, a: f64, b: f64) -> f64 {
-    let sigma = a.hypot(b);
+    // `a.hypot(b)` without its care for overflow: noise in mm is far from it.
+    let sigma = (a * a + b * b).sqrt();
     floor.max(if sigma.is_finite() { EDGE_SIGMAS * sigma } else { 0.0 })
 }
 
+/// Rows of the image one task of the pool takes (per-pixel passes of segmentation).
+const ROWS_PER_TASK: usize = 16;
+
+/// Fewest pixels for which a per-pixel pass of segmentation is spread over the pool.
+const MIN_PARALLEL_PIXELS: usize = 32 * 1024;
+
+/// [`Links`]' link to the next pixel in the row.
+const RIGHT: u8 = 1;
+/// [`Links`]' link to the pixel below.
+const DOWN: u8 = 2;
+
 /// The regions of a mask as [`label_regions`] makes them, with any rule for which neighbours
-/// belong together (`joined`) and how far apart two neighbours are (`step`, what an edge
-/// pixel's nearest region is chosen by).
+/// belong together (`joined`, symmetric) and how far apart two neighbours are (`step`, what
+/// an edge pixel's nearest region is chosen by).
 pub fn label_regions_by(
     mask: &ImageBuf<bool>,
-    joined: impl Fn(usize, usize) -> bool,
+    joined: impl Fn(usize, usize) -> bool + Sync,
     step: impl Fn(usize, usize) -> f64,
     min_pixels: usize,
 ) -> (ImageBuf<u32>, Vec<usize>) {
-    let (w, h) = (mask.width, mask.height);
-    let neighbours = |i: usize| {
-        let c = i % w;
-        [
-            (c > 0).then(|| i - 1),
-            (c + 1 < w).then(|| i + 1),
-            (i >= w).then(|| i - w),
-            (i + w < w * h).then(|| i + w),
-        ]
-        .into_iter()
-        .flatten()
-        .filter(|&j| mask.data[j])
-    };
+    let grid = Links::new(mask, &joined);
+    let n = mask.data.len();
     // Core pixels: joined to every neighbour on the mask. The pixels along an edge between two
     // objects mix both and their readings ramp from one to the other along a slanted edge, so
     // regions grow over core pixels only, and the edge's pixels join the region nearest in reading.
-    let core: Vec<bool> = (0..w * h)
-        .map(|i| mask.data[i] && neighbours(i).all(|j| joined(i, j)))
-        .collect();
-    let mut labels = ImageBuf::filled(w, h, 0u32);
+    let core: Vec<bool> = map_chunks_ordered(
+        &mask.data,
+        ROWS_PER_TASK * mask.width.max(1),
+        MIN_PARALLEL_PIXELS,
+        |start, m| {
+            (start..start + m.len())
+                .map(|i| {
+                    let mut all = mask.data[i];
+                    grid.each_neighbour(i, |_, linked| all &= linked);
+                    all
+                })
+                .collect()
+        },
+    );
+    let mut labels = ImageBuf::filled(mask.width, mask.height, 0u32);
     let mut sizes: Vec<usize> = vec![0];
-    let mut stack = Vec::new();
-    let mut grow = |labels: &mut ImageBuf<u32>, sizes: &mut Vec<usize>, eligible: &dyn Fn(usize) -> bool| {
-        for start in 0..w * h {
-            if !eligible(start) || labels.data[start] != 0 {
+    grid.grow(&mut labels, &mut sizes, |i| core[i]);
+    // Edge pixels, ring by ring from the cores: the neighbouring region nearest in reading.
+    let mut ring: Vec<usize> = (0..n)
+        .filter(|&i| mask.data[i] && labels.data[i] == 0)
+        .filter(|&i| {
+            let mut beside = false;
+            grid.each_neighbour(i, |j, _| beside |= labels.data[j] != 0);
+            beside
+        })
+        .collect();
+    while !ring.is_empty() {
+        let assigned: Vec<(usize, u32)> = ring
+            .iter()
+            .filter_map(|&i| {
+                let mut best: Option<(f64, usize)> = None;
+                grid.each_neighbour(i, |j, _| {
+                    if labels.data[j] != 0 {
+                        let s = step(i, j);
+                        // The first of equals, in the neighbours' order.
+                        if best.is_none_or(|(b, _)| s.total_cmp(&b).is_lt()) {
+                            best = Some((s, j));
+                        }
+                    }
+                });
+                best.map(|(_, j)| (i, labels.data[j]))
+            })
+            .collect();
+        for &(i, l) in &assigned {
+            labels.data[i] = l;
+            sizes[l as usize] += 1;
+        }
+        // The next ring: the unlabelled pixels beside this one's, each once, in pixel order.
+        ring.clear();
+        for &(i, _) in &assigned {
+            grid.each_neighbour(i, |j, _| {
+                if labels.data[j] == 0 {
+                    ring.push(j);
+                }
+            });
+        }
+        ring.sort_unstable();
+        ring.dedup();
+    }
+    // Whatever touches no core (isolated noisy pixels): pieces of their own.
+    grid.grow(&mut labels, &mut sizes, |i| mask.data[i]);
+    merge_small_pieces(&mut labels, &mut sizes, min_pixels);
+    renumber(labels, &sizes)
+}
+
+/// A mask with each pixel's links to its neighbours on it (which of them belong together).
+struct Links<'a> {
+    mask: &'a ImageBuf<bool>,
+    /// Per pixel: [`RIGHT`] where it is joined to the next pixel of its row, [`DOWN`] to
+    /// the one below.
+    links: Vec<u8>,
+}
+
+impl<'a> Links<'a> {
+    /// Every pair judged once by `joined` (symmetric), over the pool by rows.
+    fn new(mask: &'a ImageBuf<bool>, joined: &(impl Fn(usize, usize) -> bool + Sync)) -> Self {
+        let (w, n) = (mask.width, mask.data.len());
+        let links = map_chunks_ordered(&mask.data, ROWS_PER_TASK * w.max(1), MIN_PARALLEL_PIXELS, |start, m| {
+            m.iter()
+                .enumerate()
+                .map(|(k, &on)| {
+                    let i = start + k;
+                    let right = on && (i % w) + 1 < w && mask.data[i + 1] && joined(i, i + 1);
+                    let down = on && i + w < n && mask.data[i + w] && joined(i, i + w);
+                    u8::from(right) * RIGHT | u8::from(down) * DOWN
+                })
+                .collect()
+        });
+        Self { mask, links }
+    }
+
+    /// `f(j, linked)` for each 4-neighbour `j` of `i` on the mask (left, right, up, down).
+    #[inline(always)]
+    fn each_neighbour(&self, i: usize, mut f: impl FnMut(usize, bool)) {
+        let (w, n, m) = (self.mask.width, self.mask.data.len(), &self.mask.data);
+        let c = i % w;
+        if c > 0 && m[i - 1] {
+            f(i - 1, self.links[i - 1] & RIGHT != 0);
+        }
+        if c + 1 < w && m[i + 1] {
+            f(i + 1, self.links[i] & RIGHT != 0);
+        }
+        if i >= w && m[i - w] {
+            f(i - w, self.links[i - w] & DOWN != 0);
+        }
+        if i + w < n && m[i + w] {
+            f(i + w, self.links[i] & DOWN != 0);
+        }
+    }
+
+    /// New regions from each `eligible` pixel not yet labelled, grown over linked eligible
+    /// neighbours; their sizes pushed onto `sizes`.
+    fn grow(&self, labels: &mut ImageBuf<u32>, sizes: &mut Vec<usize>, eligible: impl Fn(usize) -> bool) {
+        let mut stack = Vec::new();
+        for start in 0..self.mask.data.len() {
+            if labels.data[start] != 0 || !eligible(start) {
                 continue;
             }
             let id = sizes.len() as u32;
@@ -349,42 +491,15 @@ pub fn label_regions_by(
             stack.push(start);
             while let Some(i) = stack.pop() {
                 sizes[id as usize] += 1;
-                for j in neighbours(i) {
-                    if eligible(j) && labels.data[j] == 0 && joined(i, j) {
+                self.each_neighbour(i, |j, linked| {
+                    if linked && labels.data[j] == 0 && eligible(j) {
                         labels.data[j] = id;
                         stack.push(j);
                     }
-                }
+                });
             }
-        }
-    };
-    grow(&mut labels, &mut sizes, &|i| core[i]);
-    // Edge pixels, ring by ring from the cores: the neighbouring region nearest in reading.
-    loop {
-        let mut assigned = vec![];
-        for i in 0..w * h {
-            if !mask.data[i] || labels.data[i] != 0 {
-                continue;
-            }
-            let best = neighbours(i)
-                .filter(|&j| labels.data[j] != 0)
-                .min_by(|&a, &b| step(i, a).total_cmp(&step(i, b)));
-            if let Some(j) = best {
-                assigned.push((i, labels.data[j]));
-            }
-        }
-        if assigned.is_empty() {
-            break;
-        }
-        for (i, l) in assigned {
-            labels.data[i] = l;
-            sizes[l as usize] += 1;
         }
     }
-    // Whatever touches no core (isolated noisy pixels): pieces of their own.
-    grow(&mut labels, &mut sizes, &|i| mask.data[i]);
-    merge_small_pieces(&mut labels, &mut sizes, min_pixels);
-    renumber(labels, &sizes)
 }
 
 /// Least gap between the readings of two objects that one region chained together, mm.
@@ -563,59 +678,76 @@ pub const FRINGE_SHARE: f64 = 0.1;
 /// Pieces under `min_pixels`, or under [`FRINGE_SHARE`] of the larger region they share most
 /// borders with, take that region's label.
 fn merge_small_pieces(labels: &mut ImageBuf<u32>, sizes: &mut [usize], min_pixels: usize) {
-    let (w, h) = (labels.width, labels.height);
     // Repeated: a piece that touches only other small pieces joins once they have joined.
     for _ in 0..4 {
-        let mut votes: std::collections::HashMap<u32, std::collections::HashMap<u32, usize>> = Default::default();
-        for i in 0..w * h {
-            let a = labels.data[i];
-            if a == 0 {
-                continue;
-            }
-            let c = i % w;
-            let neighbours = [
-                (c > 0).then(|| i - 1),
-                (c + 1 < w).then(|| i + 1),
-                (i >= w).then(|| i - w),
-                (i + w < w * h).then(|| i + w),
-            ];
-            for j in neighbours.into_iter().flatten() {
-                let b = labels.data[j];
-                if b != 0 && b != a {
-                    *votes.entry(a).or_default().entry(b).or_default() += 1;
-                }
-            }
-        }
+        // Each piece's borders with others, in pixel pairs: (piece, other, pairs).
+        let borders = border_counts(labels);
         let small = |a: u32, b: u32| {
             let (sa, sb) = (sizes[a as usize], sizes[b as usize]);
             (sa, a) < (sb, b) && (sa < min_pixels || (sa as f64) < FRINGE_SHARE * sb as f64)
         };
-        let target: std::collections::HashMap<u32, u32> = votes
-            .into_iter()
-            .filter_map(|(a, v)| {
-                let (b, _) = v.into_iter().max_by_key(|&(b, n)| (n, std::cmp::Reverse(b)))?;
-                small(a, b).then_some((a, b))
-            })
-            .collect();
-        if target.is_empty() {
+        // Each piece's label after this round (itself where it stays).
+        let mut target: Vec<u32> = (0..sizes.len() as u32).collect();
+        let mut any = false;
+        for piece in borders.chunk_by(|x, y| x.0 == y.0) {
+            // The most shared border; of equals, the smaller label.
+            let Some(&(a, b, _)) = piece.iter().max_by_key(|&&(_, b, n)| (n, std::cmp::Reverse(b))) else {
+                continue;
+            };
+            if small(a, b) {
+                target[a as usize] = b;
+                any = true;
+            }
+        }
+        if !any {
             return;
         }
         // A chain a -> b -> c ends where it ends: follow it (sizes strictly grow along it).
         let end = |mut a: u32| {
-            while let Some(&b) = target.get(&a) {
-                a = b;
+            while target[a as usize] != a {
+                a = target[a as usize];
             }
             a
         };
+        let ends: Vec<u32> = (0..sizes.len() as u32).map(end).collect();
         for l in labels.data.iter_mut() {
-            if target.contains_key(l) {
-                let b = end(*l);
+            let b = ends[*l as usize];
+            if b != *l {
                 sizes[b as usize] += 1;
                 sizes[*l as usize] -= 1;
                 *l = b;
             }
         }
     }
+}
+
+/// The borders between labelled pieces: for each ordered pair of labels (both non-zero) the
+/// 4-neighbour pixel pairs between them, sorted by label pair.
+fn border_counts(labels: &ImageBuf<u32>) -> Vec<(u32, u32, usize)> {
+    let (w, n) = (labels.width, labels.data.len());
+    let mut pairs: Vec<(u32, u32)> = vec![];
+    for i in 0..n {
+        let a = labels.data[i];
+        if a == 0 {
+            continue;
+        }
+        let right = ((i % w) + 1 < w).then(|| labels.data[i + 1]);
+        let down = (i + w < n).then(|| labels.data[i + w]);
+        for b in [right, down].into_iter().flatten() {
+            if b != 0 && b != a {
+                pairs.extend([(a, b), (b, a)]);
+            }
+        }
+    }
+    pairs.sort_unstable();
+    let mut out: Vec<(u32, u32, usize)> = vec![];
+    for (a, b) in pairs {
+        match out.last_mut() {
+            Some(last) if (last.0, last.1) == (a, b) => last.2 += 1,
+            _ => out.push((a, b, 1)),
+        }
+    }
+    out
 }
 
 /// Labels 1.. in order of first appearance, empty labels dropped; the sizes with them.
@@ -922,5 +1054,170 @@ mod tests {
         // the background, one object.
         let step = |c: usize| if c < 20 { 2000.0 } else { 3400.0 };
         assert_eq!(one_region(|c| 0.9 * step(c) + 100.0, step), vec![800]);
+    }
+
+    /// [`label_regions_by`] written plainly: every neighbour pair judged where it is met, and
+    /// each ring of edge pixels found by a scan of the whole image.
+    fn plain_label_regions_by(
+        mask: &ImageBuf<bool>,
+        joined: impl Fn(usize, usize) -> bool,
+        step: impl Fn(usize, usize) -> f64,
+        min_pixels: usize,
+    ) -> (ImageBuf<u32>, Vec<usize>) {
+        let (w, h) = (mask.width, mask.height);
+        let neighbours = |i: usize| {
+            let c = i % w;
+            [
+                (c > 0).then(|| i - 1),
+                (c + 1 < w).then(|| i + 1),
+                (i >= w).then(|| i - w),
+                (i + w < w * h).then(|| i + w),
+            ]
+            .into_iter()
+            .flatten()
+            .filter(|&j| mask.data[j])
+        };
+        // Core pixels: joined to every neighbour on the mask. The pixels along an edge between two
+        // objects mix both and their readings ramp from one to the other along a slanted edge, so
+        // regions grow over core pixels only, and the edge's pixels join the region nearest in reading.
+        let core: Vec<bool> = (0..w * h)
+            .map(|i| mask.data[i] && neighbours(i).all(|j| joined(i, j)))
+            .collect();
+        let mut labels = ImageBuf::filled(w, h, 0u32);
+        let mut sizes: Vec<usize> = vec![0];
+        let mut stack = Vec::new();
+        let mut grow = |labels: &mut ImageBuf<u32>, sizes: &mut Vec<usize>, eligible: &dyn Fn(usize) -> bool| {
+            for start in 0..w * h {
+                if !eligible(start) || labels.data[start] != 0 {
+                    continue;
+                }
+                let id = sizes.len() as u32;
+                sizes.push(0);
+                labels.data[start] = id;
+                stack.push(start);
+                while let Some(i) = stack.pop() {
+                    sizes[id as usize] += 1;
+                    for j in neighbours(i) {
+                        if eligible(j) && labels.data[j] == 0 && joined(i, j) {
+                            labels.data[j] = id;
+                            stack.push(j);
+                        }
+                    }
+                }
+            }
+        };
+        grow(&mut labels, &mut sizes, &|i| core[i]);
+        // Edge pixels, ring by ring from the cores: the neighbouring region nearest in reading.
+        loop {
+            let mut assigned = vec![];
+            for i in 0..w * h {
+                if !mask.data[i] || labels.data[i] != 0 {
+                    continue;
+                }
+                let best = neighbours(i)
+                    .filter(|&j| labels.data[j] != 0)
+                    .min_by(|&a, &b| step(i, a).total_cmp(&step(i, b)));
+                if let Some(j) = best {
+                    assigned.push((i, labels.data[j]));
+                }
+            }
+            if assigned.is_empty() {
+                break;
+            }
+            for (i, l) in assigned {
+                labels.data[i] = l;
+                sizes[l as usize] += 1;
+            }
+        }
+        // Whatever touches no core (isolated noisy pixels): pieces of their own.
+        grow(&mut labels, &mut sizes, &|i| mask.data[i]);
+        plain_merge_small_pieces(&mut labels, &mut sizes, min_pixels);
+        renumber(labels, &sizes)
+    }
+
+    /// `merge_small_pieces` written plainly, with maps of votes.
+    fn plain_merge_small_pieces(labels: &mut ImageBuf<u32>, sizes: &mut [usize], min_pixels: usize) {
+        let (w, h) = (labels.width, labels.height);
+        // Repeated: a piece that touches only other small pieces joins once they have joined.
+        for _ in 0..4 {
+            let mut votes: std::collections::HashMap<u32, std::collections::HashMap<u32, usize>> = Default::default();
+            for i in 0..w * h {
+                let a = labels.data[i];
+                if a == 0 {
+                    continue;
+                }
+                let c = i % w;
+                let neighbours = [
+                    (c > 0).then(|| i - 1),
+                    (c + 1 < w).then(|| i + 1),
+                    (i >= w).then(|| i - w),
+                    (i + w < w * h).then(|| i + w),
+                ];
+                for j in neighbours.into_iter().flatten() {
+                    let b = labels.data[j];
+                    if b != 0 && b != a {
+                        *votes.entry(a).or_default().entry(b).or_default() += 1;
+                    }
+                }
+            }
+            let small = |a: u32, b: u32| {
+                let (sa, sb) = (sizes[a as usize], sizes[b as usize]);
+                (sa, a) < (sb, b) && (sa < min_pixels || (sa as f64) < FRINGE_SHARE * sb as f64)
+            };
+            let target: std::collections::HashMap<u32, u32> = votes
+                .into_iter()
+                .filter_map(|(a, v)| {
+                    let (b, _) = v.into_iter().max_by_key(|&(b, n)| (n, std::cmp::Reverse(b)))?;
+                    small(a, b).then_some((a, b))
+                })
+                .collect();
+            if target.is_empty() {
+                return;
+            }
+            // A chain a -> b -> c ends where it ends: follow it (sizes strictly grow along it).
+            let end = |mut a: u32| {
+                while let Some(&b) = target.get(&a) {
+                    a = b;
+                }
+                a
+            };
+            for l in labels.data.iter_mut() {
+                if target.contains_key(l) {
+                    let b = end(*l);
+                    sizes[b as usize] += 1;
+                    sizes[*l as usize] -= 1;
+                    *l = b;
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn labels_are_those_of_the_plain_labelling() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        for _ in 0..40 {
+            let (w, h) = (rng.random_range(1..60), rng.random_range(1..50));
+            let fill = rng.random_range(0.3..1.0);
+            let m = ImageBuf::from_vec(w, h, (0..w * h).map(|_| rng.random_bool(fill)).collect()).unwrap();
+            // Patches at a few depths, with noise and steps: cores, edges and small pieces.
+            let base: Vec<f64> = (0..4).map(|_| rng.random_range(500.0..3000.0)).collect();
+            let d = ImageBuf::from_vec(
+                w,
+                h,
+                (0..w * h)
+                    .map(|i| base[(i % w * 3 / w.max(1) + i / w * 2 / h.max(1)) % 4] + rng.random_range(-40.0..40.0))
+                    .collect(),
+            )
+            .unwrap();
+            let noise: Vec<f64> = (0..w * h).map(|_| rng.random_range(2.0..15.0)).collect();
+            let min = rng.random_range(1..20);
+            let step = |i: usize, j: usize| wrapped_difference(d.data[i], d.data[j], 4996.5).abs();
+            let joined = |i: usize, j: usize| step(i, j) <= step_allowed(EDGE_FLOOR_MM, noise[i], noise[j]);
+            let fast = label_regions_by(&m, joined, step, min);
+            let plain = plain_label_regions_by(&m, joined, step, min);
+            assert_eq!(fast.1, plain.1);
+            assert_eq!(fast.0.data, plain.0.data);
+        }
     }
 }

@@ -2,6 +2,10 @@
 //! observations and regions, and whether the camera moved after the latch.
 
 use super::*;
+use crate::physics::parallel::map_ordered;
+
+/// Fewest segmented pixels whose observations are gathered over the pool.
+const PARALLEL_PIXELS: usize = 16 * 1024;
 
 impl Pipeline {
     /// Segments a frame and gathers what the inversion needs.
@@ -19,7 +23,7 @@ impl Pipeline {
             self.change_noise.as_ref(),
         );
         let (mask, _) = remove_small_regions(&raw, self.config.min_region_pixels);
-        let observations = SparseImage::from_mask(&mask, |i| {
+        let observation = |i: usize| {
             let ir = frame.ir.data[i] as f64;
             // The background behind the layer (displaced when the model refracts).
             let (db, ib) = if self.config.model.options.refracts() {
@@ -45,12 +49,17 @@ impl Pipeline {
                 && o.emitted_light.is_finite()
                 && o.emitted_light > 0.0;
             ok.then_some(o)
-        })
-        .ok_or(PipelineError::TooLarge {
+        };
+        // Over the pool, then set in the image in pixel order (as `from_mask` visits them).
+        let too_large = || PipelineError::TooLarge {
             width: k.width,
             height: k.height,
-        })?;
-        let translucent_pixels = mask.data.iter().filter(|&&m| m).count();
+        };
+        let pixels = u32::try_from(mask.data.len()).map_err(|_| too_large())?;
+        let segmented: Vec<u32> = (0..pixels).filter(|&i| mask.data[i as usize]).collect();
+        let mut found = map_ordered(&segmented, PARALLEL_PIXELS, 1024, |&i| observation(i as usize)).into_iter();
+        let observations = SparseImage::from_mask(&mask, |_| found.next().flatten()).ok_or_else(too_large)?;
+        let translucent_pixels = segmented.len();
         // A pixel's reading noise: the latch's, grown as shot noise where less light returns.
         let fallback = self.config.threshold_mm / NOISE_SIGMAS;
         let noise = |i: usize| {
