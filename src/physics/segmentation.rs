@@ -209,33 +209,34 @@ pub fn outline_pixels(mask: &ImageBuf<bool>, image_edge: bool) -> ImageBuf<bool>
     }
     // Off the mask somewhere in each pixel's row of three (beyond the image: `image_edge`),
     // then in its column of three such rows: the 3 x 3 square, by rows over the pool.
-    let off_in_row = |r: usize| -> Vec<bool> {
-        let row = &mask.data[r * w..(r + 1) * w];
-        (0..w)
-            .map(|c| {
-                let left = if c == 0 { image_edge } else { !row[c - 1] };
-                let right = if c + 1 == w { image_edge } else { !row[c + 1] };
-                left | !row[c] | right
-            })
-            .collect()
+    // Row `r`'s pixels off the mask or beside one off it; below the image, `image_edge`.
+    let row_off = |r: usize, out: &mut [bool]| {
+        if r < h {
+            off_in_row(&mask.data[r * w..(r + 1) * w], image_edge, out)
+        } else {
+            out.fill(image_edge)
+        }
     };
     let all_rows: Vec<usize> = (0..h).collect();
-    let rows: Vec<bool> = map_chunks_ordered(&all_rows, ROWS_PER_TASK, MIN_PARALLEL_PIXELS / w.max(1), |_, rs| {
-        rs.iter().flat_map(|&r| off_in_row(r)).collect()
-    });
-    let data = map_chunks_ordered(&all_rows, ROWS_PER_TASK, MIN_PARALLEL_PIXELS / w.max(1), |_, rs| {
-        let mut out = Vec::with_capacity(rs.len() * w);
-        for &r in rs {
-            let at = |rr: usize| &rows[rr * w..(rr + 1) * w];
-            let here = at(r);
-            let up = (r > 0).then(|| at(r - 1));
-            let down = (r + 1 < h).then(|| at(r + 1));
+    let data = map_chunks_ordered(&all_rows, ROWS_PER_TASK, MIN_PARALLEL_PIXELS / w, |_, rs| {
+        let mut out = vec![false; rs.len() * w];
+        let (mut up, mut here, mut down) = (vec![false; w], vec![false; w], vec![false; w]);
+        for (k, &r) in rs.iter().enumerate() {
+            if k == 0 {
+                match r.checked_sub(1) {
+                    Some(above) => row_off(above, &mut up),
+                    None => up.fill(image_edge),
+                }
+                row_off(r, &mut here);
+            } else {
+                std::mem::swap(&mut up, &mut here);
+                std::mem::swap(&mut here, &mut down);
+            }
+            row_off(r + 1, &mut down);
             let m = &mask.data[r * w..(r + 1) * w];
-            out.extend((0..w).map(|c| {
-                let up = up.map_or(image_edge, |u| u[c]);
-                let down = down.map_or(image_edge, |d| d[c]);
-                m[c] & (up | here[c] | down)
-            }));
+            for (c, o) in out[k * w..(k + 1) * w].iter_mut().enumerate() {
+                *o = m[c] & (up[c] | here[c] | down[c]);
+            }
         }
         out
     });
@@ -243,6 +244,17 @@ pub fn outline_pixels(mask: &ImageBuf<bool>, image_edge: bool) -> ImageBuf<bool>
         width: w,
         height: h,
         data,
+    }
+}
+
+/// For each pixel of a row: off the row's mask itself or beside a pixel off it (beyond the
+/// row's ends: `image_edge`).
+fn off_in_row(row: &[bool], image_edge: bool, out: &mut [bool]) {
+    let w = row.len();
+    for (c, o) in out.iter_mut().enumerate().take(w) {
+        let left = if c == 0 { image_edge } else { !row[c - 1] };
+        let right = if c + 1 == w { image_edge } else { !row[c + 1] };
+        *o = left | !row[c] | right;
     }
 }
 
