@@ -321,6 +321,7 @@ pub const EDGE_FLOOR_MM: f64 = 25.0;
 /// Returns each pixel's region (0 off the mask, else 1-based) and each region's
 /// pixel count. Pieces smaller than `min_pixels` join the region they touch most
 /// (a noisy pixel must not cut a layer in two); pieces that touch none keep their own label.
+#[inline(never)] // a stage of its own in `scripts/frame-profile`
 pub fn label_regions(
     mask: &ImageBuf<bool>,
     distance_mm: &ImageBuf<f64>,
