@@ -4,7 +4,7 @@
 
 use crate::image::{depth_image, mask_image, organized_cloud, sigma_image, ImageError};
 use crate::msgs::translucent_tof::TranslucencyEstimate;
-use crate::msgs::{Header, Image, PointCloud2};
+use crate::msgs::{CameraInfo, Header, Image, PointCloud2};
 use nalgebra::Vector3;
 
 use crate::physics::{ImageBuf, XiEstimate};
@@ -15,6 +15,8 @@ use crate::pipeline::FrameOutput;
 pub struct OutputMessages {
     /// `~/depth/corrected`: the input's size, stamp and encoding.
     pub corrected: Image,
+    /// `~/depth/camera_info`: the camera's, with the corrected depth's header.
+    pub camera_info: CameraInfo,
     /// `~/translucent_mask`: `mono8`, 255 where translucent.
     pub mask: Image,
     /// `~/depth/corrected_sigma`: `32FC1`, metres, NaN where nothing was recovered.
@@ -25,16 +27,18 @@ pub struct OutputMessages {
     pub estimates: Vec<TranslucencyEstimate>,
 }
 
-/// Builds the outputs of `out`. `header` is the input depth image's; `rays`
-/// the camera's unit rays ([`crate::pipeline::Pipeline::rays`]);
-/// `depth_encoding` its encoding (`32FC1` is kept, anything else becomes `16UC1`).
+/// Builds the outputs of `out` (recovered or passed through). `header` is the input depth
+/// image's; `camera` the camera's camera_info and unit rays
+/// ([`crate::pipeline::Pipeline::rays`]); `depth_encoding` the input's encoding (`32FC1` is
+/// kept, anything else becomes `16UC1`).
 pub fn output_messages(
     header: &Header,
-    rays: &ImageBuf<Vector3<f64>>,
+    camera: (&CameraInfo, &ImageBuf<Vector3<f64>>),
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
     depth_encoding: &str,
 ) -> Result<OutputMessages, ImageError> {
+    let (info, rays) = camera;
     let corrected = corrected_message(header, out, depth_encoding)?;
     let Companions {
         mask, sigma, estimates, ..
@@ -42,6 +46,10 @@ pub fn output_messages(
     let points = cloud_message(header, rays, out, ir);
     Ok(OutputMessages {
         corrected,
+        camera_info: CameraInfo {
+            header: header.clone(),
+            ..info.clone()
+        },
         mask,
         sigma,
         points,

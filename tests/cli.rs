@@ -324,18 +324,22 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
     );
     let outs = messages_by_topic(&out_bag);
     let ins = messages_by_topic(&input);
+    // Every frame, as the node publishes it: the 10 it latches passed through, then the 8 object frames.
     let want_topics = [
         "/translucent_tof/depth/corrected",
+        "/translucent_tof/depth/camera_info",
+        "/translucent_tof/depth/corrected_sigma",
         "/translucent_tof/points",
         "/translucent_tof/translucent_mask",
         "/translucent_tof/translucency",
+        "/translucent_tof/regions",
     ];
     for t in want_topics {
         let n = outs.get(t).map(|v| v.len()).unwrap_or(0);
         assert_eq!(
             n,
-            8,
-            "{t}: {n} messages, expected one per object frame; topics: {:?}",
+            18,
+            "{t}: {n} messages, expected one per frame; topics: {:?}",
             outs.keys()
         );
     }
@@ -346,6 +350,7 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
             (img.header.stamp.as_log_time_ns(), img)
         })
         .collect();
+    let latched: BTreeSet<u64> = input_depth.keys().take(10).copied().collect();
     let report_stamps: Vec<u64> = per_frame
         .iter()
         .map(|row| (row["stamp"].as_f64().unwrap() * 1e9).round() as u64)
@@ -361,10 +366,24 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
         assert_eq!((img.width, img.height), (src.width, src.height), "size at {stamp}");
         assert_eq!(img.encoding, src.encoding, "encoding at {stamp}");
         assert_eq!(img.header, src.header, "header at {stamp}");
-        assert!(
-            report_stamps.iter().any(|s| s.abs_diff(stamp) < 1000),
-            "stamp {stamp} not in the report's per_frame stamps {report_stamps:?} (row {i})"
-        );
+        if latched.contains(&stamp) {
+            assert_eq!(
+                img.data, src.data,
+                "a latched frame is passed through as read ({stamp})"
+            );
+        } else {
+            assert!(
+                report_stamps.iter().any(|s| s.abs_diff(stamp) < 1000),
+                "stamp {stamp} not in the report's per_frame stamps {report_stamps:?} (row {i})"
+            );
+        }
+    }
+    for (_, data, ty) in &outs["/translucent_tof/depth/camera_info"] {
+        assert_eq!(ty, "sensor_msgs/msg/CameraInfo");
+        let ci: CameraInfo = decode(data);
+        assert!(input_depth
+            .get(&ci.header.stamp.as_log_time_ns())
+            .is_some_and(|d| d.header == ci.header));
     }
     let (w, h) = {
         let any = input_depth.values().next().unwrap();
@@ -401,9 +420,13 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
         );
     }
     let [lo, hi] = interval(&r);
-    for (_, data, ty) in &outs["/translucent_tof/translucency"] {
+    for (t, data, ty) in &outs["/translucent_tof/translucency"] {
         assert_eq!(ty, "translucent_tof_msgs/msg/TranslucencyEstimate");
         let e: TranslucencyEstimate = decode(data);
+        if latched.contains(t) {
+            assert_eq!(e.method, "passthrough: latching the background");
+            continue;
+        }
         assert_eq!(e.method, "one_material");
         assert!(
             (e.xi_lower - lo).abs() < 1e-9 && (e.xi_upper - hi).abs() < 1e-9,
@@ -412,10 +435,14 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
             e.xi_upper
         );
     }
-    for (_, data, _) in &outs["/translucent_tof/translucent_mask"] {
+    for (t, data, _) in &outs["/translucent_tof/translucent_mask"] {
         let m: Image = decode(data);
         assert_eq!((m.width, m.height, m.encoding.as_str()), (w, h, "mono8"));
-        assert!(m.data.contains(&255), "an empty mask on an object frame");
+        assert_eq!(
+            m.data.contains(&255),
+            !latched.contains(t),
+            "at {t}: an empty mask on an object frame, or a flagged one on a latched frame"
+        );
     }
 }
 
@@ -2037,9 +2064,11 @@ fn calibrate_xi_writes_a_materials_file_that_replay_classifies_with() {
     assert!(num(&r, "rmse_mm") < 30.0, "{}", r["error_summary"]);
     // The estimate message carries the class.
     let outs = messages_by_topic(&dir.path().join("holder.mcap"));
+    // Those of the frames passed through while the background was latched carry no class.
     let estimates: Vec<TranslucencyEstimate> = outs["/translucent_tof/translucency"]
         .iter()
-        .map(|(_, data, _)| decode(data))
+        .map(|(_, data, _)| decode::<TranslucencyEstimate>(data))
+        .filter(|e| !e.method.starts_with("passthrough"))
         .collect();
     assert!(!estimates.is_empty());
     for e in &estimates {
