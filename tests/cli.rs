@@ -446,6 +446,101 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
     }
 }
 
+/// Issue 53: a user's own recording of a static scene, laid out as an Azure Kinect's driver
+/// publishes it (reduced in size: 16UC1 depth in mm with 0 where invalid, 16UC1 IR, a
+/// rational_polynomial lens, topics at the root; bags/azure_like_static.toml). Replayed with
+/// `--background-frames 10`, the output holds all 14 frames as the node publishes them: every
+/// one the input as read, nothing flagged, no invalid pixel published as a distance.
+#[test]
+fn replay_of_a_static_scene_writes_every_frame_as_read_with_nothing_flagged() {
+    let dir = temp();
+    let input = bundled("azure_like_static.mcap");
+    let args = ["replay", input.to_str().unwrap(), "--background-frames", "10"];
+    let out = run(
+        dir.path(),
+        &[&args[..], &["-o", "out.mcap", "--json", "report.json"]].concat(),
+    );
+    assert_ok(&out);
+    assert!(
+        text(&out.stdout).contains("output: all 14 frames as the node publishes them"),
+        "{}",
+        describe(&out)
+    );
+    let r = read_json(&dir.path().join("report.json"));
+    assert_eq!(
+        (r["frames"].as_u64(), r["frames_written"].as_u64()),
+        (Some(14), Some(14)),
+        "{r}"
+    );
+    assert_eq!(r["translucent_pixels"].as_u64(), Some(0), "{r}");
+    let ins = messages_by_topic(&input);
+    let outs = messages_by_topic(&dir.path().join("out.mcap"));
+    let input_depth: BTreeMap<u64, Image> = ins["/depth/image_raw"]
+        .iter()
+        .map(|(t, d, _)| (*t, decode::<Image>(d)))
+        .collect();
+    assert_eq!(input_depth.len(), 14);
+    let latched: BTreeSet<u64> = input_depth.keys().take(10).copied().collect();
+    let by_stamp = |topic: &str| -> BTreeMap<u64, Vec<u8>> {
+        let msgs = outs
+            .get(topic)
+            .unwrap_or_else(|| panic!("no {topic}: {:?}", outs.keys()));
+        assert_eq!(msgs.len(), 14, "{topic}: one message per frame");
+        msgs.iter().map(|(t, d, _)| (*t, d.clone())).collect()
+    };
+    let (corrected, masks, clouds, sigmas, infos) = (
+        by_stamp("/translucent_tof/depth/corrected"),
+        by_stamp("/translucent_tof/translucent_mask"),
+        by_stamp("/translucent_tof/points"),
+        by_stamp("/translucent_tof/depth/corrected_sigma"),
+        by_stamp("/translucent_tof/depth/camera_info"),
+    );
+    let estimates = by_stamp("/translucent_tof/translucency");
+    for (stamp, src) in &input_depth {
+        let img: Image = decode(&corrected[stamp]);
+        assert_eq!(img.header, src.header, "at {stamp}");
+        assert_eq!(
+            (img.encoding.as_str(), &img.data),
+            ("16UC1", &src.data),
+            "at {stamp}: not the input as read"
+        );
+        let invalid: Vec<usize> = (0..src.data.len() / 2)
+            .filter(|k| src.data[2 * k] == 0 && src.data[2 * k + 1] == 0)
+            .collect();
+        assert!(!invalid.is_empty(), "the frame at {stamp} has no invalid (0) pixel");
+        let mask: Image = decode(&masks[stamp]);
+        assert!(
+            mask.data.iter().all(|&m| m == 0),
+            "at {stamp}: pixels flagged translucent"
+        );
+        let pc: PointCloud2 = decode(&clouds[stamp]);
+        let step = pc.point_step as usize;
+        assert!(
+            (0..mask.data.len()).all(|k| pc.data[k * step + 16] == 0),
+            "at {stamp}: points flagged"
+        );
+        for k in &invalid {
+            assert!(
+                f32_at(&pc.data, k * step + 8).is_nan(),
+                "at {stamp}: invalid pixel {k} has a point"
+            );
+        }
+        let sigma: Image = decode(&sigmas[stamp]);
+        assert!(
+            (0..sigma.data.len() / 4).all(|k| f32_at(&sigma.data, 4 * k).is_nan()),
+            "at {stamp}: a sigma"
+        );
+        assert_eq!(decode::<CameraInfo>(&infos[stamp]).header, src.header, "at {stamp}");
+        let e: TranslucencyEstimate = decode(&estimates[stamp]);
+        let why = if latched.contains(stamp) {
+            "passthrough: latching the background"
+        } else {
+            "passthrough: xi not determined yet"
+        };
+        assert_eq!(e.method, why, "at {stamp}");
+    }
+}
+
 /// A2: a fixed ξ is reported as such, with a degenerate interval.
 #[test]
 fn replay_with_fixed_xi_reports_fixed() {
