@@ -843,6 +843,7 @@ fn replay_writes_what_the_node_publishes_frame_by_frame() {
     let (received, missing) = rt().block_on(async {
         let ctx = translucent_tof::node::context(0, false).unwrap();
         let mut peer = driver(&ctx, "replay_peer").await;
+        peer.wait_for_every_output(Duration::from_secs(30)).await.unwrap();
         peer.publish_info(&info).unwrap();
         tokio::time::sleep(Duration::from_millis(300)).await;
         // The latch asked for first; the frames replay latched stream once it is in progress.
