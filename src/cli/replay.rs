@@ -202,17 +202,16 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         super::common::create_parent(r)?;
     }
 
-    // Pass 1 (pooled): the evidence of every object frame, before any is recovered. A frame
-    // the node takes for a moved camera adds none (the node passes it through).
+    // Pass 1 (pooled): the evidence of every object frame, before any is recovered. The
+    // camera is taken to be still: unlike the node, replay does not watch for a moved one.
     let mut observed = Vec::with_capacity(objects.len());
     let pb = a.output.progress(objects.len() as u64, "segmenting");
     for f in objects {
         let mut obs = pipe.observe(f)?;
-        let moved = pipe.departure(&obs).is_some_and(|d| d.camera_moved());
-        if !online && !moved {
+        if !online {
             pipe.add_xi_evidence(&mut obs);
         }
-        observed.push((obs, moved));
+        observed.push(obs);
         pb.inc(1);
     }
     pb.finish_and_clear();
@@ -233,19 +232,14 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let mut errors = TruthError::default();
     let mut total_px = 0usize;
     let mut passed = std::collections::BTreeMap::from([(Passthrough::Latching, bg.count)]);
-    for (j, (f, (obs, moved))) in objects.iter().zip(&mut observed).enumerate() {
+    for (j, (f, obs)) in objects.iter().zip(&mut observed).enumerate() {
         let header = &rec.headers[bg.count + j];
-        if online && !*moved {
+        if online {
             pipe.add_xi_evidence(obs);
         }
-        let recovered = if *moved { None } else { pipe.recover_regions(f, obs) };
-        let Some(out) = recovered else {
+        let Some(out) = pipe.recover_regions(f, obs) else {
             // Passed through, as the node does: published as read.
-            let why = if *moved {
-                Passthrough::CameraMoved
-            } else {
-                Passthrough::NoXiYet
-            };
+            let why = Passthrough::NoXiYet;
             let out = FrameOutput::passed_through(f, why);
             write_frame(&mut writer, header, camera, (&out, None), (f, &rec.depth_encoding))?;
             *passed.entry(why).or_insert(0) += 1;
