@@ -163,3 +163,38 @@ pub fn points_m(rays: &ImageBuf<Vector3<f64>>, z_mm: &ImageBuf<f32>) -> ImageBuf
         data,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image::{camera_info, depth_image, depth_mm};
+    use crate::physics::Intrinsics;
+    use crate::pipeline::{DepthFrame, Passthrough};
+
+    /// An invalid input pixel (0 in `16UC1`, NaN in `32FC1`) of a frame passed through is
+    /// published as no distance: invalid in the corrected depth, no point in the cloud.
+    #[test]
+    fn invalid_pixels_are_published_as_no_distance_in_either_encoding() {
+        let k = Intrinsics::from_fov(8, 6, 44.0, 35.0);
+        let header = Header::new(5, "tof_optical_frame");
+        let mut z = ImageBuf::filled(8, 6, 1500.0f32);
+        z.data[3] = f32::NAN;
+        for encoding in ["16UC1", "32FC1"] {
+            let input = depth_image(&header, &z, encoding).expect("encodes");
+            let frame = DepthFrame {
+                stamp_ns: 5,
+                z_mm: depth_mm(&input).expect("decodes"),
+                ir: ImageBuf::filled(8, 6, 900.0),
+            };
+            let out = FrameOutput::passed_through(&frame, Passthrough::NoXiYet);
+            let camera = (&camera_info(&header, &k), &k.unit_ray_map());
+            let m = output_messages(&header, camera, &out, &frame.ir, encoding).expect("messages");
+            assert_eq!(m.corrected.data, input.data, "{encoding}: not the input as read");
+            let published = depth_mm(&m.corrected).expect("decodes");
+            assert!(published.data[3].is_nan() && published.data[4] == 1500.0, "{encoding}");
+            let step = m.points.point_step as usize;
+            let cloud_z = |i: usize| f32::from_le_bytes([8, 9, 10, 11].map(|b| m.points.data[i * step + b]));
+            assert!(cloud_z(3).is_nan() && (cloud_z(4) - 1.5).abs() < 1e-6, "{encoding}");
+        }
+    }
+}
