@@ -4,7 +4,7 @@
 
 use crate::image::{depth_image, mask_image, organized_cloud, sigma_image, ImageError};
 use crate::msgs::translucent_tof::TranslucencyEstimate;
-use crate::msgs::{Header, Image, PointCloud2};
+use crate::msgs::{CameraInfo, Header, Image, PointCloud2};
 use nalgebra::Vector3;
 
 use crate::physics::{ImageBuf, XiEstimate};
@@ -15,6 +15,8 @@ use crate::pipeline::FrameOutput;
 pub struct OutputMessages {
     /// `~/depth/corrected`: the input's size, stamp and encoding.
     pub corrected: Image,
+    /// `~/depth/camera_info`: the camera's, with the corrected depth's header.
+    pub camera_info: CameraInfo,
     /// `~/translucent_mask`: `mono8`, 255 where translucent.
     pub mask: Image,
     /// `~/depth/corrected_sigma`: `32FC1`, metres, NaN where nothing was recovered.
@@ -25,16 +27,18 @@ pub struct OutputMessages {
     pub estimates: Vec<TranslucencyEstimate>,
 }
 
-/// Builds the outputs of `out`. `header` is the input depth image's; `rays`
-/// the camera's unit rays ([`crate::pipeline::Pipeline::rays`]);
-/// `depth_encoding` its encoding (`32FC1` is kept, anything else becomes `16UC1`).
+/// Builds the outputs of `out` (recovered or passed through). `header` is the input depth
+/// image's; `camera` the camera's camera_info and unit rays
+/// ([`crate::pipeline::Pipeline::rays`]); `depth_encoding` the input's encoding (`32FC1` is
+/// kept, anything else becomes `16UC1`).
 pub fn output_messages(
     header: &Header,
-    rays: &ImageBuf<Vector3<f64>>,
+    camera: (&CameraInfo, &ImageBuf<Vector3<f64>>),
     out: &FrameOutput,
     ir: &ImageBuf<f32>,
     depth_encoding: &str,
 ) -> Result<OutputMessages, ImageError> {
+    let (info, rays) = camera;
     let corrected = corrected_message(header, out, depth_encoding)?;
     let Companions {
         mask, sigma, estimates, ..
@@ -42,6 +46,10 @@ pub fn output_messages(
     let points = cloud_message(header, rays, out, ir);
     Ok(OutputMessages {
         corrected,
+        camera_info: CameraInfo {
+            header: header.clone(),
+            ..info.clone()
+        },
         mask,
         sigma,
         points,
@@ -153,5 +161,40 @@ pub fn points_m(rays: &ImageBuf<Vector3<f64>>, z_mm: &ImageBuf<f32>) -> ImageBuf
         width: rays.width,
         height: rays.height,
         data,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image::{camera_info, depth_image, depth_mm};
+    use crate::physics::Intrinsics;
+    use crate::pipeline::{DepthFrame, Passthrough};
+
+    /// An invalid input pixel (0 in `16UC1`, NaN in `32FC1`) of a frame passed through is
+    /// published as no distance: invalid in the corrected depth, no point in the cloud.
+    #[test]
+    fn invalid_pixels_are_published_as_no_distance_in_either_encoding() {
+        let k = Intrinsics::from_fov(8, 6, 44.0, 35.0);
+        let header = Header::new(5, "tof_optical_frame");
+        let mut z = ImageBuf::filled(8, 6, 1500.0f32);
+        z.data[3] = f32::NAN;
+        for encoding in ["16UC1", "32FC1"] {
+            let input = depth_image(&header, &z, encoding).expect("encodes");
+            let frame = DepthFrame {
+                stamp_ns: 5,
+                z_mm: depth_mm(&input).expect("decodes"),
+                ir: ImageBuf::filled(8, 6, 900.0),
+            };
+            let out = FrameOutput::passed_through(&frame, Passthrough::NoXiYet);
+            let camera = (&camera_info(&header, &k), &k.unit_ray_map());
+            let m = output_messages(&header, camera, &out, &frame.ir, encoding).expect("messages");
+            assert_eq!(m.corrected.data, input.data, "{encoding}: not the input as read");
+            let published = depth_mm(&m.corrected).expect("decodes");
+            assert!(published.data[3].is_nan() && published.data[4] == 1500.0, "{encoding}");
+            let step = m.points.point_step as usize;
+            let cloud_z = |i: usize| f32::from_le_bytes([8, 9, 10, 11].map(|b| m.points.data[i * step + b]));
+            assert!(cloud_z(3).is_nan() && (cloud_z(4) - 1.5).abs() < 1e-6, "{encoding}");
+        }
     }
 }

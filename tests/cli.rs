@@ -324,18 +324,22 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
     );
     let outs = messages_by_topic(&out_bag);
     let ins = messages_by_topic(&input);
+    // Every frame, as the node publishes it: the 10 it latches passed through, then the 8 object frames.
     let want_topics = [
         "/translucent_tof/depth/corrected",
+        "/translucent_tof/depth/camera_info",
+        "/translucent_tof/depth/corrected_sigma",
         "/translucent_tof/points",
         "/translucent_tof/translucent_mask",
         "/translucent_tof/translucency",
+        "/translucent_tof/regions",
     ];
     for t in want_topics {
         let n = outs.get(t).map(|v| v.len()).unwrap_or(0);
         assert_eq!(
             n,
-            8,
-            "{t}: {n} messages, expected one per object frame; topics: {:?}",
+            18,
+            "{t}: {n} messages, expected one per frame; topics: {:?}",
             outs.keys()
         );
     }
@@ -346,6 +350,7 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
             (img.header.stamp.as_log_time_ns(), img)
         })
         .collect();
+    let latched: BTreeSet<u64> = input_depth.keys().take(10).copied().collect();
     let report_stamps: Vec<u64> = per_frame
         .iter()
         .map(|row| (row["stamp"].as_f64().unwrap() * 1e9).round() as u64)
@@ -361,10 +366,24 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
         assert_eq!((img.width, img.height), (src.width, src.height), "size at {stamp}");
         assert_eq!(img.encoding, src.encoding, "encoding at {stamp}");
         assert_eq!(img.header, src.header, "header at {stamp}");
-        assert!(
-            report_stamps.iter().any(|s| s.abs_diff(stamp) < 1000),
-            "stamp {stamp} not in the report's per_frame stamps {report_stamps:?} (row {i})"
-        );
+        if latched.contains(&stamp) {
+            assert_eq!(
+                img.data, src.data,
+                "a latched frame is passed through as read ({stamp})"
+            );
+        } else {
+            assert!(
+                report_stamps.iter().any(|s| s.abs_diff(stamp) < 1000),
+                "stamp {stamp} not in the report's per_frame stamps {report_stamps:?} (row {i})"
+            );
+        }
+    }
+    for (_, data, ty) in &outs["/translucent_tof/depth/camera_info"] {
+        assert_eq!(ty, "sensor_msgs/msg/CameraInfo");
+        let ci: CameraInfo = decode(data);
+        assert!(input_depth
+            .get(&ci.header.stamp.as_log_time_ns())
+            .is_some_and(|d| d.header == ci.header));
     }
     let (w, h) = {
         let any = input_depth.values().next().unwrap();
@@ -401,9 +420,13 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
         );
     }
     let [lo, hi] = interval(&r);
-    for (_, data, ty) in &outs["/translucent_tof/translucency"] {
+    for (t, data, ty) in &outs["/translucent_tof/translucency"] {
         assert_eq!(ty, "translucent_tof_msgs/msg/TranslucencyEstimate");
         let e: TranslucencyEstimate = decode(data);
+        if latched.contains(t) {
+            assert_eq!(e.method, "passthrough: latching the background");
+            continue;
+        }
         assert_eq!(e.method, "one_material");
         assert!(
             (e.xi_lower - lo).abs() < 1e-9 && (e.xi_upper - hi).abs() < 1e-9,
@@ -412,10 +435,109 @@ fn replay_document_holder_estimates_xi_and_writes_outputs() {
             e.xi_upper
         );
     }
-    for (_, data, _) in &outs["/translucent_tof/translucent_mask"] {
+    for (t, data, _) in &outs["/translucent_tof/translucent_mask"] {
         let m: Image = decode(data);
         assert_eq!((m.width, m.height, m.encoding.as_str()), (w, h, "mono8"));
-        assert!(m.data.contains(&255), "an empty mask on an object frame");
+        assert_eq!(
+            m.data.contains(&255),
+            !latched.contains(t),
+            "at {t}: an empty mask on an object frame, or a flagged one on a latched frame"
+        );
+    }
+}
+
+/// Issue 53: a user's own recording of a static scene, laid out as an Azure Kinect's driver
+/// publishes it (reduced in size: 16UC1 depth in mm with 0 where invalid, 16UC1 IR, a
+/// rational_polynomial lens, topics at the root; bags/azure_like_static.toml). Replayed with
+/// `--background-frames 10`, the output holds all 14 frames as the node publishes them: every
+/// one the input as read, nothing flagged, no invalid pixel published as a distance.
+#[test]
+fn replay_of_a_static_scene_writes_every_frame_as_read_with_nothing_flagged() {
+    let dir = temp();
+    let input = bundled("azure_like_static.mcap");
+    let args = ["replay", input.to_str().unwrap(), "--background-frames", "10"];
+    let out = run(
+        dir.path(),
+        &[&args[..], &["-o", "out.mcap", "--json", "report.json"]].concat(),
+    );
+    assert_ok(&out);
+    assert!(
+        text(&out.stdout).contains("output: all 14 frames as the node publishes them"),
+        "{}",
+        describe(&out)
+    );
+    let r = read_json(&dir.path().join("report.json"));
+    assert_eq!(
+        (r["frames"].as_u64(), r["frames_written"].as_u64()),
+        (Some(14), Some(14)),
+        "{r}"
+    );
+    assert_eq!(r["translucent_pixels"].as_u64(), Some(0), "{r}");
+    let ins = messages_by_topic(&input);
+    let outs = messages_by_topic(&dir.path().join("out.mcap"));
+    let input_depth: BTreeMap<u64, Image> = ins["/depth/image_raw"]
+        .iter()
+        .map(|(t, d, _)| (*t, decode::<Image>(d)))
+        .collect();
+    assert_eq!(input_depth.len(), 14);
+    let latched: BTreeSet<u64> = input_depth.keys().take(10).copied().collect();
+    let by_stamp = |topic: &str| -> BTreeMap<u64, Vec<u8>> {
+        let msgs = outs
+            .get(topic)
+            .unwrap_or_else(|| panic!("no {topic}: {:?}", outs.keys()));
+        assert_eq!(msgs.len(), 14, "{topic}: one message per frame");
+        msgs.iter().map(|(t, d, _)| (*t, d.clone())).collect()
+    };
+    let (corrected, masks, clouds, sigmas, infos) = (
+        by_stamp("/translucent_tof/depth/corrected"),
+        by_stamp("/translucent_tof/translucent_mask"),
+        by_stamp("/translucent_tof/points"),
+        by_stamp("/translucent_tof/depth/corrected_sigma"),
+        by_stamp("/translucent_tof/depth/camera_info"),
+    );
+    let estimates = by_stamp("/translucent_tof/translucency");
+    for (stamp, src) in &input_depth {
+        let img: Image = decode(&corrected[stamp]);
+        assert_eq!(img.header, src.header, "at {stamp}");
+        assert_eq!(
+            (img.encoding.as_str(), &img.data),
+            ("16UC1", &src.data),
+            "at {stamp}: not the input as read"
+        );
+        let invalid: Vec<usize> = (0..src.data.len() / 2)
+            .filter(|k| src.data[2 * k] == 0 && src.data[2 * k + 1] == 0)
+            .collect();
+        assert!(!invalid.is_empty(), "the frame at {stamp} has no invalid (0) pixel");
+        let mask: Image = decode(&masks[stamp]);
+        assert!(
+            mask.data.iter().all(|&m| m == 0),
+            "at {stamp}: pixels flagged translucent"
+        );
+        let pc: PointCloud2 = decode(&clouds[stamp]);
+        let step = pc.point_step as usize;
+        assert!(
+            (0..mask.data.len()).all(|k| pc.data[k * step + 16] == 0),
+            "at {stamp}: points flagged"
+        );
+        for k in &invalid {
+            assert!(
+                f32_at(&pc.data, k * step + 8).is_nan(),
+                "at {stamp}: invalid pixel {k} has a point"
+            );
+        }
+        let sigma: Image = decode(&sigmas[stamp]);
+        assert!(
+            (0..sigma.data.len() / 4).all(|k| f32_at(&sigma.data, 4 * k).is_nan()),
+            "at {stamp}: a sigma"
+        );
+        assert_eq!(decode::<CameraInfo>(&infos[stamp]).header, src.header, "at {stamp}");
+        let e: TranslucencyEstimate = decode(&estimates[stamp]);
+        let why = if latched.contains(stamp) {
+            "passthrough: latching the background"
+        } else {
+            "passthrough: xi not determined yet"
+        };
+        assert_eq!(e.method, why, "at {stamp}");
     }
 }
 
@@ -2037,9 +2159,11 @@ fn calibrate_xi_writes_a_materials_file_that_replay_classifies_with() {
     assert!(num(&r, "rmse_mm") < 30.0, "{}", r["error_summary"]);
     // The estimate message carries the class.
     let outs = messages_by_topic(&dir.path().join("holder.mcap"));
+    // Those of the frames passed through while the background was latched carry no class.
     let estimates: Vec<TranslucencyEstimate> = outs["/translucent_tof/translucency"]
         .iter()
-        .map(|(_, data, _)| decode(data))
+        .map(|(_, data, _)| decode::<TranslucencyEstimate>(data))
+        .filter(|e| !e.method.starts_with("passthrough"))
         .collect();
     assert!(!estimates.is_empty());
     for e in &estimates {

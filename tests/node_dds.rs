@@ -684,3 +684,256 @@ fn latency_bench_times_every_frame_of_the_bag_through_echo_and_node() {
         assert!(b > 0.0 && t > 0.0 && (t - b - a).abs() < 1e-9, "{f}");
     }
 }
+
+/// One frame's outputs, each message as its CDR bytes (NaN compared bit for bit).
+#[derive(Debug, Default, PartialEq)]
+struct Published {
+    corrected: Option<Vec<u8>>,
+    camera_info: Option<Vec<u8>>,
+    sigma: Option<Vec<u8>>,
+    mask: Option<Vec<u8>>,
+    points: Option<Vec<u8>>,
+    translucency: Vec<Vec<u8>>,
+}
+
+fn cdr<M: translucent_tof::msgs::RosMessage>(m: &M) -> Vec<u8> {
+    translucent_tof::msgs::to_cdr(m).unwrap()
+}
+
+/// What replay's output bag holds, by input stamp (its `regions`, replay's own, left out).
+fn replayed(out_bag: &Path) -> std::collections::BTreeMap<u64, Published> {
+    use translucent_tof::msgs::translucent_tof::TranslucencyEstimate;
+    let mut by_stamp: std::collections::BTreeMap<u64, Published> = Default::default();
+    for raw in BagReader::open(out_bag).unwrap().messages() {
+        let raw = raw.unwrap();
+        let p = by_stamp.entry(raw.log_time_ns).or_default();
+        match raw.topic {
+            "/translucent_tof/depth/corrected" => p.corrected = Some(cdr(&BagReader::decode::<Image>(&raw).unwrap())),
+            "/translucent_tof/depth/camera_info" => {
+                p.camera_info = Some(cdr(&BagReader::decode::<CameraInfo>(&raw).unwrap()))
+            }
+            "/translucent_tof/depth/corrected_sigma" => p.sigma = Some(cdr(&BagReader::decode::<Image>(&raw).unwrap())),
+            "/translucent_tof/translucent_mask" => p.mask = Some(cdr(&BagReader::decode::<Image>(&raw).unwrap())),
+            "/translucent_tof/points" => p.points = Some(cdr(&BagReader::decode::<PointCloud2>(&raw).unwrap())),
+            "/translucent_tof/translucency" => p
+                .translucency
+                .push(cdr(&BagReader::decode::<TranslucencyEstimate>(&raw).unwrap())),
+            "/translucent_tof/regions" => {}
+            other => panic!("replay wrote an unexpected topic {other}"),
+        }
+    }
+    by_stamp
+}
+
+/// What the node published for the frame at `stamp`, as the peer received it.
+fn node_published(r: &translucent_tof::node::peer::Received, stamp: u64) -> Published {
+    Published {
+        corrected: r.corrected.get(&stamp).map(cdr),
+        camera_info: r.camera_info.get(&stamp).map(cdr),
+        sigma: r.sigma.get(&stamp).map(cdr),
+        mask: r.mask.get(&stamp).map(cdr),
+        points: r.points.get(&stamp).map(cdr),
+        translucency: r
+            .estimates
+            .iter()
+            .filter(|e| e.header.stamp.as_log_time_ns() == stamp)
+            .map(cdr)
+            .collect(),
+    }
+}
+
+/// Where two frames' outputs differ, topic by topic (empty when they are the same).
+fn differences(node: &Published, replay: &Published) -> Vec<String> {
+    let mut out = vec![];
+    let mut topic = |name: &str, a: &Option<Vec<u8>>, b: &Option<Vec<u8>>| {
+        if a != b {
+            let bytes = |v: &Option<Vec<u8>>| v.as_ref().map(|v| v.len());
+            let first = a
+                .iter()
+                .zip(b)
+                .find_map(|(a, b)| a.iter().zip(b).position(|(x, y)| x != y));
+            out.push(format!(
+                "{name}: node {:?} bytes, replay {:?} bytes, first differing byte {first:?}",
+                bytes(a),
+                bytes(b)
+            ));
+        }
+    };
+    topic("depth/corrected", &node.corrected, &replay.corrected);
+    topic("depth/camera_info", &node.camera_info, &replay.camera_info);
+    topic("depth/corrected_sigma", &node.sigma, &replay.sigma);
+    topic("translucent_mask", &node.mask, &replay.mask);
+    topic("points", &node.points, &replay.points);
+    if node.translucency != replay.translucency {
+        out.push(format!(
+            "translucency: node {} estimates, replay {}",
+            node.translucency.len(),
+            replay.translucency.len()
+        ));
+    }
+    out
+}
+
+/// The pixels an input depth image marks invalid (0 in 16UC1, NaN in 32FC1).
+fn invalid_pixels(depth: &Image) -> Vec<usize> {
+    let z = depth_mm(depth).unwrap();
+    (0..z.len()).filter(|&i| !z.data[i].is_finite()).collect()
+}
+
+/// None of `invalid` is published as a distance: the corrected depth invalid there, the
+/// cloud's point NaN.
+fn invalid_kept_invalid(corrected: &Image, points: &PointCloud2, invalid: &[usize]) -> Result<(), String> {
+    let z = depth_mm(corrected).unwrap();
+    let step = points.point_step as usize;
+    let cloud_z = |k: usize| f32::from_le_bytes(points.data[k * step + 8..k * step + 12].try_into().unwrap());
+    match invalid
+        .iter()
+        .find(|&&k| z.data[k].is_finite() || cloud_z(k).is_finite())
+    {
+        Some(&k) => Err(format!(
+            "invalid input pixel {k} published as {} mm, cloud z {} m",
+            z.data[k],
+            cloud_z(k)
+        )),
+        None => Ok(()),
+    }
+}
+
+/// Issue 53: replay's output bag holds what the node publishes, frame by frame. A committed
+/// Azure-Kinect-like bag (a static stretch, a translucent sheet at two distances, the wall
+/// again; invalid (0) pixels in every frame) goes through `replay --xi-mode online` (the
+/// node's way of estimating xi) and through the node over DDS, whose latch takes the frames
+/// replay latched. The outputs are paired by input stamp: a frame the node did not publish is
+/// counted, not compared (and, its xi evidence missing from the node, neither is any after
+/// it); every other frame's every topic the node publishes is compared byte for byte.
+#[test]
+fn replay_writes_what_the_node_publishes_frame_by_frame() {
+    if !isolated("replay_writes_what_the_node_publishes_frame_by_frame") {
+        return;
+    }
+    let input = bag("azure_like_object.mcap");
+    let dir = tempfile::tempdir().unwrap();
+    let out_bag = dir.path().join("replay.mcap");
+    let out = Command::new(exe())
+        .arg("replay")
+        .arg(&input)
+        .args(["--xi-mode", "online", "--physics", "physical", "--json", "-", "-o"])
+        .arg(&out_bag)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let latched = report["background_frames"].as_u64().unwrap() as usize;
+    let replay = replayed(&out_bag);
+    let (info, pairs) = bag_frames(&input).unwrap();
+    assert_eq!(
+        replay.len(),
+        pairs.len(),
+        "replay wrote {} of {} frames",
+        replay.len(),
+        pairs.len()
+    );
+
+    let background_frames = format!("background_frames:={latched}");
+    let node = NodeChild::start(&[&background_frames, "queue_depth:=64", "latch_timeout_s:=60"]);
+    let with_header = |d: &Image| CameraInfo {
+        header: d.header.clone(),
+        ..info.clone()
+    };
+    let (received, missing) = rt().block_on(async {
+        let ctx = translucent_tof::node::context(0, false).unwrap();
+        let mut peer = driver(&ctx, "replay_peer").await;
+        peer.wait_for_every_output(Duration::from_secs(30)).await.unwrap();
+        peer.publish_info(&info).unwrap();
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        // The latch asked for first; the frames replay latched stream once it is in progress.
+        let stream = async {
+            tokio::time::sleep(Duration::from_millis(800)).await;
+            for (d, i) in &pairs[..latched] {
+                peer.publish(&with_header(d), d, i).unwrap();
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        };
+        let (reply, ()) = tokio::join!(peer.call(true, Duration::from_secs(60)), stream);
+        let reply = reply.unwrap();
+        assert!(reply.success, "{reply:?}");
+        assert!(
+            reply.message.contains(&format!("latched {latched} frames")),
+            "{}",
+            reply.message
+        );
+        // Each object frame once the last has come back: no queue to overflow.
+        let mut missing = vec![];
+        for (d, i) in &pairs[latched..] {
+            peer.publish(&with_header(d), d, i).unwrap();
+            let stamp = d.header.stamp.as_log_time_ns();
+            if !peer.wait_for(stamp, Duration::from_secs(20)).await {
+                missing.push(stamp);
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        peer.drain();
+        (std::mem::take(&mut peer.received), missing)
+    });
+    let stats = node.stop();
+    eprintln!("node: {}", serde_json::to_string(&stats).unwrap());
+
+    let (mut compared, mut dropped, mut after_drop, mut recovered) = (0, 0, 0, 0);
+    let mut mismatches = vec![];
+    for (d, _) in &pairs {
+        let stamp = d.header.stamp.as_log_time_ns();
+        let from_node = node_published(&received, stamp);
+        if from_node.corrected.is_none() {
+            dropped += 1;
+            continue;
+        }
+        if dropped > 0 {
+            after_drop += 1;
+            continue;
+        }
+        let from_replay = replay.get(&stamp).expect("replay wrote every frame");
+        for diff in differences(&from_node, from_replay) {
+            mismatches.push(format!("frame at {stamp}: {diff}"));
+        }
+        // Neither publishes an invalid input pixel as a distance.
+        let invalid = invalid_pixels(d);
+        assert!(
+            !invalid.is_empty(),
+            "the bag's frame at {stamp} has no invalid pixel to check"
+        );
+        let corrected = &received.corrected[&stamp];
+        let points = received.points.get(&stamp).expect("a cloud beside the corrected depth");
+        if let Err(e) = invalid_kept_invalid(corrected, points, &invalid) {
+            mismatches.push(format!("frame at {stamp}, node: {e}"));
+        }
+        let (c, p) = (from_replay.corrected.as_ref(), from_replay.points.as_ref());
+        let (c, p): (Image, PointCloud2) = (
+            translucent_tof::msgs::from_cdr(c.unwrap()).unwrap(),
+            translucent_tof::msgs::from_cdr(p.unwrap()).unwrap(),
+        );
+        if let Err(e) = invalid_kept_invalid(&c, &p, &invalid) {
+            mismatches.push(format!("frame at {stamp}, replay: {e}"));
+        }
+        recovered += usize::from(received.mask[&stamp].data.contains(&255));
+        compared += 1;
+    }
+    eprintln!(
+        "{compared} frames compared ({recovered} with translucent pixels), {dropped} not published by the node (stamps {missing:?}), {after_drop} after a drop not compared"
+    );
+    assert!(
+        mismatches.is_empty(),
+        "{} differences:\n{}",
+        mismatches.len(),
+        mismatches.join("\n")
+    );
+    // Enough compared to say something: every latched frame and the sheet recovered.
+    assert!(
+        compared >= latched + 4 && recovered >= 3,
+        "{compared} compared, {recovered} recovered"
+    );
+    assert!(
+        dropped * 10 <= pairs.len(),
+        "the node dropped {dropped} of {} frames",
+        pairs.len()
+    );
+}

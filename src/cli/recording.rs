@@ -21,6 +21,8 @@ pub struct Recording {
     pub topics: SelectedTopics,
     /// Intrinsics from camera_info.
     pub intrinsics: Intrinsics,
+    /// The camera_info they come from (the bag's first), as the node republishes it.
+    pub camera_info: CameraInfo,
     /// Depth + IR pairs by exact stamp, in time order.
     pub frames: Vec<DepthFrame>,
     /// Header of each frame's depth image (for the outputs).
@@ -306,6 +308,7 @@ pub fn load_with_phasors(path: &Path, topics: &TopicArgs, phasors: bool) -> Resu
         cut,
         topics: sel,
         intrinsics,
+        camera_info: info,
         frames,
         headers,
         depth_encoding,

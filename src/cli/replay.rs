@@ -8,10 +8,10 @@ use nalgebra::Vector3;
 use serde_json::json;
 
 use crate::bag::BagWriter;
-use crate::msgs::Header;
-use crate::outputs::output_messages;
+use crate::msgs::{CameraInfo, Header};
+use crate::outputs::{output_messages, OutputMessages};
 use crate::physics::{ImageBuf, XiEstimate, XiMethod};
-use crate::pipeline::{FrameOutput, TruthError, XiChoice};
+use crate::pipeline::{DepthFrame, FrameOutput, Passthrough, TruthError, XiChoice};
 
 use super::common::{OutputArgs, PipelineArgs};
 use super::recording::{load_with_phasors, Recording};
@@ -202,7 +202,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         super::common::create_parent(r)?;
     }
 
-    // Pass 1 (pooled): the evidence of every object frame, before any is recovered.
+    // Pass 1 (pooled): the evidence of every object frame, before any is recovered. The
+    // camera is taken to be still: unlike the node, replay does not watch for a moved one.
     let mut observed = Vec::with_capacity(objects.len());
     let pb = a.output.progress(objects.len() as u64, "segmenting");
     for f in objects {
@@ -215,31 +216,50 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     }
     pb.finish_and_clear();
 
-    // Pass 2: recover and write.
+    // Pass 2: recover and write, every frame as the node publishes it.
     let mut writer = BagWriter::create(&out_path).with_context(|| format!("creating {}", out_path.display()))?;
+    let rays = pipe.shared_rays();
+    let camera = (&rec.camera_info, &*rays);
+    for (f, header) in rec.frames[..bg.count].iter().zip(&rec.headers) {
+        // The node passes the frames it latches through.
+        let out = FrameOutput::passed_through(f, Passthrough::Latching);
+        write_frame(&mut writer, header, camera, (&out, None), (f, &rec.depth_encoding))?;
+    }
     let viz = open_rerun(&a)?;
     let pb = a.output.progress(objects.len() as u64, "recovering");
     let mut per_frame = vec![];
     let mut last: Option<XiEstimate> = None;
     let mut errors = TruthError::default();
     let mut total_px = 0usize;
+    let mut passed = std::collections::BTreeMap::from([(Passthrough::Latching, bg.count)]);
     for (j, (f, obs)) in objects.iter().zip(&mut observed).enumerate() {
+        let header = &rec.headers[bg.count + j];
         if online {
             pipe.add_xi_evidence(obs);
         }
         let Some(out) = pipe.recover_regions(f, obs) else {
+            // Passed through, as the node does: published as read.
+            let why = Passthrough::NoXiYet;
+            let out = FrameOutput::passed_through(f, why);
+            write_frame(&mut writer, header, camera, (&out, None), (f, &rec.depth_encoding))?;
+            *passed.entry(why).or_insert(0) += 1;
             if let Some(truth) = rec.truth.get(&f.stamp_ns) {
                 // Published as read: every pixel counts at its reading.
                 errors.add_every(&f.z_mm, &f.z_mm, truth);
             }
-            per_frame.push(json!({"stamp": f.stamp_ns as f64 * 1e-9, "xi": null, "translucent_pixels": obs.translucent_pixels, "note": "no xi yet"}));
+            per_frame.push(json!({"stamp": f.stamp_ns as f64 * 1e-9, "xi": null, "translucent_pixels": obs.translucent_pixels, "note": passthrough_note(why), "passthrough": why}));
             pb.inc(1);
             continue;
         };
         let xi = out.xi.clone();
         total_px += out.translucent_pixels;
-        let header = &rec.headers[bg.count + j];
-        write_outputs(&mut writer, header, (&rec, pipe.rays()), &out, &f.ir, &obs.labels)?;
+        write_frame(
+            &mut writer,
+            header,
+            camera,
+            (&out, Some(&obs.labels)),
+            (f, &rec.depth_encoding),
+        )?;
         if let (Some(v), Some(r)) = (&viz, &a.rerun) {
             v.log(&crate::viz::FrameViz {
                 stamp_ns: out.stamp_ns,
@@ -334,6 +354,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         }),
         "xi_profile": xi.as_ref().map(|x| x.profile.clone()),
         "translucent_pixels": total_px,
+        "frames_written": rec.frames.len(),
+        "passed_through": passed,
         "materials": pipe.materials().filter_map(|m| {
             // What is published for it: its own estimate with its class applied.
             let e = pipe.published_estimate(m)?;
@@ -420,45 +442,80 @@ pub(super) fn finish_outputs(
     Ok(())
 }
 
-fn write_outputs(
+/// The topics replay writes, as the node publishes them under `~/` (docs/interfaces.md).
+pub(super) mod topics {
+    /// `~/depth/corrected`.
+    pub const CORRECTED: &str = "/translucent_tof/depth/corrected";
+    /// `~/depth/camera_info`.
+    pub const CAMERA_INFO: &str = "/translucent_tof/depth/camera_info";
+    /// `~/depth/corrected_sigma`.
+    pub const SIGMA: &str = "/translucent_tof/depth/corrected_sigma";
+    /// `~/translucent_mask`.
+    pub const MASK: &str = "/translucent_tof/translucent_mask";
+    /// `~/points`.
+    pub const POINTS: &str = "/translucent_tof/points";
+    /// `~/translucency`.
+    pub const TRANSLUCENCY: &str = "/translucent_tof/translucency";
+    /// Offline only: which material each pixel's region joined.
+    pub const REGIONS: &str = "/translucent_tof/regions";
+}
+
+/// Writes what the node publishes for one frame (recovered or passed through), in the order
+/// it publishes it, at the input's stamp.
+pub(super) fn write_published(writer: &mut BagWriter, m: &OutputMessages) -> Result<()> {
+    let t = m.corrected.header.stamp.as_log_time_ns();
+    writer.write(topics::CORRECTED, t, &m.corrected)?;
+    writer.write(topics::CAMERA_INFO, t, &m.camera_info)?;
+    writer.write(topics::SIGMA, t, &m.sigma)?;
+    writer.write(topics::MASK, t, &m.mask)?;
+    writer.write(topics::POINTS, t, &m.points)?;
+    for e in &m.estimates {
+        writer.write(topics::TRANSLUCENCY, t, e)?;
+    }
+    Ok(())
+}
+
+/// One frame's outputs and, offline only, its regions: each pixel's material id where `labels`
+/// (the frame's segmentation) puts it in a region, 0 elsewhere and in a frame passed through.
+fn write_frame(
     writer: &mut BagWriter,
     header: &Header,
-    (rec, rays): (&Recording, &ImageBuf<Vector3<f64>>),
-    out: &FrameOutput,
-    ir: &ImageBuf<f32>,
-    labels: &ImageBuf<u32>,
+    camera: (&CameraInfo, &ImageBuf<Vector3<f64>>),
+    (out, labels): (&FrameOutput, Option<&ImageBuf<u32>>),
+    (frame, depth_encoding): (&DepthFrame, &str),
 ) -> Result<()> {
-    let t = out.stamp_ns;
-    let m = output_messages(header, rays, out, ir, &rec.depth_encoding)?;
-    writer.write("/translucent_tof/depth/corrected", t, &m.corrected)?;
-    writer.write("/translucent_tof/depth/corrected_sigma", t, &m.sigma)?;
-    writer.write("/translucent_tof/translucent_mask", t, &m.mask)?;
-    writer.write("/translucent_tof/points", t, &m.points)?;
-    for e in &m.estimates {
-        writer.write("/translucent_tof/translucency", t, e)?;
-    }
-    // Offline only: which material each pixel's region joined (for checking against truth).
+    let m = output_messages(header, camera, out, &frame.ir, depth_encoding)?;
+    write_published(writer, &m)?;
+    let region_id = |l: u32| match l {
+        0 => 0,
+        l => out
+            .regions
+            .get(l as usize - 1)
+            .map_or(0, |r| u16::try_from(r.id).unwrap_or(u16::MAX)),
+    };
+    let (w, h) = (frame.z_mm.width, frame.z_mm.height);
     let ids = ImageBuf {
-        width: labels.width,
-        height: labels.height,
-        data: labels
-            .data
-            .iter()
-            .map(|&l| match l {
-                0 => 0,
-                l => out
-                    .regions
-                    .get(l as usize - 1)
-                    .map_or(0, |r| u16::try_from(r.id).unwrap_or(u16::MAX)),
-            })
-            .collect(),
+        width: w,
+        height: h,
+        data: match labels {
+            Some(l) => l.data.iter().map(|&l| region_id(l)).collect(),
+            None => vec![0; w * h],
+        },
     };
     writer.write(
-        "/translucent_tof/regions",
-        t,
+        topics::REGIONS,
+        m.corrected.header.stamp.as_log_time_ns(),
         &crate::image::region_image(header, &ids)?,
     )?;
     Ok(())
+}
+
+/// A frame passed through, in the report's words (`no xi yet` as before the node's reasons).
+fn passthrough_note(why: Passthrough) -> &'static str {
+    match why {
+        Passthrough::NoXiYet => "no xi yet",
+        other => other.as_str(),
+    }
 }
 
 fn summary(r: &serde_json::Value, rec: &Recording) -> String {
@@ -551,6 +608,7 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         r["per_frame"].as_array().map(|v| v.len()).unwrap_or(0),
         r["translucent_pixels"]
     ));
+    s.push_str(&format!("{}\n", written_line(r)));
     if let Some(line) = r["error_summary"].as_str() {
         s.push_str(line);
         s.push('\n');
@@ -560,6 +618,26 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         s.push_str(&format!(" and {rrd}"));
     }
     s
+}
+
+/// What the output bag holds: every frame, and those passed through as read, by reason.
+fn written_line(r: &serde_json::Value) -> String {
+    let passed: Vec<String> = r["passed_through"]
+        .as_object()
+        .into_iter()
+        .flatten()
+        .filter(|(_, n)| n.as_u64().unwrap_or(0) > 0)
+        .map(|(why, n)| format!("{n} {why}"))
+        .collect();
+    format!(
+        "output: all {} frames as the node publishes them; passed through as read: {}",
+        r["frames_written"],
+        if passed.is_empty() {
+            "none".to_string()
+        } else {
+            passed.join(", ")
+        }
+    )
 }
 
 /// Warnings about the materials file against this run: a material's ξ is that of the physics

@@ -11,10 +11,10 @@ use crate::image::{region_image, translucency_image};
 use crate::msgs::Header;
 use crate::outputs::output_messages;
 use crate::pipeline::multifreq::{MultiFrequencyConfig, MultiFrequencyOutput, MultiFrequencyStage, PhasorFrame};
-use crate::pipeline::{rmse_against_truth, DepthFrame, PipelineConfig};
+use crate::pipeline::{rmse_against_truth, DepthFrame, FrameOutput, Passthrough, PipelineConfig};
 
 use super::recording::{PhasorRecording, Recording};
-use super::replay::{finish_outputs, open_rerun, out_path, ReplayArgs};
+use super::replay::{finish_outputs, open_rerun, out_path, topics, write_published, ReplayArgs};
 
 /// The frequencies: `--modulation-frequencies-hz`, else the bag's record; one per phasor topic.
 fn frequencies(given: &[f64], mf: &PhasorRecording) -> Result<Vec<f64>> {
@@ -91,6 +91,20 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
     if let Some(r) = &a.rerun {
         super::common::create_parent(r)?;
     }
+    for (f, header) in rec.frames[..bg_count].iter().zip(&rec.headers) {
+        // The node passes the frames it latches through.
+        let out = FrameOutput::passed_through(f, Passthrough::Latching);
+        let m = output_messages(
+            header,
+            (&rec.camera_info, stage.rays()),
+            &out,
+            &f.ir,
+            &rec.depth_encoding,
+        )?;
+        write_published(&mut writer, &m)?;
+        let none = crate::physics::ImageBuf::filled(f.z_mm.width, f.z_mm.height, 0u16);
+        writer.write(topics::REGIONS, f.stamp_ns, &region_image(header, &none)?)?;
+    }
     let viz = open_rerun(a)?;
     let objects = bg_count..rec.frames.len();
     let pb = a.output.progress(objects.len() as u64, "recovering");
@@ -160,6 +174,8 @@ pub fn run(a: &ReplayArgs, config: PipelineConfig, rec: Recording) -> Result<()>
         "xi_method": last.as_ref().map(|x| x.method.as_str()),
         "xi_note": "the last frame's largest translucent region (per pixel on this path: see per_frame and translucency_image)",
         "translucent_pixels": total_px,
+        "frames_written": rec.frames.len(),
+        "passed_through": {"latching": bg_count},
         "per_frame": per_frame,
     });
     add_error_summary(&mut report, &errors);
@@ -239,14 +255,14 @@ fn write_outputs(
     f: &DepthFrame,
 ) -> Result<()> {
     let t = out.frame.stamp_ns;
-    let m = output_messages(header, stage.rays(), &out.frame, &f.ir, &rec.depth_encoding)?;
-    writer.write("/translucent_tof/depth/corrected", t, &m.corrected)?;
-    writer.write("/translucent_tof/depth/corrected_sigma", t, &m.sigma)?;
-    writer.write("/translucent_tof/translucent_mask", t, &m.mask)?;
-    writer.write("/translucent_tof/points", t, &m.points)?;
-    for e in &m.estimates {
-        writer.write("/translucent_tof/translucency", t, e)?;
-    }
+    let m = output_messages(
+        header,
+        (&rec.camera_info, stage.rays()),
+        &out.frame,
+        &f.ir,
+        &rec.depth_encoding,
+    )?;
+    write_published(writer, &m)?;
     writer.write(
         "/translucent_tof/translucency_image",
         t,
@@ -262,7 +278,7 @@ fn write_outputs(
             .map(|&l| u16::try_from(l).unwrap_or(u16::MAX))
             .collect(),
     };
-    writer.write("/translucent_tof/regions", t, &region_image(header, &ids)?)?;
+    writer.write(topics::REGIONS, t, &region_image(header, &ids)?)?;
     Ok(())
 }
 

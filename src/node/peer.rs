@@ -72,6 +72,10 @@ pub struct Received {
     pub corrected: BTreeMap<u64, Image>,
     /// `~/translucent_mask` by stamp.
     pub mask: BTreeMap<u64, Image>,
+    /// `~/depth/corrected_sigma` by stamp.
+    pub sigma: BTreeMap<u64, Image>,
+    /// `~/depth/camera_info` by stamp.
+    pub camera_info: BTreeMap<u64, CameraInfo>,
     /// `~/points` by stamp.
     pub points: BTreeMap<u64, PointCloud2>,
     /// `~/translucency` in arrival order.
@@ -90,6 +94,8 @@ pub struct Peer {
     clear: Client<TriggerRequest, TriggerResponse>,
     corrected: Subscription<Image>,
     mask: Subscription<Image>,
+    sigma: Subscription<Image>,
+    camera_info: Subscription<CameraInfo>,
     points: Subscription<PointCloud2>,
     estimate: Subscription<TranslucencyEstimate>,
     /// Everything received so far.
@@ -135,6 +141,18 @@ impl Peer {
         let t_info = topic(format!("{ns}/depth/camera_info"), "sensor_msgs", "CameraInfo", &sensor)?;
         let t_corr = topic(format!("{node_fqn}/depth/corrected"), "sensor_msgs", "Image", &listen)?;
         let t_mask = topic(format!("{node_fqn}/translucent_mask"), "sensor_msgs", "Image", &listen)?;
+        let t_sigma = topic(
+            format!("{node_fqn}/depth/corrected_sigma"),
+            "sensor_msgs",
+            "Image",
+            &listen,
+        )?;
+        let t_info_out = topic(
+            format!("{node_fqn}/depth/camera_info"),
+            "sensor_msgs",
+            "CameraInfo",
+            &listen,
+        )?;
         let t_points = topic(format!("{node_fqn}/points"), "sensor_msgs", "PointCloud2", &listen)?;
         let t_est = topic(
             format!("{node_fqn}/translucency"),
@@ -179,6 +197,12 @@ impl Peer {
             mask: node
                 .create_subscription(&t_mask, Some(listen.clone()))
                 .map_err(e("mask subscription"))?,
+            sigma: node
+                .create_subscription(&t_sigma, Some(listen.clone()))
+                .map_err(e("sigma subscription"))?,
+            camera_info: node
+                .create_subscription(&t_info_out, Some(listen.clone()))
+                .map_err(e("camera_info subscription"))?,
             points: node
                 .create_subscription(&t_points, Some(listen))
                 .map_err(e("points subscription"))?,
@@ -206,6 +230,23 @@ impl Peer {
         tokio::time::timeout(timeout, all)
             .await
             .map_err(|_| anyhow!("the node did not appear on DDS within {:.0} s", timeout.as_secs_f64()))
+    }
+
+    /// Waits until the node's mask, sigma and camera_info beside the corrected depth have
+    /// matched ours too (after [`Self::wait_for_node`]; a stand-in that publishes fewer
+    /// outputs, as the latency bench's echo, never gets there).
+    pub async fn wait_for_every_output(&self, timeout: Duration) -> Result<()> {
+        let all = async {
+            rearmed(|| self.mask.wait_for_publisher(&self.node)).await;
+            rearmed(|| self.sigma.wait_for_publisher(&self.node)).await;
+            rearmed(|| self.camera_info.wait_for_publisher(&self.node)).await;
+        };
+        tokio::time::timeout(timeout, all).await.map_err(|_| {
+            anyhow!(
+                "the node's mask, sigma and camera_info outputs did not match within {:.0} s",
+                timeout.as_secs_f64()
+            )
+        })
     }
 
     /// Publishes one frame as a driver would: camera_info, depth, IR.
@@ -301,6 +342,12 @@ impl Peer {
         }
         while let Ok(Some((m, _))) = self.mask.take() {
             self.received.mask.insert(m.header.stamp.as_log_time_ns(), m);
+        }
+        while let Ok(Some((m, _))) = self.sigma.take() {
+            self.received.sigma.insert(m.header.stamp.as_log_time_ns(), m);
+        }
+        while let Ok(Some((m, _))) = self.camera_info.take() {
+            self.received.camera_info.insert(m.header.stamp.as_log_time_ns(), m);
         }
         while let Ok(Some((m, _))) = self.points.take() {
             self.received.points.insert(m.header.stamp.as_log_time_ns(), m);

@@ -274,6 +274,10 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
     // scene without the extra frequencies.
     let mut phasor_rng = ChaCha8Rng::seed_from_u64(scene.seed);
     phasor_rng.set_stream(1);
+    // Which pixels read invalid, from a stream of its own: a scene without any reads as before.
+    let mut invalid_rng = ChaCha8Rng::seed_from_u64(scene.seed);
+    invalid_rng.set_stream(2);
+    let outside = outside_field(&k, scene.camera.invalid_beyond_radius);
     let rays = k.unit_ray_map();
     let scale = k.ray_scale_map();
     let b = &scene.background;
@@ -337,7 +341,9 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
                 rng.sample(StandardNormal),
             ];
             let (d, v) = meas.map(|m| noise.apply(&sensor, &m, z)).unwrap_or((f64::NAN, 0.0));
-            depth.push((d / scale.data[i]) as f32);
+            let share = scene.camera.invalid_share;
+            let invalid = outside.get(i).copied().unwrap_or(false) || (share > 0.0 && invalid_rng.random_bool(share));
+            depth.push(if invalid { f32::NAN } else { (d / scale.data[i]) as f32 });
             ir.push(v.max(0.0) as f32);
             truth.push(fg.map(|(h, _)| (h.t / scale.data[i]) as f32).unwrap_or(f32::NAN));
         }
@@ -371,6 +377,18 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
         on_frame(index, frame)?;
     }
     Ok(())
+}
+
+/// The pixels beyond `radius` of the half-diagonal from the image centre (none for 0).
+fn outside_field(k: &Intrinsics, radius: f64) -> Vec<bool> {
+    if radius <= 0.0 {
+        return vec![];
+    }
+    let (cx, cy) = ((k.width as f64 - 1.0) / 2.0, (k.height as f64 - 1.0) / 2.0);
+    let half_diagonal = cx.hypot(cy).max(f64::MIN_POSITIVE);
+    (0..k.width * k.height)
+        .map(|i| ((i % k.width) as f64 - cx).hypot((i / k.width) as f64 - cy) > radius * half_diagonal)
+        .collect()
 }
 
 /// Renders into memory.

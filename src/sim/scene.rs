@@ -108,6 +108,13 @@ pub struct CameraSpec {
     pub distortion_model: String,
     /// Its coefficients in ROS's order (empty: none).
     pub distortion: Vec<f64>,
+    /// Pixels farther from the image centre than this share of its half-diagonal read
+    /// invalid (0 in `16UC1`, NaN in `32FC1`), as the corners a camera with a round or
+    /// hexagonal illuminated field leaves (an Azure Kinect's); 0: none.
+    pub invalid_beyond_radius: f64,
+    /// The share of the other pixels read invalid in each frame, drawn at random (the
+    /// pixels a camera invalidates for multipath or too little light); 0: none.
+    pub invalid_share: f64,
 }
 
 impl CameraSpec {
@@ -137,6 +144,8 @@ impl Default for CameraSpec {
             supersample: 1,
             distortion_model: String::new(),
             distortion: vec![],
+            invalid_beyond_radius: 0.0,
+            invalid_share: 0.0,
         }
     }
 }
@@ -296,6 +305,9 @@ impl Scene {
             return Err(format!(
                 "camera: the lens model has no ray through pixel ({col}, {row}): its distortion folds back within the field of view"
             ));
+        }
+        if !(c.invalid_beyond_radius >= 0.0 && (0.0..1.0).contains(&c.invalid_share)) {
+            return Err("camera: invalid_beyond_radius >= 0 and invalid_share in [0, 1) required".into());
         }
         if !(1..=8).contains(&c.supersample) {
             return Err(format!("camera.supersample {} must be in 1..=8", c.supersample));
