@@ -196,6 +196,11 @@ def main():
         runs["demo"] = open(a.demo_log, encoding="utf-8").read()
     for name in sorted(needed - set(runs)):
         runs[name] = run_demo(a.exe) if name == "demo" else run_results(name, a.exe)
+    for m in spans:
+        line_start = text.rfind("\n", 0, m.start()) + 1
+        if "\n" not in m.group(2) and not text[line_start:m.start()].strip():
+            raise SystemExit(f"{a.readme}: figure {m.group(1)} begins a line: Markdown takes a line that begins "
+                             "with <!-- for an HTML block; move a word before it")
     wrong, out, at = [], [], 0
     for m in spans:
         key, was = m.group(1), m.group(2)
