@@ -40,6 +40,7 @@ its output.
 
 import argparse
 import contextlib
+import difflib
 import io
 import json
 import os
@@ -226,7 +227,12 @@ def main():
         print(f"readme-figures: {len(spans)} figures, {len(wrong)} rewritten in {a.readme}")
         return 0
     for key, was, now in wrong:
-        print(f"README figure {key}: README has\n{was.strip()}\nits command prints\n{now.strip()}\n")
+        if "\n" in now.strip():
+            diff = difflib.unified_diff(was.strip().splitlines(), now.strip().splitlines(), "README", "command",
+                                        lineterm="", n=0)
+            print(f"README figure {key}:\n" + "\n".join(diff) + "\n")
+        else:
+            print(f"README figure {key}: README has {was.strip()!r}, its command prints {now.strip()!r}")
     print(f"readme-figures: {len(spans)} figures, {len(wrong)} differ from their commands"
           + (" (scripts/readme-figures --write rewrites them)" if wrong else ""))
     return 1 if wrong else 0
