@@ -43,6 +43,7 @@ fn demo_runs_the_graph_and_recovers_the_document_holder() {
         played > 0 && got * 10 >= played * 9,
         "{got} of {played} frames came back"
     );
+    readme_demo_lines_are_these(&stderr, got == played);
     let (raw, rec) = (r["rmse_raw_mm"].as_f64().unwrap(), r["rmse_mm"].as_f64().unwrap());
     // The paper's 10.6 mm is over four poses offline; the node estimates online, as frames
     // arrive. Its claim here: recovered well under raw (the README's demo figures).
@@ -111,6 +112,33 @@ fn demo_runs_the_graph_and_recovers_the_document_holder() {
         .unwrap_or(0);
     if cfg!(feature = "rerun") {
         assert!(rrd > 10_000, "demo.rrd is {rrd} bytes");
+    }
+}
+
+/// The README's demo lines (between `<!--f:demo:lines-->` and `<!--/f-->`, written by
+/// `scripts/readme-figures --write` from the demo's output) are lines this demo printed, figure
+/// for figure. Compared when every frame came back: a lost frame changes the figures.
+fn readme_demo_lines_are_these(printed: &str, every_frame_back: bool) {
+    let readme = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).expect("README.md");
+    let block = readme
+        .split_once("<!--f:demo:lines-->")
+        .and_then(|(_, rest)| rest.split_once("<!--/f-->"))
+        .map(|(block, _)| block)
+        .expect("README.md has the demo's lines between <!--f:demo:lines--> and <!--/f-->");
+    let lines: Vec<&str> = block
+        .lines()
+        .filter(|l| !l.trim().is_empty() && !l.starts_with("```"))
+        .collect();
+    assert!(!lines.is_empty(), "README.md's demo block is empty");
+    if !every_frame_back {
+        println!("the README's demo lines not compared: not every frame came back");
+        return;
+    }
+    for line in lines {
+        assert!(
+            printed.lines().any(|p| p.trim_end() == line.trim_end()),
+            "README.md's demo line is not what the demo printed (scripts/readme-figures --write rewrites it):\n  README: {line}\n  demo printed:\n{printed}"
+        );
     }
 }
 

@@ -6,6 +6,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::OnceLock;
 
 use serde_json::Value;
 
@@ -406,7 +407,9 @@ fn the_audit_names_three_returns_on_a_hollow_bin_and_its_file_recovers_another_r
 /// reading kept; ξ is reported as not measured, not guessed.
 #[test]
 fn a_moving_camera_is_corrected_with_no_latch() {
-    let rows = results_rows(&["mf_moving_camera.mcap"]);
+    let run = shared_run(Run::Moving);
+    println!("{}", run.stdout());
+    let rows = run.rows();
     let row = &rows[0];
     assert!(row.get("error").is_none(), "{row}");
     let (every, raw) = (num(row, "all_pixels_rms_mm"), num(row, "all_pixels_rms_raw_mm"));
@@ -436,9 +439,109 @@ fn results_py(args: &[std::ffi::OsString]) -> std::process::Output {
         .unwrap_or_else(|e| panic!("running {python} scripts/results.py: {e} (scripts/setup-python.sh makes .venv)"))
 }
 
-/// The rows `scripts/results.py --json` makes of `bags` (rendered bags by name).
-fn results_rows(bags: &[&str]) -> Vec<Value> {
-    results_rows_with(bags, &[])
+/// The `scripts/results.py` runs that several tests share: each runs once per test binary,
+/// whichever test asks first, and the README's figures are checked against the same rows
+/// ([`the_readmes_figures_are_what_their_commands_print`]), so the check replays nothing.
+#[derive(Clone, Copy, Debug)]
+enum Run {
+    /// Every rendered scene with the defaults, checked against the committed baseline.
+    Default,
+    /// The same scenes recovered as the node recovers them (`--xi-mode online`).
+    Online,
+    /// The multi-frequency renders of two scenes.
+    MultiFrequency,
+    /// The moving camera's render (`--no-latch`, as its sidecar asks).
+    Moving,
+}
+
+impl Run {
+    /// Its name in `scripts/readme_figures.py` (`--rows NAME=FILE`).
+    fn name(self) -> &'static str {
+        match self {
+            Run::Default => "default",
+            Run::Online => "online",
+            Run::MultiFrequency => "mf",
+            Run::Moving => "moving",
+        }
+    }
+
+    /// `scripts/results.py` arguments (besides `--exe` and `--json`).
+    fn args(self) -> Vec<std::ffi::OsString> {
+        match self {
+            Run::Default => vec!["--check".into(), rendered("baseline.json").into()],
+            Run::Online => {
+                let mut args: Vec<std::ffi::OsString> =
+                    vec!["--replay-arg=--xi-mode".into(), "--replay-arg=online".into()];
+                args.extend(single_frequency_scenes().into_iter().map(Into::into));
+                args
+            }
+            Run::MultiFrequency => vec![
+                rendered("mf_two_materials.mcap").into(),
+                rendered("mf_opaque_and_translucent.mcap").into(),
+            ],
+            Run::Moving => vec![rendered("mf_moving_camera.mcap").into()],
+        }
+    }
+}
+
+/// A finished `scripts/results.py` run: its output and the rows it wrote (`--json`).
+struct SharedRun {
+    out: std::process::Output,
+    rows: Option<Vec<Value>>,
+}
+
+impl SharedRun {
+    fn stdout(&self) -> String {
+        String::from_utf8_lossy(&self.out.stdout).into_owned()
+    }
+
+    fn rows(&self) -> Vec<Value> {
+        self.rows.clone().unwrap_or_else(|| {
+            panic!(
+                "scripts/results.py wrote no rows:\n{}\n{}",
+                self.stdout(),
+                String::from_utf8_lossy(&self.out.stderr)
+            )
+        })
+    }
+}
+
+/// `run`, made once per test binary (a second caller waits for the first).
+fn shared_run(run: Run) -> &'static SharedRun {
+    static RUNS: [OnceLock<SharedRun>; 4] = [const { OnceLock::new() }; 4];
+    RUNS[run as usize].get_or_init(|| {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let json = dir.path().join("rows.json");
+        let mut args: Vec<std::ffi::OsString> = vec!["--json".into(), json.clone().into()];
+        args.extend(run.args());
+        let out = results_py(&args);
+        let rows = std::fs::read_to_string(&json)
+            .ok()
+            .and_then(|t| serde_json::from_str::<Value>(&t).ok())
+            .and_then(|v| v.as_array().cloned());
+        SharedRun { out, rows }
+    })
+}
+
+/// The single-frequency rendered scenes (`scripts/results`' default set): not the
+/// multi-frequency bags (their own path, no online ξ), the calibrations or the white wall
+/// (inputs of other tests, with nothing to recover).
+fn single_frequency_scenes() -> Vec<PathBuf> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("bags/rendered");
+    let mut bags: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .expect("bags/rendered")
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "mcap"))
+        .filter(|p| {
+            let name = p
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            !(name.starts_with("mf_") || name.starts_with("calib") || name.starts_with("white_wall"))
+        })
+        .collect();
+    bags.sort();
+    bags
 }
 
 /// `scripts/results` rows of `bags`, each replayed with `replay_args` too.
@@ -510,7 +613,9 @@ fn a_materials_file_on_the_calibrated_scale_keeps_the_box_and_corrects_the_sheet
 /// (README, Multi-frequency cameras).
 #[test]
 fn the_multi_frequency_renders_hold_their_claims() {
-    let rows = results_rows(&["mf_two_materials.mcap", "mf_opaque_and_translucent.mcap"]);
+    let run = shared_run(Run::MultiFrequency);
+    println!("{}", run.stdout());
+    let rows = run.rows();
     let (mut inside, mut frame_objects) = (0.0, 0.0);
     for row in &rows {
         let bag = row["bag"].as_str().unwrap_or("?");
@@ -575,26 +680,9 @@ fn the_multi_frequency_renders_hold_their_claims() {
 /// held by [`the_rendered_set_holds_its_baseline`] over every scene.
 #[test]
 fn the_rendered_scenes_recovered_online_as_the_node_does_fall_short_of_no_claim() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("bags/rendered");
-    let mut bags: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .expect("bags/rendered")
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "mcap"))
-        .filter(|p| {
-            let name = p
-                .file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            // Multi-frequency bags take their own path (no online ξ); calibrations and the
-            // white wall are inputs of other tests, with nothing to recover.
-            !(name.starts_with("mf_") || name.starts_with("calib") || name.starts_with("white_wall"))
-        })
-        .collect();
-    bags.sort();
+    let bags = single_frequency_scenes();
     assert!(bags.len() >= 25, "{bags:?}");
-    let mut args: Vec<std::ffi::OsString> = vec!["--replay-arg=--xi-mode".into(), "--replay-arg=online".into()];
-    args.extend(bags.into_iter().map(Into::into));
-    let out = results_py(&args);
+    let out = &shared_run(Run::Online).out;
     let stdout = String::from_utf8_lossy(&out.stdout);
     println!("{stdout}");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
@@ -613,7 +701,7 @@ fn the_rendered_scenes_recovered_online_as_the_node_does_fall_short_of_no_claim(
 /// script (`scripts/results --markdown`).
 #[test]
 fn the_rendered_set_holds_its_baseline() {
-    let out = results_py(&["--check".into(), rendered("baseline.json").into()]);
+    let out = &shared_run(Run::Default).out;
     let stdout = String::from_utf8_lossy(&out.stdout);
     println!("{stdout}");
     assert!(
@@ -624,6 +712,42 @@ fn the_rendered_set_holds_its_baseline() {
             .filter(|l| l.starts_with("FAILED") || l.starts_with("check:"))
             .collect::<Vec<_>>()
             .join("\n"),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The README's generated figures (every `<!--f:KEY-->...<!--/f-->`: the results table and
+/// the set's lines, the figures of Replay, Modes and Limits) are what their commands print on
+/// the committed bags. `scripts/readme_figures.py` formats them from the rows of the runs the
+/// tests above make (`--rows`), so this replays nothing; the demo's lines are compared by
+/// `tests/node_dds.rs`, which runs the demo. `scripts/readme-figures --write` rewrites them.
+#[test]
+fn the_readmes_figures_are_what_their_commands_print() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut args: Vec<std::ffi::OsString> = vec![
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scripts/readme_figures.py")
+            .into(),
+        "--skip".into(),
+        "demo".into(),
+    ];
+    for run in [Run::Default, Run::Online, Run::MultiFrequency, Run::Moving] {
+        let file = dir.path().join(format!("{}.json", run.name()));
+        let rows = Value::Array(shared_run(run).rows());
+        std::fs::write(&file, rows.to_string()).expect("write rows");
+        args.push("--rows".into());
+        args.push(format!("{}={}", run.name(), file.display()).into());
+    }
+    let python = python();
+    let out = Command::new(&python)
+        .args(&args)
+        .output()
+        .unwrap_or_else(|e| panic!("running {python} scripts/readme_figures.py: {e}"));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert!(
+        out.status.success(),
+        "the README's figures differ from their commands' (scripts/readme-figures --write rewrites them):\n{stdout}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
 }
