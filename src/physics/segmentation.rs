@@ -464,7 +464,7 @@ impl<'a> Links<'a> {
                     let i = start + k;
                     let right = on && (i % w) + 1 < w && mask.data[i + 1] && joined(i, i + 1);
                     let down = on && i + w < n && mask.data[i + w] && joined(i, i + w);
-                    u8::from(right) * RIGHT | u8::from(down) * DOWN
+                    (u8::from(right) * RIGHT) | (u8::from(down) * DOWN)
                 })
                 .collect()
         });
