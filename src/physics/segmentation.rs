@@ -217,11 +217,12 @@ pub fn outline_pixels(mask: &ImageBuf<bool>, image_edge: bool) -> ImageBuf<bool>
             out.fill(image_edge)
         }
     };
-    let all_rows: Vec<usize> = (0..h).collect();
-    let data = map_chunks_ordered(&all_rows, ROWS_PER_TASK, MIN_PARALLEL_PIXELS / w, |_, rs| {
-        let mut out = vec![false; rs.len() * w];
+    // Whole rows per chunk, one result per pixel of the chunk.
+    let data = map_chunks_ordered(&mask.data, ROWS_PER_TASK * w, MIN_PARALLEL_PIXELS, |start, chunk| {
+        let mut out = vec![false; chunk.len()];
         let (mut up, mut here, mut down) = (vec![false; w], vec![false; w], vec![false; w]);
-        for (k, &r) in rs.iter().enumerate() {
+        for k in 0..chunk.len() / w {
+            let r = start / w + k;
             if k == 0 {
                 match r.checked_sub(1) {
                     Some(above) => row_off(above, &mut up),
