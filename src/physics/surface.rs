@@ -5,7 +5,7 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use super::buffer::ImageBuf;
 use super::parallel::map_ordered;
-use super::stats::{median_select, sigma_about};
+use super::stats::median_and_sigma_sorted;
 
 mod columns;
 use columns::Columns;
@@ -815,15 +815,18 @@ impl Blocks {
                 centres.push(c);
             }
         }
-        // Each row's blocks, repeated `s` times across and down.
+        // Each row of blocks' slots, repeated `s` times across, then copied to its `s` rows.
         let mut pixel_slot = Vec::with_capacity(w * h);
-        for r in 0..h {
-            let row = &slot[(r / s) * across..(r / s + 1) * across];
-            pixel_slot.extend(
-                row.iter()
-                    .flat_map(|&k| std::iter::repeat_n(u32::try_from(k).unwrap_or(u32::MAX), s))
-                    .take(w),
-            );
+        let mut row_slots = Vec::with_capacity(across * s);
+        for (br, blocks) in slot.chunks(across.max(1)).enumerate() {
+            row_slots.clear();
+            for &k in blocks {
+                row_slots.extend(std::iter::repeat_n(u32::try_from(k).unwrap_or(u32::MAX), s));
+            }
+            row_slots.truncate(w);
+            for _ in br * s..((br + 1) * s).min(h) {
+                pixel_slot.extend_from_slice(&row_slots);
+            }
         }
         Self { centres, pixel_slot }
     }
@@ -871,12 +874,14 @@ fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
     if far_above <= half && far_below <= half {
         return;
     }
+    // A window's few dozen distances: sorted, they give the median and its spread at once.
     let mut norms: Vec<f64> = points.iter().map(|p| p.distance).collect();
-    let med = median_select(&mut norms);
+    norms.sort_unstable_by(f64::total_cmp);
+    let (med, sigma) = median_and_sigma_sorted(&norms);
     if med - lo <= floor_mm && hi - med <= floor_mm {
         return;
     }
-    let cut = (k * sigma_about(&norms, med)).max(floor_mm);
+    let cut = (k * sigma).max(floor_mm);
     points.retain(|p| (p.distance - med).abs() <= cut);
 }
 
