@@ -166,6 +166,9 @@ class Run:
         args = [
             a.node, "node", "--stats-json", str(self.stats_json), "--ros-args", "-r", "__ns:=/tof",
             "-p", "physics:=paper", "-p", f"background_frames:={a.background_frames}",
+            # A latch at 640x480 on the multi-frequency path, which loses inputs, can take
+            # longer than the default 10 s to gather its frames.
+            "-p", "latch_timeout_s:=30.0",
         ]
         if a.xi != "estimate":
             args += ["-p", f"xi:={a.xi}"]
@@ -192,6 +195,7 @@ class Run:
     def _player_line(self, w):
         if w[0] == "first":
             self.player_first = int(w[1])
+            self.malformed_sent = int(w[2])
         elif w[0] == "sent":
             self.player_sent_now = int(w[1])
         elif w[0] == "malformed_sent":
@@ -342,11 +346,12 @@ class Run:
 
     def fault_malformed(self, p):
         before = self.diag_now()
-        self.malformed_sent = None
+        self.player_first = None
         t0 = time.time_ns()
         self.player.send(f"malformed {p['n']}")
-        self._wait(lambda: self.malformed_sent is not None, 30, "malformed samples sent")
-        t1 = time.time_ns()
+        # Its end: the driver's first frame after the samples (sending them holds it up).
+        self._wait(lambda: self.player_first is not None, 30, "frame after the malformed samples")
+        t1 = self.player_first
         after = self.diag_after(t1 + 1_200_000_000)
         keys = ["dropped_malformed", "dropped_oversized", "dropped_bad_image", "dropped_size_mismatch"]
         n = sum(cnt(after, k) - cnt(before, k) for k in keys)

@@ -7,7 +7,8 @@ scripts/soak.py over their standard input and output, one line per message:
       stamped with the wall clock when published. Commands: `mode M`,
       `rate_factor F` (a burst), `malformed N` (N samples that do not decode
       and N images shorter than their size says, on depth and IR), `quit`.
-      Prints `first NS` after its first frame and `sent N` every second.
+      Prints `first NS N` after its first frame and after the first frame that
+      follows N malformed samples, and `sent N` every second.
   soak_peers.py monitor NODE_FQN
       what a consumer sees: ~/depth/corrected (its arrival, for the latency),
       ~/translucent_mask (whether a frame was corrected: a frame passed
@@ -125,7 +126,7 @@ def player(a):
         if time.monotonic() > end:
             raise SystemExit("soak player: the node never subscribed depth and IR")
         rclpy.spin_once(node, timeout_sec=0.05)
-    mode, factor, k, sent, first = a.mode, 1.0, 0, 0, True
+    mode, factor, k, sent, first, sent_bad = a.mode, 1.0, 0, 0, True, 0
     next_t, report_t = time.monotonic(), time.monotonic() + 1.0
     while True:
         for c in commands():
@@ -142,6 +143,7 @@ def player(a):
             elif word[0] == "malformed":
                 sent_bad = malformed(pubs, sets["objects"][0], int(word[1]))
                 say("malformed_sent", sent_bad)
+                first = True
             say("ack", c, time.time_ns(), sent)
         f = sets[mode][k % len(sets[mode])]
         k += 1
@@ -153,7 +155,8 @@ def player(a):
             pubs[key].publish(msg)
         sent += 1
         if first:
-            say("first", t)
+            # The first frame, and the first after malformed samples: the fault's end.
+            say("first", t, sent_bad)
             first = False
         now = time.monotonic()
         if now >= report_t:
