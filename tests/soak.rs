@@ -90,7 +90,10 @@ fn the_node_stays_flat_under_load_and_faults_on_both_paths() {
     assert!(exe.is_file(), "TTOF_RELEASE_EXE={} is not a file", exe.display());
     let py = python();
     let has_rclpy = Command::new(&py)
-        .args(["-c", "import rclpy, sensor_msgs, std_srvs, diagnostic_msgs, mcap_ros2, numpy"])
+        .args([
+            "-c",
+            "import rclpy, sensor_msgs, std_srvs, diagnostic_msgs, mcap_ros2, numpy",
+        ])
         .output()
         .is_ok_and(|o| o.status.success());
     if !has_rclpy {
@@ -103,7 +106,10 @@ fn the_node_stays_flat_under_load_and_faults_on_both_paths() {
     }
     let dir = tempfile::tempdir().unwrap();
     let runs: [(&str, &[&str]); 2] = [
-        ("sf", &["--paths", "single_frequency", "--duration", "110s", "--warmup", "35s"]),
+        (
+            "sf",
+            &["--paths", "single_frequency", "--duration", "110s", "--warmup", "35s"],
+        ),
         (
             "mf",
             &[
