@@ -22,7 +22,6 @@ scripts/soak.py over their standard input and output, one line per message:
 
 import argparse
 import json
-import os
 import select
 import sys
 import time
