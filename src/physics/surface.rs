@@ -5,7 +5,7 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use super::buffer::ImageBuf;
 use super::parallel::map_ordered;
-use super::stats::median_and_sigma_sorted;
+use super::stats::{median_and_sigma_sorted, median_select, sigma_about};
 
 mod columns;
 use columns::Columns;
@@ -874,15 +874,41 @@ fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
     if far_above <= half && far_below <= half {
         return;
     }
-    // A window's few dozen distances: sorted, they give the median and its spread at once.
     let mut norms: Vec<f64> = points.iter().map(|p| p.distance).collect();
-    norms.sort_unstable_by(f64::total_cmp);
-    let (med, sigma) = median_and_sigma_sorted(&norms);
-    if med - lo <= floor_mm && hi - med <= floor_mm {
-        return;
-    }
-    let cut = (k * sigma).max(floor_mm);
+    let cut = if norms.len() <= SMALL_WINDOW {
+        // A few dozen distances: sorted in place, they give the median and its spread at once.
+        insertion_sort(&mut norms);
+        let (med, sigma) = median_and_sigma_sorted(&norms);
+        if med - lo <= floor_mm && hi - med <= floor_mm {
+            return;
+        }
+        (med, (k * sigma).max(floor_mm))
+    } else {
+        let med = median_select(&mut norms);
+        if med - lo <= floor_mm && hi - med <= floor_mm {
+            return;
+        }
+        (med, (k * sigma_about(&norms, med)).max(floor_mm))
+    };
+    let (med, cut) = cut;
     points.retain(|p| (p.distance - med).abs() <= cut);
+}
+
+/// Most distances [`keep_near_median`] sorts by insertion (fewer moves than a selection's
+/// partitions there); above it, two selections.
+const SMALL_WINDOW: usize = 48;
+
+/// Sorts finite values ascending by insertion.
+fn insertion_sort(v: &mut [f64]) {
+    for i in 1..v.len() {
+        let x = v[i];
+        let mut j = i;
+        while j > 0 && v[j - 1] > x {
+            v[j] = v[j - 1];
+            j -= 1;
+        }
+        v[j] = x;
+    }
 }
 
 /// A window's fitted surface: the quadric, or a plane where the quadric failed.
