@@ -900,13 +900,19 @@ fn replay_writes_what_the_node_publishes_frame_by_frame() {
             }
         };
         let (reply, ()) = tokio::join!(peer.call(true, Duration::from_secs(60)), stream);
-        let reply = reply.unwrap();
-        assert!(reply.success, "{reply:?}");
-        assert!(
-            reply.message.contains(&format!("latched {latched} frames")),
-            "{}",
-            reply.message
-        );
+        // The latch itself is what this test needs; a reply lost on DDS (the node's reply
+        // writer not yet matched with this client's reader) is said, not failed on.
+        let done = format!("latched {latched} frames");
+        match reply {
+            Ok(reply) => assert!(reply.success && reply.message.contains(&done), "{reply:?}"),
+            Err(e) => {
+                assert!(
+                    node.logged(&done, Duration::from_secs(1)).await,
+                    "no latch reply ({e}) and the node's log does not say {done:?}"
+                );
+                eprintln!("the latch's reply did not arrive ({e}); the node's log says {done:?}");
+            }
+        }
         // Each object frame once the last has come back: no queue to overflow.
         let mut missing = vec![];
         for (d, i) in &pairs[latched..] {
