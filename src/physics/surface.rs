@@ -875,7 +875,7 @@ fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
         return;
     }
     let mut norms: Vec<f64> = points.iter().map(|p| p.distance).collect();
-    let cut = if norms.len() <= SMALL_WINDOW {
+    let (med, cut) = if norms.len() <= SMALL_WINDOW {
         // A few dozen distances: sorted in place, they give the median and its spread at once.
         insertion_sort(&mut norms);
         let (med, sigma) = median_and_sigma_sorted(&norms);
@@ -890,7 +890,6 @@ fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
         }
         (med, (k * sigma_about(&norms, med)).max(floor_mm))
     };
-    let (med, cut) = cut;
     points.retain(|p| (p.distance - med).abs() <= cut);
 }
 
