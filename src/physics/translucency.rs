@@ -1058,7 +1058,7 @@ fn one_material_pooled<P: Borrow<FrameProfile>>(profiles: &[P]) -> Option<XiEsti
     let (kwide, qwide) = argmin(&wide)?;
     let phi = (qwide / (groups as f64 - 2.0)).max(1.0);
     let level = qwide + 3.84 * phi;
-    let interval = cover(threshold_interval(&grid, &wide, kwide, level), xi);
+    let interval = cover(admissible_interval(&grid, &wide, kwide, level), xi);
     let evidence = format!(
         "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi_within:.2} within poses and {phi:.2} left, pose misfit sd {:.3} in log albedo (at least {:.3}, the groups')",
         profiles.len(),
@@ -1262,6 +1262,26 @@ fn refine_minimum(grid: &[f64], v: &[f64], k: usize) -> f64 {
     (-b / (2.0 * a)).clamp(x0, x2)
 }
 
+/// [`threshold_interval`] over an objective that is not finite where ξ is inadmissible
+/// ([`eligible`]): a run that reaches an inadmissible ξ does not end there. There the model
+/// explains fewer of the object's pixels (no root, or an albedo beyond the bound), which is
+/// what an object it does not describe shows too (a box between a layer and the latched
+/// wall, a frosted layer): the albedo consistency has not rejected those ξ, so the interval
+/// runs on to that end of the range.
+fn admissible_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2] {
+    let [mut lo, mut hi] = threshold_interval(grid, v, k, level);
+    let below = |j: usize| v[j].is_finite() && v[j] <= level;
+    let run_lo = (0..=k).rev().take_while(|&j| below(j)).last().unwrap_or(k);
+    let run_hi = (k..grid.len()).take_while(|&j| below(j)).last().unwrap_or(k);
+    if run_lo > 0 && !v[run_lo - 1].is_finite() {
+        lo = 0.0;
+    }
+    if run_hi + 1 < grid.len() && !v[run_hi + 1].is_finite() {
+        hi = 1.0;
+    }
+    [lo, hi]
+}
+
 /// The connected run of grid points around `k` with value `<= level`, extended
 /// by linear interpolation to the crossing and by half a grid step.
 fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2] {
@@ -1445,6 +1465,24 @@ mod tests {
             "{iv:?}"
         );
         assert_eq!(cover([0.4, 0.5], 0.52), [0.4, 0.52]);
+    }
+
+    /// An objective inadmissible (NaN) above ξ 0.55, where the model would explain fewer
+    /// pixels: a run that reaches it does not end there (the albedo consistency has not
+    /// rejected those ξ), one that ends before it by the data does.
+    #[test]
+    fn an_interval_that_reaches_the_inadmissible_range_runs_on_to_its_end() {
+        let grid = xi_grid();
+        let v: Vec<f64> = grid
+            .iter()
+            .map(|&x| if x > 0.55 { f64::NAN } else { (x / 0.1).powi(2) })
+            .collect();
+        let (k, _) = argmin(&v).unwrap();
+        // Rising to the edge: the data end the run at ξ 0.3 (level 9), before the edge.
+        assert!(admissible_interval(&grid, &v, k, 9.0)[1] < 0.35);
+        // Still under the level at the edge: every ξ above it stays possible.
+        assert_eq!(admissible_interval(&grid, &v, k, 40.0), [0.0, 1.0]);
+        assert!(threshold_interval(&grid, &v, k, 40.0)[1] < 0.6);
     }
 
     /// A box's corner, one face seen face-on and the other nearly edge-on (80° from the view):
