@@ -89,6 +89,22 @@ impl Pipeline {
         })
     }
 
+    /// The pixels a frame reads invalid (0 or NaN) where the latched background is valid:
+    /// a camera's depth engine invalidates a layer's pixels whose frequencies disagree
+    /// beyond its threshold. They stay unmeasured in the outputs (never a distance); this
+    /// counts them (0 without a background).
+    pub fn unmeasured_pixels(&self, frame: &DepthFrame) -> usize {
+        let Some(bg) = self.background.as_ref() else { return 0 };
+        let valid = |v: f64| v.is_finite() && v > 0.0;
+        frame
+            .z_mm
+            .data
+            .iter()
+            .zip(&bg.distance_mm.data)
+            .filter(|(&z, &db)| !valid(f64::from(z)) && valid(db))
+            .count()
+    }
+
     /// How a frame's readings depart from the background (`None` without one).
     pub fn departure(&self, obs: &Observed) -> Option<Departure> {
         let bg = self.background.as_ref()?;
@@ -139,6 +155,12 @@ mod tests {
             .observe(&frame(&k, |c, r| if patch(c, r) { 1500.0 } else { 2000.0 }))
             .expect("an observation");
         assert_eq!(obs.translucent_pixels, 120);
+        // A pixel read invalid over the valid wall is unmeasured, and counted.
+        let mut holed = frame(&k, |c, r| if patch(c, r) { 1500.0 } else { 2000.0 });
+        holed.z_mm.data[12 * k.width + 15] = 0.0;
+        holed.z_mm.data[13 * k.width + 15] = f32::NAN;
+        assert_eq!(pipe.unmeasured_pixels(&holed), 2);
+        assert_eq!(pipe.observe(&holed).expect("an observation").translucent_pixels, 118);
         assert_eq!(obs.regions.len(), 1);
         assert_eq!(obs.regions[0].pixels, 120);
         assert!((0..k.width * k.height).all(|i| obs.mask.data[i] == patch(i % k.width, i / k.width)));
