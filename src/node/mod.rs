@@ -935,6 +935,15 @@ fn announce(s: &NodeSettings, i: &Subscribed, published: &[String], services: &S
             crate::pipeline::XiChoice::Estimate(m) => format!("estimated ({})", m.as_str()),
         }
     );
+    if let Some(e) = s.config.model.sensor.depth_engine() {
+        info!(
+            "depth engine: depth and IR unwrapped from {:?} Hz{}",
+            e.frequencies_hz,
+            e.max_disagreement_mm.map_or(String::new(), |mm| format!(
+                ", pixels invalid past {mm} mm of disagreement"
+            ))
+        );
+    }
     if let Some(f) = &s.multi_frequency {
         info!(
             "multi-frequency path: phasors at {f:?} Hz on {}; publishes {}{}",
