@@ -589,17 +589,7 @@ fn the_node_classifies_objects_with_a_materials_file() {
     let estimates = rt().block_on(async {
         let ctx = translucent_tof::node::context(0, false).unwrap();
         let mut peer = driver(&ctx, "materials_peer").await;
-        let mut t = 3_000_000_000u64;
-        let reply = peer
-            .latch_while_streaming(&info, &pairs[..10], Duration::from_millis(40), &mut t, 33_000_000)
-            .await
-            .unwrap();
-        assert!(reply.success, "{reply:?}");
-        for (d, i) in &pairs[10..] {
-            t += 100_000_000;
-            peer.publish(&info, &stamped(d, t), &stamped(i, t)).unwrap();
-            assert!(peer.wait_for(t, Duration::from_secs(20)).await, "no output at {t}");
-        }
+        latch_then_play(&mut peer, &info, &pairs, 10, Duration::from_secs(20)).await;
         tokio::time::sleep(Duration::from_millis(300)).await;
         peer.drain();
         peer.received.estimates.clone()
@@ -1023,19 +1013,7 @@ fn the_node_recovers_through_a_depth_engine_given_by_its_parameters() {
     let received = rt().block_on(async {
         let ctx = translucent_tof::node::context(0, false).unwrap();
         let mut peer = driver(&ctx, "engine_peer").await;
-        let mut t = 3_000_000_000u64;
-        let reply = peer
-            .latch_while_streaming(&info, &pairs[..10], Duration::from_millis(40), &mut t, 33_000_000)
-            .await
-            .unwrap();
-        assert!(reply.success, "{reply:?}");
-        let mut sent = vec![];
-        for (d, i) in pairs[10..].iter().take(frames) {
-            t += 100_000_000;
-            peer.publish(&info, &stamped(d, t), &stamped(i, t)).unwrap();
-            assert!(peer.wait_for(t, Duration::from_secs(60)).await, "no output at {t}");
-            sent.push((t, d.header.stamp.as_log_time_ns()));
-        }
+        let sent = latch_then_play(&mut peer, &info, &pairs[..10 + frames], 10, Duration::from_secs(60)).await;
         peer.drain();
         (sent, peer.received.corrected.clone(), peer.received.mask.clone())
     });
@@ -1047,8 +1025,9 @@ fn the_node_recovers_through_a_depth_engine_given_by_its_parameters() {
     assert!(!log.contains("[ERROR]"), "{log}");
     let (sent, corrected, mask) = received;
     let (mut sq, mut sq_raw, mut n) = (0.0f64, 0.0f64, 0usize);
-    for ((t, original), (raw, _)) in sent.iter().zip(pairs[10..].iter()) {
-        let (Some(c), Some(m), Some(z)) = (corrected.get(t), mask.get(t), truth.get(original)) else {
+    for (t, (raw, _)) in sent.iter().zip(&pairs[10..]) {
+        let original = raw.header.stamp.as_log_time_ns();
+        let (Some(c), Some(m), Some(z)) = (corrected.get(t), mask.get(t), truth.get(&original)) else {
             panic!("frame {t}: an output or the truth missing");
         };
         let (c, r) = (depth_mm(c).unwrap(), depth_mm(raw).unwrap());
@@ -1068,6 +1047,37 @@ fn the_node_recovers_through_a_depth_engine_given_by_its_parameters() {
         rms <= 0.25 * rms_raw,
         "corrected {rms:.1} mm against raw {rms_raw:.1} mm"
     );
+}
+
+/// Latches the first `background` of `pairs` while streaming them, then plays the rest one
+/// at a time, 100 ms apart, each waited for (up to `wait`) before the next: the stamps sent.
+async fn latch_then_play(
+    peer: &mut Peer,
+    info: &CameraInfo,
+    pairs: &[(Image, Image)],
+    background: usize,
+    wait: Duration,
+) -> Vec<u64> {
+    let mut t = 3_000_000_000u64;
+    let reply = peer
+        .latch_while_streaming(
+            info,
+            &pairs[..background],
+            Duration::from_millis(40),
+            &mut t,
+            33_000_000,
+        )
+        .await
+        .unwrap();
+    assert!(reply.success, "{reply:?}");
+    let mut sent = vec![];
+    for (d, i) in &pairs[background..] {
+        t += 100_000_000;
+        peer.publish(info, &stamped(d, t), &stamped(i, t)).unwrap();
+        assert!(peer.wait_for(t, wait).await, "no output at {t}");
+        sent.push(t);
+    }
+    sent
 }
 
 /// A simulated bag's `ground_truth/depth` (z, mm; NaN where there is none) by the stamp of

@@ -230,10 +230,12 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let mut per_frame = vec![];
     let mut last: Option<XiEstimate> = None;
     let mut errors = TruthError::default();
-    let mut total_px = 0usize;
+    let (mut total_px, mut total_unmeasured) = (0usize, 0usize);
     let mut passed = std::collections::BTreeMap::from([(Passthrough::Latching, bg.count)]);
     for (j, (f, obs)) in objects.iter().zip(&mut observed).enumerate() {
         let header = &rec.headers[bg.count + j];
+        let unmeasured = pipe.unmeasured_pixels(f);
+        total_unmeasured += unmeasured;
         if online {
             pipe.add_xi_evidence(obs);
         }
@@ -278,7 +280,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             "xi": xi.xi,
             "xi_interval": xi.interval,
             "translucent_pixels": out.translucent_pixels,
-            "unmeasured_pixels": pipe.unmeasured_pixels(f),
+            "unmeasured_pixels": unmeasured,
             "recovered_pixels": out.recovered_pixels,
             "pinned_pixels": out.pinned_pixels,
             "unresolved_pixels": out.unresolved_pixels,
@@ -355,7 +357,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         }),
         "xi_profile": xi.as_ref().map(|x| x.profile.clone()),
         "translucent_pixels": total_px,
-        "unmeasured_pixels": objects.iter().map(|f| pipe.unmeasured_pixels(f)).sum::<usize>(),
+        "unmeasured_pixels": total_unmeasured,
         "frames_written": rec.frames.len(),
         "passed_through": passed,
         "materials": pipe.materials().filter_map(|m| {

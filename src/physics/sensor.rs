@@ -215,10 +215,8 @@ impl Sensor {
     /// `d1 - d2` as a wrapped distance in `(-R/2, R/2]` (phases compared, not
     /// distances), `R` the reported depth's range ([`Self::unambiguous_range_mm`]).
     pub fn wrapped_difference_mm(&self, d1: f64, d2: f64) -> f64 {
-        match self.engine() {
-            None => wrap_phase(self.phase(d1 - d2)) / TAU * self.range_mm,
-            Some(e) => wrap_phase(TAU * (d1 - d2) / e.range_mm) / TAU * e.range_mm,
-        }
+        let range = self.unambiguous_range_mm();
+        wrap_phase(TAU * (d1 - d2) / range) / TAU * range
     }
 }
 

@@ -1270,30 +1270,34 @@ fn refine_minimum(grid: &[f64], v: &[f64], k: usize) -> f64 {
 /// runs on to that end of the range.
 fn admissible_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2] {
     let [mut lo, mut hi] = threshold_interval(grid, v, k, level);
-    let below = |j: usize| v[j].is_finite() && v[j] <= level;
-    let run_lo = (0..=k).rev().take_while(|&j| below(j)).last().unwrap_or(k);
-    let run_hi = (k..grid.len()).take_while(|&j| below(j)).last().unwrap_or(k);
+    let (run_lo, run_hi) = run_below(v, k, level);
     if run_lo > 0 && !v[run_lo - 1].is_finite() {
         lo = 0.0;
     }
-    if run_hi + 1 < grid.len() && !v[run_hi + 1].is_finite() {
+    if run_hi + 1 < v.len() && !v[run_hi + 1].is_finite() {
         hi = 1.0;
     }
     [lo, hi]
 }
 
-/// The connected run of grid points around `k` with value `<= level`, extended
-/// by linear interpolation to the crossing and by half a grid step.
-fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2] {
+/// The first and last index of the connected run of finite values `<= level` around `k`.
+fn run_below(v: &[f64], k: usize, level: f64) -> (usize, usize) {
     let below = |j: usize| v[j].is_finite() && v[j] <= level;
     let mut lo = k;
     while lo > 0 && below(lo - 1) {
         lo -= 1;
     }
     let mut hi = k;
-    while hi + 1 < grid.len() && below(hi + 1) {
+    while hi + 1 < v.len() && below(hi + 1) {
         hi += 1;
     }
+    (lo, hi)
+}
+
+/// The connected run of grid points around `k` with value `<= level`, extended
+/// by linear interpolation to the crossing and by half a grid step.
+fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2] {
+    let (lo, hi) = run_below(v, k, level);
     let cross = |a: usize, b: usize| -> f64 {
         if !v[b].is_finite() {
             return grid[a];
