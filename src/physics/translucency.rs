@@ -1036,7 +1036,7 @@ fn one_material_pooled<P: Borrow<FrameProfile>>(profiles: &[P]) -> Option<XiEsti
         profile: grid.iter().copied().zip(q.iter().copied()).collect(),
         note,
     };
-    if let Some(why) = undetermined(&grid, &q, kmin, groups, poses) {
+    if let Some(why) = undetermined(groups, poses) {
         // Every ξ: even the albedo bound that pins pixels at high ξ rests on the background
         // albedo `Lin` assumes, so it does not exclude them either.
         return Some(estimate(
@@ -1059,8 +1059,16 @@ fn one_material_pooled<P: Borrow<FrameProfile>>(profiles: &[P]) -> Option<XiEsti
     let phi = (qwide / (groups as f64 - 2.0)).max(1.0);
     let level = qwide + 3.84 * phi;
     let interval = cover(admissible_interval(&grid, &wide, kwide, level), xi);
+    let edge = if at_admissible_edge(&q, kmin) {
+        format!(
+            "; the objective falls to xi {:.2}, the edge of what the model admits, so the interval runs on past it",
+            grid[kmin]
+        )
+    } else {
+        String::new()
+    };
     let evidence = format!(
-        "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi_within:.2} within poses and {phi:.2} left, pose misfit sd {:.3} in log albedo (at least {:.3}, the groups')",
+        "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi_within:.2} within poses and {phi:.2} left, pose misfit sd {:.3} in log albedo (at least {:.3}, the groups'){edge}",
         profiles.len(),
         tau2.sqrt(),
         tau2_floor.sqrt()
@@ -1120,23 +1128,25 @@ fn split_statistic(a: &[&FrameProfile], b: &[&FrameProfile]) -> Option<f64> {
     Some((q_joint - q_a - q_b).max(0.0))
 }
 
-/// Why the albedo-consistency objective does not determine ξ, if it does not.
-fn undetermined(grid: &[f64], q: &[f64], kmin: usize, groups: usize, poses: usize) -> Option<String> {
-    let at_edge = |j: Option<usize>| j.is_none_or(|j| !q[j].is_finite());
-    // ξ = 0 is the physical end of the range (opaque), not an edge of what the data admit.
-    let boundary = (kmin > 0 && at_edge(kmin.checked_sub(1))) || at_edge((kmin + 1 < q.len()).then_some(kmin + 1));
+/// Why the albedo-consistency objective does not determine ξ, if it does not. A minimum at
+/// the edge of the admissible range is an estimate like any other: the data prefer as
+/// high a ξ as the model admits ([`at_admissible_edge`]), and the interval runs on to 1.
+fn undetermined(groups: usize, poses: usize) -> Option<String> {
     if groups < 3 {
         Some(format!("{groups} pixel group(s): too few to compare albedos"))
-    } else if boundary {
-        Some(format!(
-            "the albedo-consistency objective has no interior minimum (it falls to xi {:.2}, the edge of the admissible range)",
-            grid[kmin]
-        ))
     } else if poses < 2 {
         Some("the object has been seen in one pose only: one view of one surface does not determine xi (physics.md §3); move it to another distance or give xi".to_string())
     } else {
         None
     }
+}
+
+/// Whether the objective's least value `q[k]` lies next to an inadmissible ξ (not finite):
+/// beyond it the model explains fewer of the object's pixels ([`admissible_interval`]).
+/// ξ 0 is the physical end of the range, not an edge of what the data admit.
+fn at_admissible_edge(q: &[f64], k: usize) -> bool {
+    let inadmissible = |j: Option<usize>| j.is_none_or(|j| !q[j].is_finite());
+    (k > 0 && inadmissible(k.checked_sub(1))) || inadmissible((k + 1 < q.len()).then_some(k + 1))
 }
 
 /// ξ fitted to frames with known foreground distances (paper Sec. V-A):
@@ -1487,6 +1497,32 @@ mod tests {
         // Still under the level at the edge: every ξ above it stays possible.
         assert_eq!(admissible_interval(&grid, &v, k, 40.0), [0.0, 1.0]);
         assert!(threshold_interval(&grid, &v, k, 40.0)[1] < 0.6);
+    }
+
+    /// An objective that falls all the way to where the model stops admitting ξ (a faint,
+    /// high-ξ layer whose physics the model misses a little) is an estimate at that edge,
+    /// its interval from where the data rise above the level on to 1; an interior minimum
+    /// is no edge, and ξ 0 is the range's physical end, not an edge.
+    #[test]
+    fn a_minimum_at_the_admissible_edge_is_an_estimate_whose_interval_runs_on() {
+        let grid = xi_grid();
+        let v: Vec<f64> = grid
+            .iter()
+            .map(|&x| if x > 0.9 { f64::NAN } else { ((0.9 - x) / 0.05).powi(2) })
+            .collect();
+        let (k, _) = argmin(&v).unwrap();
+        assert!(at_admissible_edge(&v, k));
+        assert!((grid[k] - 0.9).abs() < 0.03, "{}", grid[k]);
+        let [lo, hi] = admissible_interval(&grid, &v, k, v[k] + 3.84);
+        assert_eq!(hi, 1.0);
+        assert!((0.78..0.85).contains(&lo), "{lo}");
+        let interior: Vec<f64> = grid.iter().map(|&x| ((x - 0.5) / 0.05).powi(2)).collect();
+        let (k, _) = argmin(&interior).unwrap();
+        assert!(!at_admissible_edge(&interior, k));
+        let opaque: Vec<f64> = grid.clone();
+        assert!(!at_admissible_edge(&opaque, 0));
+        assert_eq!(undetermined(9, 2), None);
+        assert!(undetermined(9, 1).is_some() && undetermined(2, 3).is_some());
     }
 
     /// A box's corner, one face seen face-on and the other nearly edge-on (80° from the view):
