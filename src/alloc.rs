@@ -387,10 +387,17 @@ mod tests {
             {
                 let c = cache();
                 assert!(c.len <= CACHE_SLOTS);
-                assert!(c.slots[..c.len].iter().all(|&(addr, _)| addr != blocks[0] as usize), "the oldest is gone");
+                assert!(
+                    c.slots[..c.len].iter().all(|&(addr, _)| addr != blocks[0] as usize),
+                    "the oldest is gone"
+                );
             }
             let newest = blocks[CACHE_SLOTS + 3];
-            assert_eq!(take_cached(mapping_len(layout(1).size())), Some(newest), "the newest is kept");
+            assert_eq!(
+                take_cached(mapping_len(layout(1).size())),
+                Some(newest),
+                "the newest is kept"
+            );
             a.dealloc(newest, layout(CACHE_SLOTS + 4));
             // Too large for the cache: handed back at once.
             let big = Layout::from_size_align(CACHE_BYTES / 2 + PAGE, 8).unwrap();
