@@ -357,7 +357,7 @@ mod tests {
         assert_eq!(mapping_len(224 * PAGE + 1), 256 * PAGE);
         for bytes in (LARGE..40 * LARGE).step_by(4093) {
             let len = mapping_len(bytes);
-            assert!(len >= bytes && len % PAGE == 0, "{bytes} in {len}");
+            assert!(len >= bytes && len.is_multiple_of(PAGE), "{bytes} in {len}");
             assert!(len <= bytes.div_ceil(PAGE) * PAGE * 5 / 4, "{bytes} in {len}");
         }
     }
