@@ -565,7 +565,7 @@ pub fn split_reading_modes(
 
 /// Each region's pixels, ascending, the regions one after another in label order: laid
 /// out at their counts in two passes over the labels (no list growing per region).
-struct Members {
+pub struct Members {
     /// The labelled pixels, grouped by label.
     pixels: Vec<u32>,
     /// Where each label's pixels start in `pixels` (label `l` at `start[l]..start[l + 1]`).
@@ -574,7 +574,7 @@ struct Members {
 
 impl Members {
     /// The members of labels `1..=regions` (a pixel of a larger label is left out).
-    fn of(labels: &ImageBuf<u32>, regions: usize) -> Self {
+    pub fn of(labels: &ImageBuf<u32>, regions: usize) -> Self {
         let mut start = vec![0usize; regions + 2];
         for &l in &labels.data {
             if let Some(n) = start.get_mut(l as usize + 1) {
@@ -598,7 +598,7 @@ impl Members {
     }
 
     /// The pixels of label `l`, ascending.
-    fn of_label(&self, l: usize) -> &[u32] {
+    pub fn of_label(&self, l: usize) -> &[u32] {
         &self.pixels[self.start[l]..self.start[l + 1]]
     }
 }
