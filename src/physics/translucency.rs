@@ -17,7 +17,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::buffer::{ImageBuf, SparseImage};
+use super::buffer::{ImageBuf, Region, SparseImage};
 use super::inversion::{albedo_cos_clamped, predicted_reading, InversionBounds, PixelObservation, PixelsOverXi};
 use super::model::ForwardModel;
 use super::stats::{median_and_sigma, student_t975};
@@ -230,6 +230,27 @@ impl FrameSample {
         }
     }
 
+    /// The sample cut to the rectangle around its observations, its edges on the grid of
+    /// `align x align` blocks from the lattice's corner ([`Region::around`]): the same
+    /// observations, rays and normals' blocks in a lattice without the empty rows and
+    /// columns around the object (a small object far from the camera has a fine lattice
+    /// over the whole image). `None` when it is already that rectangle or has no observation.
+    pub fn around_observations(&self, align: usize) -> Option<Self> {
+        let obs = &self.observations;
+        let held = ImageBuf {
+            width: obs.width,
+            height: obs.height,
+            data: obs.data.iter().map(Option::is_some).collect(),
+        };
+        let region = Region::around(&held, align)?;
+        (region.len() < obs.len()).then(|| Self {
+            observations: region.crop(obs),
+            rays: region.crop(&self.rays),
+            truth_mm: self.truth_mm.as_ref().map(|t| region.crop(t)),
+            stride: self.stride,
+        })
+    }
+
     /// Observations present.
     pub fn pixel_count(&self) -> usize {
         self.observations.data.iter().filter(|o| o.is_some()).count()
@@ -344,28 +365,11 @@ pub fn frame_profile(
     settings: &XiSettings,
     usage: ProfileUse,
 ) -> FrameProfile {
-    let frame = ProfileFrame::new(model, bounds, sample, settings, usage);
-    let mut out = FrameProfile {
-        groups: vec![],
-        pinned_fraction: vec![],
-        eq12: vec![],
-        truth: vec![],
-        pixels: frame.distances.len(),
-        median_distance_mm: frame
-            .distances
-            .get(frame.distances.len() / 2)
-            .copied()
-            .unwrap_or(f64::NAN),
-    };
-    // Each ξ on its own (in parallel over the current rayon pool), gathered in grid order.
-    let rows: Vec<_> = xi_grid().par_iter().map(|&xi| frame.at(xi)).collect();
-    for (stats, pinned_fraction, eq12, fit) in rows {
-        out.groups.push(stats);
-        out.pinned_fraction.push(pinned_fraction);
-        out.eq12.push(eq12);
-        out.truth.push(fit);
-    }
-    out
+    // Every stage below looks only at observed pixels and the windows around them, on the
+    // normals' block grid: the lattice cut to its observations gives the same profile.
+    let cropped = sample.around_observations(settings.normal_block_steps.max(1));
+    let frame = ProfileFrame::new(model, bounds, cropped.as_ref().unwrap_or(sample), settings, usage);
+    frame.profile()
 }
 
 /// What [`frame_profile`] holds fixed over the ξ grid for one frame's sample.
@@ -453,6 +457,31 @@ impl<'a> ProfileFrame<'a> {
             edges,
             distances,
         }
+    }
+
+    /// The frame's statistics at every ξ of the grid (in parallel over the current rayon
+    /// pool, gathered in grid order).
+    fn profile(&self) -> FrameProfile {
+        let mut out = FrameProfile {
+            groups: vec![],
+            pinned_fraction: vec![],
+            eq12: vec![],
+            truth: vec![],
+            pixels: self.distances.len(),
+            median_distance_mm: self
+                .distances
+                .get(self.distances.len() / 2)
+                .copied()
+                .unwrap_or(f64::NAN),
+        };
+        let rows: Vec<_> = xi_grid().par_iter().map(|&xi| self.at(xi)).collect();
+        for (stats, pinned_fraction, eq12, fit) in rows {
+            out.groups.push(stats);
+            out.pinned_fraction.push(pinned_fraction);
+            out.eq12.push(eq12);
+            out.truth.push(fit);
+        }
+        out
     }
 
     fn group_of(&self, i: usize) -> usize {
@@ -1588,6 +1617,57 @@ mod tests {
             rows.clone().all(|v| edge_on.iter().all(|&u| !readable[v * w + u])),
             "the face seen edge-on"
         );
+    }
+
+    /// The profile of a sample cut to its observations is the profile of the whole lattice:
+    /// a tilted patch in the middle of an empty lattice.
+    #[test]
+    fn a_lattice_cut_to_its_observations_gives_the_same_profile() {
+        let (w, h, f) = (40usize, 30usize, 50.0);
+        let ray = |u: usize, v: usize| Vector3::new((u as f64 - 19.5) / f, (v as f64 - 14.5) / f, 1.0).normalize();
+        let rays = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|i| ray(i % w, i / w)).collect(),
+        };
+        let patch = |i: usize| (7..23).contains(&(i / w)) && (8..31).contains(&(i % w));
+        let observations = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| {
+                    let r = rays.data[i];
+                    // A layer at z = 1200 + 0.3 x, reading farther by a ξ-dependent share.
+                    let t = 1200.0 / (r.z - 0.3 * r.x) + 40.0 + (i % 7) as f64;
+                    patch(i).then_some(PixelObservation {
+                        distance_mm: t,
+                        ir: 900.0 + (i % 5) as f64 * 10.0,
+                        background_distance_mm: 2500.0,
+                        background_ir: 700.0,
+                        emitted_light: 3e9,
+                        wall_view_factor: 0.0,
+                    })
+                })
+                .collect(),
+        };
+        let sample = FrameSample {
+            observations,
+            rays,
+            truth_mm: None,
+            stride: 1,
+        };
+        let settings = XiSettings::default();
+        let cut = sample
+            .around_observations(settings.normal_block_steps)
+            .expect("a smaller lattice");
+        assert_eq!((cut.observations.width, cut.observations.height), (27, 18));
+        assert_eq!(cut.observations.data.iter().flatten().count(), 16 * 23);
+        let model = ForwardModel::physical(crate::physics::sensor::Sensor::sr4000());
+        let bounds = InversionBounds::default();
+        let whole = ProfileFrame::new(&model, &bounds, &sample, &settings, ProfileUse::Estimation).profile();
+        let profile = frame_profile(&model, &bounds, &sample, &settings, ProfileUse::Estimation);
+        assert!(whole.groups.iter().flatten().any(|g| g.count > 0));
+        assert_eq!(format!("{whole:?}"), format!("{profile:?}"));
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! observations and regions, and whether the camera moved after the latch.
 
 use super::*;
-use crate::physics::parallel::map_ordered;
+use crate::physics::parallel::filter_map_parts;
 
 /// Fewest segmented pixels whose observations are gathered over the pool.
 const PARALLEL_PIXELS: usize = 16 * 1024;
@@ -50,15 +50,14 @@ impl Pipeline {
                 && o.emitted_light > 0.0;
             ok.then_some(o)
         };
-        // Over the pool, then set in the image in pixel order (as `from_mask` visits them).
         let too_large = || PipelineError::TooLarge {
             width: k.width,
             height: k.height,
         };
         let pixels = u32::try_from(mask.data.len()).map_err(|_| too_large())?;
-        let segmented: Vec<u32> = (0..pixels).filter(|&i| mask.data[i as usize]).collect();
-        let mut found = map_ordered(&segmented, PARALLEL_PIXELS, 1024, |&i| observation(i as usize)).into_iter();
-        let observations = SparseImage::from_mask(&mask, |_| found.next().flatten()).ok_or_else(too_large)?;
+        let mut segmented: Vec<u32> = Vec::with_capacity(mask.data.iter().filter(|&&m| m).count());
+        segmented.extend((0..pixels).filter(|&i| mask.data[i as usize]));
+        let observations = gather_observations(&segmented, k, observation).ok_or_else(too_large)?;
         let translucent_pixels = segmented.len();
         // A pixel's reading noise: the latch's, grown as shot noise where less light returns.
         let fallback = self.config.threshold_mm / NOISE_SIGMAS;
@@ -123,6 +122,25 @@ impl Pipeline {
         }
         Some(out)
     }
+}
+
+/// The observations `observation` gives at the `segmented` pixels (ascending), over the pool
+/// in chunks, laid out once in pixel order; `None` for an image too large to index.
+fn gather_observations(
+    segmented: &[u32],
+    k: &Intrinsics,
+    observation: impl Fn(usize) -> Option<PixelObservation> + Sync + Send,
+) -> Option<SparseImage<PixelObservation>> {
+    let parts = filter_map_parts(segmented, PARALLEL_PIXELS, 1024, |&i| {
+        observation(i as usize).map(|o| (i, o))
+    });
+    let count = parts.iter().map(Vec::len).sum();
+    let (mut pixels, mut values) = (Vec::with_capacity(count), Vec::with_capacity(count));
+    for (i, o) in parts.into_iter().flatten() {
+        pixels.push(i);
+        values.push(o);
+    }
+    SparseImage::from_pixels(k.width, k.height, pixels, values)
 }
 
 #[cfg(test)]
