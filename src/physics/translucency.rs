@@ -1174,8 +1174,8 @@ fn undetermined(groups: usize, poses: usize) -> Option<String> {
 /// beyond it the model explains fewer of the object's pixels ([`admissible_interval`]).
 /// ξ 0 is the physical end of the range, not an edge of what the data admit.
 fn at_admissible_edge(q: &[f64], k: usize) -> bool {
-    let inadmissible = |j: Option<usize>| j.is_none_or(|j| !q[j].is_finite());
-    (k > 0 && inadmissible(k.checked_sub(1))) || inadmissible((k + 1 < q.len()).then_some(k + 1))
+    let inadmissible = |j: usize| q.get(j).is_none_or(|v| !v.is_finite());
+    (k > 0 && inadmissible(k - 1)) || inadmissible(k + 1)
 }
 
 /// ξ fitted to frames with known foreground distances (paper Sec. V-A):
@@ -1548,10 +1548,23 @@ mod tests {
         let interior: Vec<f64> = grid.iter().map(|&x| ((x - 0.5) / 0.05).powi(2)).collect();
         let (k, _) = argmin(&interior).unwrap();
         assert!(!at_admissible_edge(&interior, k));
-        let opaque: Vec<f64> = grid.clone();
-        assert!(!at_admissible_edge(&opaque, 0));
+        // Rising from ξ 0: opaque, its minimum at the range's physical end.
+        assert!(!at_admissible_edge(&grid, 0));
         assert_eq!(undetermined(9, 2), None);
         assert!(undetermined(9, 1).is_some() && undetermined(2, 3).is_some());
+    }
+
+    /// Unit rays of a `w x h` pinhole camera of focal length `f` pixels, its principal point
+    /// at the image's centre.
+    fn centred_rays(w: usize, h: usize, f: f64) -> ImageBuf<Vector3<f64>> {
+        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| Vector3::new(((i % w) as f64 - cx) / f, ((i / w) as f64 - cy) / f, 1.0).normalize())
+                .collect(),
+        }
     }
 
     /// A box's corner, one face seen face-on and the other nearly edge-on (80° from the view):
@@ -1560,12 +1573,7 @@ mod tests {
     #[test]
     fn a_face_seen_edge_on_is_not_readable_and_one_seen_face_on_is() {
         let (w, h, f) = (48usize, 32usize, 60.0);
-        let ray = |u: usize, v: usize| Vector3::new((u as f64 - 23.5) / f, (v as f64 - 15.5) / f, 1.0).normalize();
-        let rays = ImageBuf {
-            width: w,
-            height: h,
-            data: (0..w * h).map(|i| ray(i % w, i / w)).collect(),
-        };
+        let rays = centred_rays(w, h, f);
         // Left: z = 2000; right of x = 0: z = 2000 + x tan(80°), a face receding steeply.
         let steep = 80f64.to_radians().tan();
         let observations = ImageBuf {
@@ -1610,7 +1618,7 @@ mod tests {
         // Beyond the narrowest window's reach of the corner (3 pixels): windows there hold only
         // the edge-on face.
         let edge_on: Vec<usize> = (0..w)
-            .filter(|&u| ray(u, 16).x > 4.0 / f && mask.data[16 * w + u])
+            .filter(|&u| sample.rays.data[16 * w + u].x > 4.0 / f && mask.data[16 * w + u])
             .collect();
         assert!(!edge_on.is_empty());
         assert!(
@@ -1624,12 +1632,7 @@ mod tests {
     #[test]
     fn a_lattice_cut_to_its_observations_gives_the_same_profile() {
         let (w, h, f) = (40usize, 30usize, 50.0);
-        let ray = |u: usize, v: usize| Vector3::new((u as f64 - 19.5) / f, (v as f64 - 14.5) / f, 1.0).normalize();
-        let rays = ImageBuf {
-            width: w,
-            height: h,
-            data: (0..w * h).map(|i| ray(i % w, i / w)).collect(),
-        };
+        let rays = centred_rays(w, h, f);
         let patch = |i: usize| (7..23).contains(&(i / w)) && (8..31).contains(&(i % w));
         let observations = ImageBuf {
             width: w,

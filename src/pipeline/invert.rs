@@ -483,7 +483,7 @@ impl Pipeline {
         // An interval that runs on to 1 (past what the model admits) leaves the layer where
         // no reading places it: at ξ 1 it returns nothing, so the layer could be anywhere.
         if xi.interval[1] >= 1.0 {
-            for (&(i, _), _) in observed.iter().zip(held).filter(|((i, _), _)| df[*i].is_finite()) {
+            for &(i, _) in observed.iter().filter(|(i, _)| df[*i].is_finite()) {
                 share[i] = self.config.max_layer_sigma_mm;
             }
             return share;
