@@ -1058,6 +1058,9 @@ async fn latch_then_play(
     background: usize,
     wait: Duration,
 ) -> Vec<u64> {
+    // The mask and sigma are read beside the corrected depth: their readers must have
+    // matched the node's writers before the first frame, or a loaded machine loses its mask.
+    peer.wait_for_every_output(Duration::from_secs(30)).await.unwrap();
     let mut t = 3_000_000_000u64;
     let reply = peer
         .latch_while_streaming(
