@@ -1077,7 +1077,10 @@ async fn latch_then_play(
     for (d, i) in &pairs[background..] {
         t += 100_000_000;
         peer.publish(info, &stamped(d, t), &stamped(i, t)).unwrap();
-        assert!(peer.wait_for(t, wait).await, "no output at {t}");
+        assert!(
+            peer.wait_for_every(t, wait).await,
+            "no corrected depth, mask, sigma or camera_info at {t}"
+        );
         sent.push(t);
     }
     sent
