@@ -28,7 +28,7 @@ import results as R  # noqa: E402
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("bags", nargs="*")
-    ap.add_argument("--exe", default=os.path.join(R.REPO, "target", "release", "translucent_tof"))
+    ap.add_argument("--exe", default=R.RELEASE_EXE)
     ap.add_argument("--json", help="write the objects and the figure here")
     a = ap.parse_args()
     bags = a.bags or R.default_bags()
