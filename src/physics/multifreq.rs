@@ -1567,7 +1567,9 @@ impl MultiFrequencyInversion {
         for (k, ((s, m), b)) in self.sensors.iter().zip(p.px.measured).zip(p.px.background).enumerate() {
             let omega = s.phase(1.0);
             let curvature = p.weight(k) * omega * omega;
-            let (m, b) = (m.a.hypot(m.b), b.a.hypot(b.b));
+            // `sqrt` rather than `hypot`: the phasors are far from overflow, and the bound
+            // carries a rounding margin (`worth_refining`).
+            let (m, b) = ((m.a * m.a + m.b * m.b).sqrt(), (b.a * b.a + b.b * b.b).sqrt());
             single += curvature * m;
             layer += curvature * (m + b);
         }
@@ -1661,12 +1663,10 @@ impl GramSlopes {
 
 /// Distances before the layer's bound `db - separation` of the near-background scan
 /// ([`MultiFrequencyInversion::near_background`]), mm: geometric, to about a coarse cell.
-const NEAR_BACKGROUND_MM: [f64; NEAR_BACKGROUND_POINTS] = [
-    0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 11.0, 16.0, 23.0, 32.0, 45.0, 64.0, 90.0,
-];
+const NEAR_BACKGROUND_MM: [f64; NEAR_BACKGROUND_POINTS] = [0.0, 1.0, 2.0, 3.0, 5.0, 8.0, 13.0, 21.0, 34.0, 55.0, 90.0];
 
 /// Points of the near-background scan.
-const NEAR_BACKGROUND_POINTS: usize = 16;
+const NEAR_BACKGROUND_POINTS: usize = 11;
 
 /// Newton's steps at most per refinement (safeguarded: each one at least halves the bracket
 /// when Newton's own step is not taken).
