@@ -710,6 +710,10 @@ mod tests {
             assert!(a.compared > 300, "stage {k}: {a:?}");
             total.add(&a);
         }
+        eprintln!(
+            "fresh draws: {} of {} within 1 mm, {} below the grid's best point, {} refused",
+            total.within, total.compared, total.below_grid, total.refused
+        );
         assert!(total.share_reached() >= 0.999, "{total:?}");
     }
 }
