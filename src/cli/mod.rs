@@ -3,10 +3,10 @@
 mod audit;
 mod bench;
 mod calibrate;
-mod common;
+pub(crate) mod common;
 mod demo;
 mod node;
-mod recording;
+pub(crate) mod recording;
 mod replay;
 mod replay_multifreq;
 mod simulate;
