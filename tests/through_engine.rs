@@ -4,33 +4,12 @@
 //! forward model: both read the phasors with `PreparedEngine::read`), and its refusals.
 
 use std::collections::BTreeMap;
-use std::path::Path;
-use std::process::{Command, Output};
 
-use translucent_tof::bag::BagReader;
 use translucent_tof::image::{depth_mm, ir_counts};
 use translucent_tof::msgs::Image;
 
-fn run(dir: &Path, args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_translucent_tof"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .expect("running the translucent_tof binary")
-}
-
-fn describe(out: &Output) -> String {
-    format!(
-        "status {:?}\n--- stdout ---\n{}\n--- stderr ---\n{}",
-        out.status.code(),
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
-}
-
-fn assert_ok(out: &Output) {
-    assert!(out.status.success(), "expected success, got {}", describe(out));
-}
+mod common;
+use common::cli::{assert_ok, describe, images, run};
 
 /// A sheet over a box before a wall, noise-free; with `frequencies` the recording carries
 /// phasors at them beside its 30 MHz depth and IR.
@@ -67,22 +46,6 @@ xi = 0.0
 albedo = 0.6
 "#
     )
-}
-
-/// Every image of a bag by topic and stamp.
-fn images(bag: &Path) -> BTreeMap<String, BTreeMap<u64, Image>> {
-    let r = BagReader::open(bag).expect("reading a bag");
-    let mut out: BTreeMap<String, BTreeMap<u64, Image>> = BTreeMap::new();
-    for raw in r.messages() {
-        let raw = raw.expect("a message");
-        if raw.type_name == "sensor_msgs/msg/Image" {
-            let img: Image = BagReader::decode(&raw).expect("an image");
-            out.entry(raw.topic.to_string())
-                .or_default()
-                .insert(img.header.stamp.as_log_time_ns(), img);
-        }
-    }
-    out
 }
 
 /// The largest difference between two bags' images on `topic`, per frame, over pixels both

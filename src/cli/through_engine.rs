@@ -9,7 +9,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use serde_json::json;
 
-use crate::bag::{BagReader, BagWriter, METADATA_NAME, PHYSICS_RECORD, PHYSICS_RECORD_KEY};
+use crate::bag::{BagReader, BagWriter, METADATA_NAME};
 use crate::image::{depth_image, ir_image};
 use crate::msgs::{CameraInfo, Image};
 use crate::physics::depth_engine::PreparedEngine;
@@ -228,7 +228,7 @@ fn write_bag(
             .unwrap_or_default(),
         physics.to_toml()?
     );
-    writer.write_metadata(PHYSICS_RECORD, BTreeMap::from([(PHYSICS_RECORD_KEY.to_string(), text)]))?;
+    writer.write_physics_record(text)?;
     let (mut copied, mut left_out) = (0, 0);
     for raw in reader.messages() {
         let raw = raw.with_context(|| format!("reading {}", a.bag.display()))?;

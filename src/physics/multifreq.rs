@@ -714,26 +714,23 @@ impl MultiFrequencyInversion {
     pub fn layer(&self, px: &PixelPhasors) -> Result<TranslucencyFit, MultiFrequencyError> {
         let p = self.pixel(px)?;
         let [(d1, _), _] = self.layer_and_single(&p);
-        let layer = self.gram(&p, d1).two_returns(&p.fixed);
-        Ok(TranslucencyFit {
-            translucency: layer.t.max(0.0).sqrt(),
-            foreground_distance_mm: d1,
-            first_return: layer.a,
-            chi_square: layer.chi_square,
-        })
+        Ok(self.layer_fit(&p, d1))
     }
 
     /// The layer's fit with its distance held at `d1`: `a >= 0` and `ξ² = t` in `[0, 1]` by the
     /// closed-form least squares, and its `chi^2` (the projected objective at one point).
     pub fn layer_at(&self, px: &PixelPhasors, d1: f64) -> Result<TranslucencyFit, MultiFrequencyError> {
-        let p = self.pixel(px)?;
-        let layer = self.gram(&p, d1).two_returns(&p.fixed);
-        Ok(TranslucencyFit {
+        Ok(self.layer_fit(&self.pixel(px)?, d1))
+    }
+
+    fn layer_fit(&self, p: &Pixel, d1: f64) -> TranslucencyFit {
+        let layer = self.gram(p, d1).two_returns(&p.fixed);
+        TranslucencyFit {
             translucency: layer.t.max(0.0).sqrt(),
             foreground_distance_mm: d1,
             first_return: layer.a,
             chi_square: layer.chi_square,
-        })
+        }
     }
 
     /// The global minima `(d, chi^2)` of the layer's projected `chi^2` over `[d_min, db -
