@@ -5,7 +5,7 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use super::buffer::ImageBuf;
 use super::parallel::map_ordered;
-use super::stats::{median_and_sigma_sorted, median_select, sigma_about};
+use super::stats::median_and_sigma_sorted;
 
 mod columns;
 use columns::Columns;
@@ -874,9 +874,9 @@ fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
     if far_above <= half && far_below <= half {
         return;
     }
-    let mut norms: Vec<f64> = points.iter().map(|p| p.distance).collect();
-    let (med, cut) = if norms.len() <= SMALL_WINDOW {
+    let (med, cut) = if points.len() <= SMALL_WINDOW {
         // A few dozen distances: sorted in place, they give the median and its spread at once.
+        let mut norms: Vec<f64> = points.iter().map(|p| p.distance).collect();
         insertion_sort(&mut norms);
         let (med, sigma) = median_and_sigma_sorted(&norms);
         if med - lo <= floor_mm && hi - med <= floor_mm {
@@ -884,13 +884,45 @@ fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
         }
         (med, (k * sigma).max(floor_mm))
     } else {
-        let med = median_select(&mut norms);
+        let (med, sigma) = KEYS.with(|keys| {
+            let keys = &mut *keys.borrow_mut();
+            keys.clear();
+            keys.extend(points.iter().map(|p| p.distance.to_bits()));
+            let med = median_of_keys(keys);
+            keys.clear();
+            keys.extend(points.iter().map(|p| (p.distance - med).abs().to_bits()));
+            (med, 1.4826 * median_of_keys(keys))
+        });
         if med - lo <= floor_mm && hi - med <= floor_mm {
             return;
         }
-        (med, (k * sigma_about(&norms, med)).max(floor_mm))
+        (med, (k * sigma).max(floor_mm))
     };
     points.retain(|p| (p.distance - med).abs() <= cut);
+}
+
+thread_local! {
+    /// Each thread's buffer of [`median_of_keys`]' keys, kept between windows.
+    static KEYS: std::cell::RefCell<Vec<u64>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// The median of non-negative finite values given as their bits (`f64::to_bits`): for
+/// such values the bits order as the values do, so the selection compares integers. The
+/// same value as [`median_select`](super::stats::median_select) of the values (the mean of the two middle ones for an
+/// even count); reorders `keys`. NaN for none.
+fn median_of_keys(keys: &mut [u64]) -> f64 {
+    let n = keys.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    let (lower, mid, _) = keys.select_nth_unstable(n / 2);
+    let mid = f64::from_bits(*mid);
+    if n % 2 == 1 {
+        mid
+    } else {
+        let below = lower.iter().copied().max().map_or(mid, f64::from_bits);
+        0.5 * (below + mid)
+    }
 }
 
 /// Most distances [`keep_near_median`] sorts by insertion (fewer moves than a selection's
@@ -992,6 +1024,33 @@ thread_local! {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_median_of_keys_is_the_median_of_the_values() {
+        use crate::physics::stats::median_select;
+        // Distances in mm, and deviations with zeros among them; odd and even counts.
+        let mut x = 0.37_f64;
+        for n in [1usize, 2, 3, 10, 49, 50, 51, 400] {
+            let values: Vec<f64> = (0..n)
+                .map(|k| {
+                    x = (x * 997.0 + 0.113).fract();
+                    if k % 7 == 3 {
+                        0.0
+                    } else {
+                        300.0 + 2000.0 * x
+                    }
+                })
+                .collect();
+            let mut keys: Vec<u64> = values.iter().map(|v| v.to_bits()).collect();
+            let mut plain = values.clone();
+            assert_eq!(
+                median_of_keys(&mut keys).to_bits(),
+                median_select(&mut plain).to_bits(),
+                "{n} values"
+            );
+        }
+        assert!(median_of_keys(&mut []).is_nan());
+    }
 
     #[test]
     fn fits_a_tilted_plane_and_rejects_an_outlier() {
