@@ -137,6 +137,34 @@ impl BenchScene {
         translucency::one_material(&[profile])
     }
 
+    /// The bytes of the node's messages for `out`, the recovery of `frame`
+    /// ([`crate::outputs::output_messages`], each serialised to CDR as DDS sends it).
+    pub fn publish(&self, frame: &DepthFrame, out: &crate::pipeline::FrameOutput) -> usize {
+        use crate::msgs::{to_cdr, Header};
+        let header = Header::new(frame.stamp_ns, "tof_optical_frame");
+        let info = crate::image::camera_info(&header, &self.pipeline.intrinsics);
+        let messages = crate::outputs::output_messages(&header, (&info, self.pipeline.rays()), out, &frame.ir, "32FC1")
+            .expect("the bench's outputs match its camera");
+        let bytes = [
+            to_cdr(&messages.corrected).map(|b| b.len()),
+            to_cdr(&messages.camera_info).map(|b| b.len()),
+            to_cdr(&messages.mask).map(|b| b.len()),
+            to_cdr(&messages.sigma).map(|b| b.len()),
+            to_cdr(&messages.points).map(|b| b.len()),
+        ];
+        let estimates: usize = messages
+            .estimates
+            .iter()
+            .filter_map(|e| to_cdr(e).ok())
+            .map(|b| b.len())
+            .sum();
+        bytes
+            .into_iter()
+            .map(|b| b.expect("the bench's messages serialise"))
+            .sum::<usize>()
+            + estimates
+    }
+
     /// The whole per-frame work of `replay` (estimating ξ online): a fresh
     /// pipeline on this background processes every object frame in turn.
     pub fn replay(&self) -> usize {
@@ -384,6 +412,10 @@ pub enum Case {
     XiEstimate,
     /// `Pipeline::process` over the four object frames, ξ estimated online; per frame.
     Replay,
+    /// The node's messages for one recovered frame (corrected depth, camera_info, mask,
+    /// sigma, the organized cloud and the estimates) built and serialised to CDR, as the
+    /// node does before it hands them to DDS.
+    Publish,
     /// The multi-frequency path ([`MultiFrequencyStage::process`]) on one frame at
     /// [`BENCH_FREQUENCIES_HZ`]: every pixel tested, the changed ones inverted.
     MultiFrequency,
@@ -400,6 +432,7 @@ impl Case {
             Case::Observe => "observe",
             Case::XiEstimate => "xi_estimate",
             Case::Replay => "replay",
+            Case::Publish => "publish",
             Case::MultiFrequency => "multi_frequency",
         }
     }
@@ -629,6 +662,12 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
         Case::XiEstimate => time_ms(samples, budget, pause, || {
             std::hint::black_box(scene.xi_by_shape(&obs));
         }),
+        Case::Publish => {
+            let out = scene.pipeline.recover(frame, &obs, &xi);
+            time_ms(samples, budget, pause, || {
+                std::hint::black_box(scene.publish(frame, &out));
+            })
+        }
         Case::Replay => {
             let (m, p, k) = time_ms(samples, budget, pause, || {
                 std::hint::black_box(scene.replay());

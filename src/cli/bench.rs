@@ -32,7 +32,7 @@ pub struct BenchArgs {
         long,
         value_enum,
         value_delimiter = ',',
-        default_value = "recover,recover_per_pixel,recover_with_interval,observe,xi_estimate,replay"
+        default_value = "recover,recover_per_pixel,recover_with_interval,observe,xi_estimate,replay,publish"
     )]
     pub cases: Vec<CaseArg>,
     /// node_latency: object frames published (cycling the bag's).
@@ -95,6 +95,8 @@ pub enum CaseArg {
     XiEstimate,
     /// The pipeline over the object frames, ξ estimated online; per frame.
     Replay,
+    /// The node's messages for one recovered frame (cloud included) built and serialised to CDR.
+    Publish,
     /// The multi-frequency path (20, 50 and 100 MHz) on one frame, against a plain
     /// per-pixel grid fit of two returns (not in the default list: its reference takes
     /// seconds).
@@ -113,6 +115,7 @@ impl CaseArg {
             CaseArg::Observe => Some(Case::Observe),
             CaseArg::XiEstimate => Some(Case::XiEstimate),
             CaseArg::Replay => Some(Case::Replay),
+            CaseArg::Publish => Some(Case::Publish),
             CaseArg::MultiFrequency => Some(Case::MultiFrequency),
             CaseArg::NodeLatency => None,
         }
