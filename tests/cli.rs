@@ -820,7 +820,7 @@ fn help_shows_possible_values() {
     );
     let bench = help(&["bench", "-h"]);
     assert!(
-        bench.contains("[possible values: recover, recover_per_pixel, recover_with_interval, observe, xi_estimate, replay, multi_frequency, node_latency]"),
+        bench.contains("[possible values: recover, recover_per_pixel, recover_with_interval, observe, xi_estimate, replay, publish, multi_frequency, node_latency]"),
         "{bench}"
     );
     let bad = run(dir.path(), &["replay", "x.mcap", "--xi-mode", "offline"]);
@@ -1156,7 +1156,7 @@ fn bench_rows_per_layer_distance() {
     let args = [
         "bench",
         "--cases",
-        "recover,replay",
+        "recover,replay,publish",
         "--sizes",
         "96x80",
         "--threads",
@@ -1190,6 +1190,8 @@ fn bench_rows_per_layer_distance() {
         "{near} {far}"
     );
     assert_eq!(rows.iter().filter(|r| r["name"] == "replay").count(), 1, "{rows:?}");
+    // The messages are timed on each frame's recovery.
+    assert!(num(row("publish", 500.0), "median_ms") > 0.0, "{rows:?}");
     assert!(rows.iter().all(|r| r["pinned"] == true), "{rows:?}");
     // The machine the figures were measured on goes with them.
     let machine = &report["machine"];

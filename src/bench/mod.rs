@@ -720,6 +720,23 @@ pub fn run_case(scene: &BenchScene, case: Case, settings: &RunSettings) -> Row {
 mod tests {
     use super::*;
 
+    /// `publish` serialises every message of the frame: at least the cloud's 24 bytes a
+    /// point and the corrected depth's, sigma's and mask's pixels.
+    #[test]
+    fn publish_serialises_the_whole_frame() {
+        let scene = BenchScene::new(48, 40);
+        let frame = scene.near_frame();
+        let obs = scene.observe(frame);
+        let out = scene.pipeline.recover(frame, &obs, &XiEstimate::fixed(BENCH_XI));
+        let pixels = 48 * 40;
+        let least = pixels * (24 + 4 + 4 + 1);
+        let bytes = scene.publish(frame, &out);
+        assert!(
+            bytes >= least && bytes < least + 4096,
+            "{bytes} bytes for {pixels} pixels"
+        );
+    }
+
     /// The pipeline's inversion and the plain 1 mm grid give the same layer
     /// wherever the pixel has one root (speed is measured by `bench`, not here).
     #[test]
