@@ -291,12 +291,15 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
     for s in &scene.stages {
         stages.extend(std::iter::repeat_n((s.objects.as_slice(), false), s.frames));
     }
+    let artefacts = &scene.camera.artefacts;
     for (index, (objects, background_only)) in stages.into_iter().enumerate() {
         let npx = k.width * k.height;
         let mut depth = Vec::with_capacity(npx);
         let mut ir = Vec::with_capacity(npx);
         let mut truth = Vec::with_capacity(npx);
         let mut phasors: Vec<Vec<[f32; 2]>> = vec![Vec::with_capacity(npx); multi.as_ref().map_or(0, |m| m.len())];
+        let frame_time_s = index as f64 / scene.camera.frame_rate_hz;
+        let mut measurements: Vec<Option<crate::physics::Measurement>> = Vec::with_capacity(npx);
         for i in 0..npx {
             let (col, row) = ((i % k.width) as f64, (i / k.width) as f64);
             // Sub-rays on a regular grid within the pixel, each with its share of the light:
@@ -326,10 +329,23 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
                     );
                 }
             }
+            artefacts.drift(&mut returns, frame_time_s);
             if let Some(mf) = &multi {
                 push_phasors(mf, &returns, &noise, &mut phasor_rng, &mut phasors);
             }
-            let meas = (!returns.is_empty()).then(|| model.measure(&returns));
+            measurements.push((!returns.is_empty()).then(|| model.measure(&returns)));
+        }
+        // The sensor's effects past the model, on the whole frame's measurements (stray light
+        // spreads the frame's light); none leaves each measurement as the model made it.
+        let frame_light = crate::sim::Artefacts::frame_light(&measurements);
+        for (i, meas) in measurements.into_iter().enumerate() {
+            let meas = meas.map(|m| {
+                if artefacts.none() {
+                    m
+                } else {
+                    artefacts.apply(&sensor, &m, frame_light)
+                }
+            });
             let fg = foreground_hit(
                 &rays.data[i],
                 objects,

@@ -115,6 +115,9 @@ pub struct CameraSpec {
     /// The share of the other pixels read invalid in each frame, drawn at random (the
     /// pixels a camera invalidates for multipath or too little light); 0: none.
     pub invalid_share: f64,
+    /// Sensor effects past the model (stray light, saturation, a nonlinear amplitude
+    /// response, a drifting phase offset); all off by default.
+    pub artefacts: super::artefacts::Artefacts,
 }
 
 impl CameraSpec {
@@ -146,6 +149,7 @@ impl Default for CameraSpec {
             distortion: vec![],
             invalid_beyond_radius: 0.0,
             invalid_share: 0.0,
+            artefacts: super::artefacts::Artefacts::default(),
         }
     }
 }
@@ -309,6 +313,7 @@ impl Scene {
         if !(c.invalid_beyond_radius >= 0.0 && (0.0..1.0).contains(&c.invalid_share)) {
             return Err("camera: invalid_beyond_radius >= 0 and invalid_share in [0, 1) required".into());
         }
+        c.artefacts.validate()?;
         if !(1..=8).contains(&c.supersample) {
             return Err(format!("camera.supersample {} must be in 1..=8", c.supersample));
         }
