@@ -18,8 +18,8 @@ pub struct Artefacts {
     /// Share of the frame's mean light (buckets and IR) the lens scatters onto every pixel:
     /// a bright object's signal spread over its neighbours. 0: none.
     pub stray_light: f64,
-    /// Full well, IR counts: a pixel's raw buckets `(T +- A) / 2`, `(T +- B) / 2` clip at
-    /// half of it and its IR at it. 0: none.
+    /// Full well, IR counts: a pixel's raw buckets `(T +- A) / 2`, `(T +- B) / 2` and its IR
+    /// clip at it (`T` the light collected). 0: none.
     pub saturation_ir: f64,
     /// Power of the amplitude response: the IR reads `R (I / R)^p`, `R` the
     /// [`Artefacts::amplitude_reference`]. 1: linear.
@@ -107,7 +107,7 @@ impl Artefacts {
         }
         let w = self.saturation_ir;
         if w > 0.0 {
-            let clip = |q: f64| q.clamp(0.0, 0.5 * w);
+            let clip = |q: f64| q.clamp(0.0, w);
             let t = out.total_light;
             let (a, b) = (out.buckets.a, out.buckets.b);
             out.buckets = Buckets {
@@ -155,7 +155,7 @@ mod tests {
         };
         let faint = reading(&a, 300.0, 1800.0);
         assert!((faint.distance_mm - 1800.0).abs() < 1e-6 && (faint.ir - 300.0).abs() < 1e-6);
-        let bright = reading(&a, 900.0, 1800.0);
+        let bright = reading(&a, 500.0, 1800.0);
         assert_eq!(bright.ir, 400.0);
         assert!((bright.distance_mm - 1800.0).abs() > 5.0, "{bright:?}");
     }
