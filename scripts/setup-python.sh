@@ -2,7 +2,8 @@
 # Creates the Python virtual environment used by the bag interoperability
 # tests (tests/bag_interop.rs): independent ROS 2 MCAP readers and writers;
 # by the DDS peer tests (tests/cyclone_peer.rs, tests/rclpy_graph.rs); and by
-# the Rerun recording checks of tests/cli.rs (`rerun rrd verify`).
+# the Rerun recording checks of tests/cli.rs (`rerun rrd verify`); and by
+# the soak's plot (scripts/soak).
 #
 #   bash scripts/setup-python.sh          # venv at <repo>/.venv
 #   TTOF_VENV=/some/dir bash scripts/setup-python.sh
@@ -30,6 +31,8 @@ RCL_INTERFACES_VERSION="2.3.0"
 # The Rerun CLI (`rerun rrd verify`) of the same version as the Rust crate
 # `rerun` in Cargo.lock: a recording is checked by the reader of its own version.
 RERUN_SDK_VERSION="0.36.3"
+# The soak's plot of memory and latency over time (scripts/soak).
+MATPLOTLIB_VERSION="3.10.9"
 
 if [ ! -x "$venv/bin/python" ]; then
     echo "creating venv at $venv"
@@ -46,10 +49,11 @@ fi
     "ros-std-srvs==$ROS_MSGS_VERSION" \
     "ros-diagnostic-msgs==$ROS_MSGS_VERSION" \
     "ros-rcl-interfaces==$RCL_INTERFACES_VERSION" \
-    "rerun-sdk==$RERUN_SDK_VERSION"
+    "rerun-sdk==$RERUN_SDK_VERSION" \
+    "matplotlib==$MATPLOTLIB_VERSION"
 "$venv/bin/python" - <<'PY'
 import importlib.metadata as md
-for name in ("rosbags", "mcap", "mcap-ros2-support", "cyclonedds", "ros-rclpy", "ros-rmw-fastrtps-cpp", "rerun-sdk"):
+for name in ("rosbags", "mcap", "mcap-ros2-support", "cyclonedds", "ros-rclpy", "ros-rmw-fastrtps-cpp", "rerun-sdk", "matplotlib"):
     print(f"{name}=={md.version(name)}")
 PY
 echo "ok: run the interop tests with: cargo test --test bag_interop"

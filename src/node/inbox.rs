@@ -101,7 +101,7 @@ impl Intake {
 
 /// Whether an image is within what the node takes: at most
 /// [`MAX_IMAGE_BYTES`] of data; with `info`, no more pixels than it says and
-/// no more data than the image's own `step x height`.
+/// no more data than the image's own `step x height`; and not less data than that.
 pub fn check_size(img: &Image, info: Option<&CameraInfo>) -> Result<(), Refused> {
     let oversized = |detail: String| Refused {
         cause: DropCause::Oversized,
@@ -130,6 +130,18 @@ pub fn check_size(img: &Image, info: Option<&CameraInfo>) -> Result<(), Refused>
                 img.data.len()
             )));
         }
+    }
+    // A truncated image: refused here, by its own cause, rather than left to wait for a
+    // partner that pairs it with a frame nothing can read.
+    let declared = u64::from(img.step) * h;
+    if (img.data.len() as u64) < declared {
+        return Err(Refused {
+            cause: DropCause::BadImage,
+            detail: format!(
+                "{w}x{h} image truncated: {} bytes of data, less than its step x height = {declared}",
+                img.data.len()
+            ),
+        });
     }
     Ok(())
 }
@@ -471,6 +483,9 @@ mod tests {
         assert!(intake.image("/d", sized(8, 2, 16, 32), Some(&info)).is_none());
         // More data than step x height.
         assert!(intake.image("/d", sized(4, 2, 8, 17), Some(&info)).is_none());
+        // Less data than step x height: truncated.
+        assert!(intake.image("/d", sized(4, 2, 8, 15), Some(&info)).is_none());
+        assert!(intake.image("/d", sized(4, 2, 8, 15), None).is_none());
         // Before any camera_info only the absolute limit applies.
         assert!(intake.image("/d", sized(8, 2, 16, 33), None).is_some());
         assert!(intake.image("/d", sized(1, 1, 2, MAX_IMAGE_BYTES + 1), None).is_none());
@@ -485,10 +500,11 @@ mod tests {
         assert!(intake.camera_info("/i", info.clone()).is_some());
         assert_eq!(intake.drops.get(DropCause::Oversized), 4);
         assert_eq!(intake.drops.get(DropCause::Malformed), 1);
-        assert_eq!(intake.drops.total(), 5);
+        assert_eq!(intake.drops.get(DropCause::BadImage), 2);
+        assert_eq!(intake.drops.total(), 7);
         // Absurd dimensions do not overflow.
         let huge = sized(u32::MAX, u32::MAX, u32::MAX, 4);
-        assert_eq!(check_size(&huge, None), Ok(()));
+        assert_eq!(check_size(&huge, None).map_err(|r| r.cause), Err(DropCause::BadImage));
         assert_eq!(
             check_size(&huge, Some(&info)).map_err(|r| r.cause),
             Err(DropCause::Oversized)

@@ -182,6 +182,13 @@ pub struct NodeStats {
     /// Frames of which an output could not be handed to DDS (a reliable
     /// writer's window full: a reader not acknowledging).
     pub publish_failures: u64,
+    /// Times depth frames resumed after none came for [`INPUT_GAP`] (a driver
+    /// restarted, a camera unplugged and back).
+    pub input_gaps: u64,
+    /// Times the camera was seen to move after the latch.
+    pub camera_moves: u64,
+    /// Run-time parameter changes applied (`ros2 param set`).
+    pub parameter_changes: u64,
     /// Processing time per published frame, ms (from taking the pair off the
     /// queue to its four outputs handed to DDS): median, 95th percentile, max
     /// over the last 8192 frames.
@@ -198,6 +205,9 @@ pub struct NodeStats {
     /// empty: unpinned).
     pub pinned_cpus: Vec<usize>,
 }
+
+/// A pause in the depth input this long or longer is counted as a gap (`input_gaps`).
+pub const INPUT_GAP: Duration = Duration::from_secs(1);
 
 /// Which service a pending request belongs to.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -384,6 +394,9 @@ struct Live {
     dropped: BTreeMap<DropCause, u64>,
     passed: BTreeMap<crate::pipeline::Passthrough, u64>,
     camera_moved: bool,
+    camera_moves: u64,
+    parameter_changes: u64,
+    publish_failures: u64,
     latch: &'static str,
     xi: Option<[f64; 3]>,
     xi_method: String,
@@ -424,6 +437,16 @@ fn diagnostics_message(node_fqn: &str, stamp_ns: u64, i: &Inputs, l: &Live) -> D
         kv("latch", l.latch.to_string()),
     ];
     values.push(kv("camera_moved", l.camera_moved.to_string()));
+    for (k, n) in [
+        ("camera_moves", l.camera_moves),
+        ("latch_requests", i.counts.services[0]),
+        ("clear_requests", i.counts.services[1]),
+        ("parameter_changes", l.parameter_changes),
+        ("input_gaps", i.counts.input_gaps),
+        ("publish_failures", l.publish_failures),
+    ] {
+        values.push(kv(k, n.to_string()));
+    }
     for (why, n) in &l.passed {
         let name = serde_json::to_value(why)
             .ok()
@@ -603,6 +626,7 @@ async fn run_async(s: NodeSettings) -> anyhow::Result<NodeStats> {
         },
         last_info: None,
         intake: Intake::default(),
+        last_depth: None,
     };
     let final_stats = events.serve(&inputs, &services, reply_rx, &mut done_rx).await?;
     inbox.push_command(Command::Shutdown);
@@ -940,6 +964,8 @@ struct Events<'a> {
     counts: NodeStats,
     last_info: Option<CameraInfo>,
     intake: Intake,
+    /// When the last depth image arrived (for `input_gaps`).
+    last_depth: Option<Instant>,
 }
 
 /// Where an image arrived: depth, IR, or frequency `k`'s phasors.
@@ -1026,7 +1052,18 @@ impl Events<'_> {
     /// Takes an image in and queues the frame it completes, if any.
     fn on_image(&mut self, slot: Slot, topic: &str, img: Image) {
         match slot {
-            Slot::Depth => self.counts.depth_received += 1,
+            Slot::Depth => {
+                self.counts.depth_received += 1;
+                let now = Instant::now();
+                if let Some(gap) = self.last_depth.map(|t| now - t).filter(|g| *g >= INPUT_GAP) {
+                    self.counts.input_gaps += 1;
+                    info!(
+                        "depth frames resumed after {:.1} s without (input_gaps)",
+                        gap.as_secs_f64()
+                    );
+                }
+                self.last_depth = Some(now);
+            }
             Slot::Ir => self.counts.ir_received += 1,
             Slot::Phasor(k) => {
                 if let Some(n) = self.counts.phasor_received.get_mut(k) {
@@ -1097,6 +1134,7 @@ fn with_intake_counts(
     intake: Intake,
 ) -> NodeStats {
     stats.depth_received = counts.depth_received;
+    stats.input_gaps = counts.input_gaps;
     stats.ir_received = counts.ir_received;
     stats.phasor_received.clone_from(&counts.phasor_received);
     stats.info_received = counts.info_received;

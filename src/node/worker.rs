@@ -137,6 +137,9 @@ impl Worker {
                 dropped: self.core.drops.by_cause.clone(),
                 passed: self.core.passed.clone(),
                 camera_moved: self.core.camera_moved(),
+                camera_moves: self.core.moves,
+                parameter_changes: self.stats.parameter_changes,
+                publish_failures: self.stats.publish_failures,
                 latch: self.latch_state(),
                 xi: self.stats.xi,
                 xi_method: match self.multi {
@@ -169,6 +172,7 @@ impl Worker {
                     background_frames,
                     latch_timeout,
                 } = *r;
+                self.stats.parameter_changes += 1;
                 self.core
                     .reconfigure(config, background_frames, latch_timeout, forget_evidence);
             }
@@ -371,6 +375,7 @@ impl Worker {
         sample_memory(&mut self.stats);
         self.stats.dropped = self.core.drops.by_cause.clone();
         self.stats.passed_through = self.core.passed.clone();
+        self.stats.camera_moves = self.core.moves;
         self.stats.added_latency_ms = percentiles(&mut self.latencies);
         if let Some(v) = self.viz {
             self.stats.rerun_dropped = v.dropped();

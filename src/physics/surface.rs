@@ -5,7 +5,7 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use super::buffer::ImageBuf;
 use super::parallel::map_ordered;
-use super::stats::{median_select, sigma_about};
+use super::stats::{median_and_sigma_sorted, median_select, sigma_about};
 
 mod columns;
 use columns::Columns;
@@ -815,15 +815,18 @@ impl Blocks {
                 centres.push(c);
             }
         }
-        // Each row's blocks, repeated `s` times across and down.
+        // Each row of blocks' slots, repeated `s` times across, then copied to its `s` rows.
         let mut pixel_slot = Vec::with_capacity(w * h);
-        for r in 0..h {
-            let row = &slot[(r / s) * across..(r / s + 1) * across];
-            pixel_slot.extend(
-                row.iter()
-                    .flat_map(|&k| std::iter::repeat_n(u32::try_from(k).unwrap_or(u32::MAX), s))
-                    .take(w),
-            );
+        let mut row_slots = Vec::with_capacity(across * s);
+        for (br, blocks) in slot.chunks(across.max(1)).enumerate() {
+            row_slots.clear();
+            for &k in blocks {
+                row_slots.extend(std::iter::repeat_n(u32::try_from(k).unwrap_or(u32::MAX), s));
+            }
+            row_slots.truncate(w);
+            for _ in br * s..((br + 1) * s).min(h) {
+                pixel_slot.extend_from_slice(&row_slots);
+            }
         }
         Self { centres, pixel_slot }
     }
@@ -872,12 +875,39 @@ fn keep_near_median(points: &mut Vec<RayPoint>, k: f64, floor_mm: f64) {
         return;
     }
     let mut norms: Vec<f64> = points.iter().map(|p| p.distance).collect();
-    let med = median_select(&mut norms);
-    if med - lo <= floor_mm && hi - med <= floor_mm {
-        return;
-    }
-    let cut = (k * sigma_about(&norms, med)).max(floor_mm);
+    let (med, cut) = if norms.len() <= SMALL_WINDOW {
+        // A few dozen distances: sorted in place, they give the median and its spread at once.
+        insertion_sort(&mut norms);
+        let (med, sigma) = median_and_sigma_sorted(&norms);
+        if med - lo <= floor_mm && hi - med <= floor_mm {
+            return;
+        }
+        (med, (k * sigma).max(floor_mm))
+    } else {
+        let med = median_select(&mut norms);
+        if med - lo <= floor_mm && hi - med <= floor_mm {
+            return;
+        }
+        (med, (k * sigma_about(&norms, med)).max(floor_mm))
+    };
     points.retain(|p| (p.distance - med).abs() <= cut);
+}
+
+/// Most distances [`keep_near_median`] sorts by insertion (fewer moves than a selection's
+/// partitions there); above it, two selections.
+const SMALL_WINDOW: usize = 48;
+
+/// Sorts finite values ascending by insertion.
+fn insertion_sort(v: &mut [f64]) {
+    for i in 1..v.len() {
+        let x = v[i];
+        let mut j = i;
+        while j > 0 && v[j - 1] > x {
+            v[j] = v[j - 1];
+            j -= 1;
+        }
+        v[j] = x;
+    }
 }
 
 /// A window's fitted surface: the quadric, or a plane where the quadric failed.
