@@ -186,6 +186,9 @@ def evaluate(bag, replay_args, exe):
                     off[2] += 1
             if info is None or not math.isfinite(truth[i]):
                 continue
+            # A pixel published unmeasured (NaN) where the camera read it counts at its reading:
+            # abstaining is no better than the raw reading, never left out of the figure.
+            zi = z[i] if math.isfinite(z[i]) else raw[i]
             if regions[i]:
                 region_votes[m][regions[i]] += 1
                 frame_votes[stamp][m][regions[i]] += 1
@@ -200,13 +203,13 @@ def evaluate(bag, replay_args, exe):
                     opaque_raw_err[m].append(abs(raw[i] - truth[i]))
                 continue
             total += 1
-            if math.isfinite(z[i]) and math.isfinite(raw[i]):
-                a2 += (z[i] - truth[i]) ** 2
+            if math.isfinite(zi) and math.isfinite(raw[i]):
+                a2 += (zi - truth[i]) ** 2
                 ar2 += (raw[i] - truth[i]) ** 2
                 an += 1
                 inner = width and not on_outline(mat, i, width)
                 for o in (obj_sq[m], inner_sq[m]) if inner else (obj_sq[m],):
-                    o[0] += (z[i] - truth[i]) ** 2
+                    o[0] += (zi - truth[i]) ** 2
                     o[1] += (raw[i] - truth[i]) ** 2
                     o[2] += 1
             if corr is not None and mask[i] and math.isfinite(z[i]):
@@ -315,7 +318,7 @@ def evaluate(bag, replay_args, exe):
             row["xi_not_measured"] = True
         if e:
             lo, hi = e["xi_interval"]
-            row.update({"xi": e["xi"], "xi_interval": [lo, hi], "inside": lo <= info["xi"] <= hi, "width": hi - lo,
+            row.update({"xi": e["xi"], "xi_interval": [lo, hi], "inside": lo <= info["xi"] <= hi, "width": hi - lo, "note": e.get("note"),
                         "opaque_claimed": e["opaque"]})
         if per_frame:
             row.update(frames_mf(per_frame))

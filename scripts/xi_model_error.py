@@ -45,7 +45,7 @@ def main():
             if not iv or "per_frame" in m or iv[0] <= 0.0 or iv[1] - iv[0] >= 1.0:
                 continue
             rows.append({"bag": r["bag"], "xi_true": m["xi_true"], "xi": m["xi"], "xi_interval": iv,
-                         "error": m["xi"] - m["xi_true"], "half_width": 0.5 * (iv[1] - iv[0])})
+                         "error": m["xi"] - m["xi_true"], "half_width": 0.5 * (iv[1] - iv[0]), "note": m.get("note")})
     if not rows:
         print("no object with an estimate: nothing to measure", file=sys.stderr)
         return 1

@@ -10,12 +10,15 @@
 //! its own is handed back to the kernel when it is freed. Linux only;
 //! elsewhere everything goes to the system allocator.
 //!
-//! A freed mapping is first kept in a small cache ([`CACHE_SLOTS`] mappings,
-//! at most [`CACHE_BYTES`] in all, the oldest handed back first) and reused by
-//! the next allocation of the same page count: the pipeline's per-frame
-//! buffers come back at the same sizes every frame, and a fresh mapping costs
-//! a page fault for each page it touches. The cache bounds what is kept, so
-//! resident memory stays flat.
+//! A mapping's length is its size class ([`mapping_len`]: four classes to
+//! each doubling, so at most a quarter more than asked). A freed mapping is
+//! first kept in a small cache ([`CACHE_SLOTS`] mappings, at most
+//! [`CACHE_BYTES`] in all, the oldest handed back first) and reused by the next
+//! allocation of the same class: the pipeline's per-frame buffers come back
+//! every frame at sizes that follow the objects in view (a region's pixels),
+//! so from one frame to the next a buffer's size moves within its class, and a
+//! fresh mapping costs a page fault for each page it touches. The cache bounds
+//! what is kept, so resident memory stays flat.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -37,7 +40,7 @@ pub fn mapped_bytes() -> usize {
 }
 
 /// Most freed mappings kept for reuse.
-pub const CACHE_SLOTS: usize = 32;
+pub const CACHE_SLOTS: usize = 64;
 
 /// Most bytes kept in freed mappings for reuse; a larger mapping is handed back at once.
 pub const CACHE_BYTES: usize = 64 << 20;
@@ -149,8 +152,21 @@ fn is_large(_: &Layout) -> bool {
     false
 }
 
-fn pages(bytes: usize) -> usize {
-    bytes.div_ceil(PAGE) * PAGE
+/// Size classes to each doubling of a mapping's length.
+const CLASSES_PER_DOUBLING: usize = 4;
+
+/// The length of the mapping that holds `bytes`: the smallest of `2^k`,
+/// `1.25 * 2^k`, `1.5 * 2^k` and `1.75 * 2^k` pages that holds them, so that
+/// buffers whose sizes differ a little from frame to frame share a class (and a
+/// cached mapping). At most a quarter more than the pages asked for.
+fn mapping_len(bytes: usize) -> usize {
+    let pages = bytes.div_ceil(PAGE).max(1);
+    if pages <= CLASSES_PER_DOUBLING {
+        return pages * PAGE;
+    }
+    // The class step: a quarter of the largest power of two not above `pages`.
+    let step = (1usize << pages.ilog2()) / CLASSES_PER_DOUBLING;
+    pages.div_ceil(step) * step * PAGE
 }
 
 #[cfg(target_os = "linux")]
@@ -220,7 +236,7 @@ unsafe fn remap(_: *mut u8, _: usize, _: usize) -> *mut u8 {
 unsafe impl GlobalAlloc for LargeMapped {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         if is_large(&layout) {
-            let len = pages(layout.size());
+            let len = mapping_len(layout.size());
             match take_cached(len) {
                 Some(p) => p,
                 // SAFETY: a fresh mapping; page alignment covers `layout.align()`.
@@ -234,7 +250,7 @@ unsafe impl GlobalAlloc for LargeMapped {
 
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
         if is_large(&layout) {
-            let len = pages(layout.size());
+            let len = mapping_len(layout.size());
             match take_cached(len) {
                 Some(p) => {
                     // SAFETY: a cached mapping of `len >= layout.size()` bytes, now this block's.
@@ -253,7 +269,7 @@ unsafe impl GlobalAlloc for LargeMapped {
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
         if is_large(&layout) {
             // SAFETY: a large layout's block is a mapping of these pages.
-            unsafe { unmap(ptr, pages(layout.size())) }
+            unsafe { unmap(ptr, mapping_len(layout.size())) }
         } else {
             // SAFETY: a small layout's block came from System.
             unsafe { System.dealloc(ptr, layout) }
@@ -267,7 +283,7 @@ unsafe impl GlobalAlloc for LargeMapped {
             // SAFETY: both small: System's own block, resized by System.
             (false, false) => unsafe { System.realloc(ptr, layout, new_size) },
             (true, true) => {
-                let (old, new) = (pages(layout.size()), pages(new_size));
+                let (old, new) = (mapping_len(layout.size()), mapping_len(new_size));
                 if old == new {
                     return ptr;
                 }
@@ -331,31 +347,58 @@ mod tests {
     }
 
     #[test]
+    fn a_mapping_is_the_smallest_class_that_holds_the_block() {
+        assert_eq!(mapping_len(LARGE), LARGE);
+        assert_eq!(mapping_len(LARGE + 1), 20 * PAGE);
+        assert_eq!(mapping_len(3 * PAGE), 3 * PAGE);
+        // 193..=224 pages share the class of 224 (1.75 * 128).
+        assert_eq!(mapping_len(193 * PAGE), 224 * PAGE);
+        assert_eq!(mapping_len(224 * PAGE), 224 * PAGE);
+        assert_eq!(mapping_len(224 * PAGE + 1), 256 * PAGE);
+        for bytes in (LARGE..40 * LARGE).step_by(4093) {
+            let len = mapping_len(bytes);
+            assert!(len >= bytes && len.is_multiple_of(PAGE), "{bytes} in {len}");
+            assert!(len <= bytes.div_ceil(PAGE) * PAGE * 5 / 4, "{bytes} in {len}");
+        }
+    }
+
+    #[test]
     #[cfg(target_os = "linux")]
-    fn freed_mappings_are_reused_by_size_and_the_oldest_handed_back() {
+    fn freed_mappings_are_reused_by_class_and_the_oldest_handed_back() {
         let a = LargeMapped;
-        // Sizes no other test uses (the cache is shared).
-        let layout = |k: usize| Layout::from_size_align((300 + k) * PAGE, 8).unwrap();
+        // Sizes in one class (224 pages) no other test uses (the cache is shared).
+        let layout = |k: usize| Layout::from_size_align((197 + k % 23) * PAGE + 8, 8).unwrap();
         // SAFETY: each block is used within its size and freed once with its layout.
         unsafe {
             let p = a.alloc(layout(0));
             std::ptr::write_bytes(p, 0xab, layout(0).size());
             a.dealloc(p, layout(0));
-            // The same page count comes back from the cache, zeroed when asked.
-            let q = a.alloc_zeroed(layout(0));
+            // Another size of the same class comes back from the cache, zeroed when asked.
+            let q = a.alloc_zeroed(layout(5));
             assert_eq!(q, p);
-            assert!((0..layout(0).size()).all(|i| *q.add(i) == 0));
-            a.dealloc(q, layout(0));
+            assert!((0..layout(5).size()).all(|i| *q.add(i) == 0));
+            a.dealloc(q, layout(5));
             // Past CACHE_SLOTS freed mappings, the oldest are handed back.
             let blocks: Vec<*mut u8> = (1..=CACHE_SLOTS + 4).map(|k| a.alloc(layout(k))).collect();
             for (k, &b) in (1..).zip(&blocks) {
                 a.dealloc(b, layout(k));
             }
             assert!(cached_bytes() <= CACHE_BYTES);
-            assert!(take_cached(layout(1).size()).is_none(), "the oldest is gone");
-            let newest = layout(CACHE_SLOTS + 4).size();
-            let b = take_cached(newest).expect("the newest is kept");
-            a.dealloc(b, layout(CACHE_SLOTS + 4));
+            {
+                let c = cache();
+                assert!(c.len <= CACHE_SLOTS);
+                assert!(
+                    c.slots[..c.len].iter().all(|&(addr, _)| addr != blocks[0] as usize),
+                    "the oldest is gone"
+                );
+            }
+            let newest = blocks[CACHE_SLOTS + 3];
+            assert_eq!(
+                take_cached(mapping_len(layout(1).size())),
+                Some(newest),
+                "the newest is kept"
+            );
+            a.dealloc(newest, layout(CACHE_SLOTS + 4));
             // Too large for the cache: handed back at once.
             let big = Layout::from_size_align(CACHE_BYTES / 2 + PAGE, 8).unwrap();
             let before = cached_bytes();

@@ -257,7 +257,8 @@ fn params_file_and_qos_override_reach_the_publishers_and_sigterm_is_clean() {
         &params,
         "/**:\n  ros__parameters:\n    background_frames: 3\n    xi: 0.3\n\
          /tof/translucent_tof:\n  ros__parameters:\n    xi: 0.65\n    qos_overrides:\n      \
-         /tof/translucent_tof/points:\n        publisher:\n          reliability: best_effort\n",
+         /tof/translucent_tof/points:\n        publisher:\n          reliability: best_effort\n      \
+         /tof/translucent_tof/depth/corrected_sigma:\n        publisher:\n          depth: 3\n",
     )
     .unwrap();
     let node = Node::start(&["--params-file", params.to_str().unwrap()]);
@@ -278,6 +279,8 @@ fn params_file_and_qos_override_reach_the_publishers_and_sigterm_is_clean() {
     // The other outputs keep their reliable default.
     assert!(r["received"]["corrected_default"].as_u64().unwrap() > 0, "{r}");
     assert!(log.contains("SIGTERM"), "{log}");
+    // Every output is a publisher whose QoS can be overridden, and the first line names it.
+    assert!(log.contains("/tof/translucent_tof/depth/corrected_sigma"), "{log}");
     no_error_lines(&log);
 }
 

@@ -187,7 +187,7 @@ pub fn run_xi(a: CalibrateXiArgs) -> Result<()> {
         summary += &format!(
             "\n  FILE: a physics file holding {}, e.g.\n{}",
             describe_model(&physics.model),
-            PhysicsFile::complete(&physics.model.options, &physics.model.sensor.waveform)
+            PhysicsFile::complete(&physics.model.options, &physics.model.sensor)
                 .to_toml()?
                 .lines()
                 .map(|l| format!("    {l}"))

@@ -9,7 +9,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde::{Deserialize, Serialize};
 
 use crate::bag::TopicOverrides;
-use crate::physics::{ForwardModel, ImageBuf, IrMode, ModelOptions, Preset, Sensor, Waveform};
+use crate::physics::{DepthEngine, ForwardModel, ImageBuf, IrMode, ModelOptions, Preset, Sensor, Waveform};
 use crate::pipeline::PipelineConfig;
 
 /// Topic overrides (`--depth-topic`, `--ir-topic`, `--info-topic`).
@@ -101,6 +101,52 @@ pub struct ModelArgs {
     /// What the IR image reports (default: the physics' own).
     #[arg(long, value_enum)]
     pub ir_mode: Option<IrModeArg>,
+    #[command(flatten)]
+    pub depth_engine: DepthEngineArgs,
+}
+
+/// A camera that unwraps its depth from several frequencies (`--depth-engine`,
+/// `--depth-engine-frequencies-hz`): the depth and IR are its engine's.
+#[derive(Debug, Clone, Args, Default)]
+pub struct DepthEngineArgs {
+    /// The camera's depth engine by name: kinect_v2 (80, 16 and 120 MHz, libfreenect2's parameters).
+    #[arg(long, value_name = "kinect_v2")]
+    pub depth_engine: Option<String>,
+    /// A depth engine at these frequencies, Hz, comma-separated (weights f^2, no invalidation,
+    /// IR the mean amplitude); not --modulation-frequencies-hz, which reads phasor topics.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "F0,F1,...",
+        conflicts_with = "depth_engine"
+    )]
+    pub depth_engine_frequencies_hz: Vec<f64>,
+    /// The depth engine's invalidation threshold: the largest disagreement of the
+    /// unwrapped distances a valid pixel has, mm.
+    #[arg(long)]
+    pub depth_engine_max_disagreement_mm: Option<f64>,
+}
+
+impl DepthEngineArgs {
+    /// The engine these options give, if any.
+    pub fn engine(&self) -> Result<Option<DepthEngine>> {
+        let mut engine = match (&self.depth_engine, self.depth_engine_frequencies_hz.as_slice()) {
+            (Some(_), [_, ..]) => bail!("a depth engine by name or by its frequencies, not both"),
+            (Some(name), []) => DepthEngine::preset(name)?,
+            (None, []) => {
+                if self.depth_engine_max_disagreement_mm.is_some() {
+                    bail!("--depth-engine-max-disagreement-mm needs --depth-engine or --depth-engine-frequencies-hz");
+                }
+                return Ok(None);
+            }
+            (None, f) => DepthEngine::at(f)?,
+        };
+        if let Some(t) = self.depth_engine_max_disagreement_mm {
+            engine.max_disagreement_mm = Some(t);
+        }
+        engine.check()?;
+        Ok(Some(engine))
+    }
 }
 
 /// `--waveform`: the camera's correlation waveform.
@@ -211,6 +257,8 @@ pub struct PhysicsFile {
     pub diffuse_transmission: Option<f64>,
     /// Depth of a hollow object of the layer's material, mm (0 = one layer).
     pub hollow_depth_mm: Option<f64>,
+    /// A camera that unwraps its depth from several frequencies: its engine.
+    pub depth_engine: Option<DepthEngine>,
 }
 
 impl PhysicsFile {
@@ -233,6 +281,9 @@ impl PhysicsFile {
                 bail!("{origin}: {name} = {v} is not in 0..={most}");
             }
         }
+        if let Some(e) = &f.depth_engine {
+            e.check().with_context(|| format!("{origin}: depth_engine"))?;
+        }
         if let Some(b) = f.bounces {
             if !(2..=crate::physics::model::MAX_BOUNCES).contains(&b) {
                 bail!(
@@ -248,8 +299,9 @@ impl PhysicsFile {
     /// options are that preset's, else `paper`, the base scene files are
     /// written against) and every option written out, so that it reads the
     /// same whatever a preset's defaults become. The waveform is written when
-    /// it is not a sinusoid.
-    pub fn complete(options: &ModelOptions, waveform: &Waveform) -> Self {
+    /// it is not a sinusoid, the sensor's depth engine when it has one.
+    pub fn complete(options: &ModelOptions, sensor: &Sensor) -> Self {
+        let waveform = &sensor.waveform;
         let preset = if *options == Preset::Physical.options() {
             Preset::Physical
         } else {
@@ -273,6 +325,7 @@ impl PhysicsFile {
             wall_interreflection: Some(options.wall_interreflection),
             diffuse_transmission: Some(options.diffuse_transmission),
             hollow_depth_mm: Some(options.hollow_depth_mm),
+            depth_engine: sensor.depth_engine().cloned(),
         }
     }
 
@@ -300,10 +353,10 @@ impl PhysicsFile {
 
 /// The `--physics` value that gives `model` (a preset's name), if one does.
 pub fn physics_option(model: &ForwardModel) -> Option<&'static str> {
-    let sinusoid = model.sensor.waveform == Waveform::Sinusoid;
+    let plain = model.sensor.waveform == Waveform::Sinusoid && model.sensor.depth_engine().is_none();
     Preset::ALL
         .iter()
-        .find(|p| sinusoid && p.options() == model.options)
+        .find(|p| plain && p.options() == model.options)
         .map(|p| p.name())
 }
 
@@ -315,7 +368,7 @@ pub fn describe_model(model: &ForwardModel) -> String {
         Waveform::Sinusoid => String::new(),
         Waveform::Triangle => ", triangle waveform".to_string(),
         Waveform::Harmonics { third, fifth } => format!(", harmonics {third:.3} {fifth:.3}"),
-    };
+    } + &model.sensor.depth_engine().map(describe_engine).unwrap_or_default();
     let departures = |p: &ModelOptions| {
         let mut d = vec![];
         if o.bounces != p.bounces {
@@ -363,6 +416,16 @@ pub fn describe_model(model: &ForwardModel) -> String {
     } else {
         format!("{preset} with {}{wave}", d.join(", "))
     }
+}
+
+/// A depth engine in words: `, depth engine 80/16/120 MHz (invalid past 100.4 mm)`.
+pub fn describe_engine(e: &DepthEngine) -> String {
+    let f: Vec<String> = e.frequencies_hz.iter().map(|f| format!("{}", f / 1e6)).collect();
+    let threshold = e
+        .max_disagreement_mm
+        .map(|t| format!(" (invalid past {t:.1} mm)"))
+        .unwrap_or_default();
+    format!(", depth engine {} MHz{threshold}", f.join("/"))
 }
 
 /// The physics a recording says it was made with.
@@ -464,10 +527,12 @@ impl ModelArgs {
             options.ir_mode = m.into();
         }
         let wf = waveform(file.waveform.as_deref().unwrap_or(self.waveform.name()), file.harmonics)?;
-        Ok(ForwardModel {
-            sensor: Sensor::new(self.modulation_frequency_hz, wf),
-            options,
-        })
+        let mut sensor = Sensor::new(self.modulation_frequency_hz, wf);
+        // The engine given on the command line, else the file's.
+        if let Some(engine) = self.depth_engine.engine()?.or_else(|| file.depth_engine.clone()) {
+            sensor = sensor.with_depth_engine(&engine)?;
+        }
+        Ok(ForwardModel { sensor, options })
     }
 
     /// The model for a recording: `--physics` when given (with a warning when
@@ -485,7 +550,9 @@ impl ModelArgs {
             (Some(g), Ok(Some(r))) => {
                 let model = self.build(&g)?;
                 let theirs = self.build(&r.file)?;
-                let same = model.options == theirs.options && model.sensor.waveform == theirs.sensor.waveform;
+                let same = model.options == theirs.options
+                    && model.sensor.waveform == theirs.sensor.waveform
+                    && model.sensor.depth_engine() == theirs.sensor.depth_engine();
                 let (text, warning) = if same {
                     (
                         format!(
@@ -698,4 +765,70 @@ pub fn load_materials<S: AsRef<str>>(path: &Path, priors: &[S]) -> Result<crate:
         .set_priors(priors)
         .map_err(|e| anyhow!("materials file {}: prior {e}", path.display()))?;
     Ok(catalog)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args(engine: DepthEngineArgs, physics: Option<&str>) -> ModelArgs {
+        ModelArgs {
+            physics: physics.map(PathBuf::from),
+            modulation_frequency_hz: 30e6,
+            waveform: WaveformArg::Sinusoid,
+            ir_mode: None,
+            depth_engine: engine,
+        }
+    }
+
+    #[test]
+    fn a_depth_engine_goes_through_the_physics_file_and_the_options() {
+        let declared = DepthEngineArgs {
+            depth_engine_frequencies_hz: vec![16e6, 80e6, 120e6],
+            ..DepthEngineArgs::default()
+        };
+        let model = args(declared.clone(), None).model().expect("a model");
+        let engine = model.sensor.depth_engine().cloned().expect("the engine");
+        assert_eq!(engine.frequencies_hz, [16e6, 80e6, 120e6]);
+        assert!(engine.max_disagreement_mm.is_none());
+        assert_eq!(physics_option(&model), None, "no preset is an engine");
+        assert!(describe_model(&model).ends_with("depth engine 16/80/120 MHz"));
+        // The complete file carries it, and reads back to the same sensor.
+        let text = PhysicsFile::complete(&model.options, &model.sensor)
+            .to_toml()
+            .expect("toml");
+        assert!(text.contains("[depth_engine]"), "{text}");
+        let file = PhysicsFile::parse(&text, "test").expect("parses");
+        let back = args(DepthEngineArgs::default(), None).build(&file).expect("a model");
+        assert_eq!(back.sensor.depth_engine(), Some(&engine));
+        // A recording made through it is replayed through it; --physics physical drops it.
+        let recorded = RecordedPhysics {
+            file,
+            text,
+            from: "a test".into(),
+        };
+        let own = args(DepthEngineArgs::default(), None)
+            .choose(Ok(Some(&recorded)))
+            .unwrap();
+        assert_eq!(own.model.sensor.depth_engine(), Some(&engine));
+        let single = args(DepthEngineArgs::default(), Some("physical"))
+            .choose(Ok(Some(&recorded)))
+            .unwrap();
+        assert!(single.model.sensor.depth_engine().is_none() && single.warning.is_some());
+        let same = args(declared, Some("physical")).choose(Ok(Some(&recorded))).unwrap();
+        assert!(same.warning.is_none(), "{:?}", same.warning);
+        // The preset, and what is refused.
+        let kinect = DepthEngineArgs {
+            depth_engine: Some("kinect_v2".into()),
+            ..DepthEngineArgs::default()
+        };
+        let k = args(kinect, None).model().unwrap();
+        assert_eq!(k.sensor.depth_engine(), Some(&DepthEngine::kinect_v2()));
+        let bad = DepthEngineArgs {
+            depth_engine_frequencies_hz: vec![20e6],
+            ..DepthEngineArgs::default()
+        };
+        assert!(args(bad, None).model().is_err());
+        assert!(PhysicsFile::parse("[depth_engine]\nfrequencies_hz = [20e6, -1]\n", "t").is_err());
+    }
 }

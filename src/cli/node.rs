@@ -14,7 +14,7 @@ use crate::pipeline::multifreq::MAX_FREQUENCIES;
 use crate::pipeline::XiChoice;
 use crate::viz::RerunTarget;
 
-use super::common::{parse_choice, ModelArgs, PipelineArgs, TopicArgs, WaveformArg};
+use super::common::{parse_choice, DepthEngineArgs, ModelArgs, PipelineArgs, TopicArgs, WaveformArg};
 
 /// Arguments of `node`.
 #[derive(Debug, Args)]
@@ -105,6 +105,27 @@ pub const PARAMETERS: &[ParamSpec] = &[
         None,
         false,
         "a multi-frequency camera's frequencies, Hz, one per phasor_<k>/image_raw ([20e6, 50e6, 100e6]); unset: single frequency",
+    ),
+    spec(
+        "depth_engine",
+        "string",
+        None,
+        false,
+        "a camera that unwraps its depth from several frequencies, by name: kinect_v2; unset: none",
+    ),
+    spec(
+        "depth_engine_frequencies_hz",
+        "double_array",
+        None,
+        false,
+        "that camera's depth engine frequencies, Hz ([80e6, 16e6, 120e6]); depth and IR are the engine's (not modulation_frequencies_hz, which reads phasor topics)",
+    ),
+    spec(
+        "depth_engine_max_disagreement_mm",
+        "double",
+        None,
+        false,
+        "the depth engine's invalidation threshold, mm; unset: the preset's, or none",
     ),
     spec(
         "no_latch",
@@ -318,6 +339,19 @@ fn no_latch(p: &Params) -> Result<bool> {
     Ok(on)
 }
 
+/// `depth_engine_frequencies_hz`: empty when unset.
+fn engine_frequencies(p: &Params) -> Result<Vec<f64>> {
+    const NAME: &str = "depth_engine_frequencies_hz";
+    match p.get(NAME) {
+        None => Ok(vec![]),
+        Some(ParamValue::DoubleArray(v)) => Ok(v.clone()),
+        Some(other) => bail!(
+            "parameter {NAME}: expected an array of frequencies in Hz such as [80e6, 16e6, 120e6], got {:?}",
+            other.as_text()
+        ),
+    }
+}
+
 /// `modulation_frequencies_hz`: `None` unset (or empty), else at least two
 /// positive frequencies, at most [`MAX_FREQUENCIES`].
 fn frequencies(p: &Params) -> Result<Option<Vec<f64>>> {
@@ -372,6 +406,11 @@ pub fn runtime_settings(p: &Params) -> Result<RuntimeSettings> {
             ir_mode: text("ir_mode")
                 .map(|m| parse_choice("parameter ir_mode", &m))
                 .transpose()?,
+            depth_engine: DepthEngineArgs {
+                depth_engine: text("depth_engine").filter(|s| !s.is_empty()),
+                depth_engine_frequencies_hz: engine_frequencies(p)?,
+                depth_engine_max_disagreement_mm: number(p, "depth_engine_max_disagreement_mm")?,
+            },
         },
         topics: TopicArgs::default(),
     };
@@ -533,6 +572,44 @@ mod tests {
                 e.contains("modulation_frequencies_hz") && e.contains(says),
                 "{bad}: {e}"
             );
+        }
+    }
+
+    #[test]
+    fn the_depth_engine_is_a_parameter_of_its_own() {
+        let engine = |params: &[(&str, &str)]| {
+            let p: Params = params
+                .iter()
+                .map(|(k, v)| (k.to_string(), ParamValue::parse(v)))
+                .collect();
+            runtime_settings(&p).map(|s| s.config.model.sensor.depth_engine().cloned())
+        };
+        assert_eq!(engine(&[]).unwrap(), None);
+        let e = engine(&[("depth_engine_frequencies_hz", "[16e6, 80e6, 120e6]")])
+            .unwrap()
+            .expect("an engine");
+        assert_eq!(e.frequencies_hz, [16e6, 80e6, 120e6]);
+        // Not the phasor path's parameter.
+        assert_eq!(
+            engine(&[("modulation_frequencies_hz", "[16e6, 80e6, 120e6]")]).unwrap(),
+            None
+        );
+        let k = engine(&[
+            ("depth_engine", "kinect_v2"),
+            ("depth_engine_max_disagreement_mm", "50.0"),
+        ])
+        .unwrap()
+        .expect("the preset");
+        assert_eq!(k.max_disagreement_mm, Some(50.0));
+        for bad in [
+            vec![("depth_engine", "kinect")],
+            vec![("depth_engine_frequencies_hz", "[16e6]")],
+            vec![
+                ("depth_engine", "kinect_v2"),
+                ("depth_engine_frequencies_hz", "[16e6, 80e6]"),
+            ],
+        ] {
+            assert!(engine(&bad).is_err(), "{bad:?}");
         }
     }
 }

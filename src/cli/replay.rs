@@ -230,10 +230,12 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     let mut per_frame = vec![];
     let mut last: Option<XiEstimate> = None;
     let mut errors = TruthError::default();
-    let mut total_px = 0usize;
+    let (mut total_px, mut total_unmeasured) = (0usize, 0usize);
     let mut passed = std::collections::BTreeMap::from([(Passthrough::Latching, bg.count)]);
     for (j, (f, obs)) in objects.iter().zip(&mut observed).enumerate() {
         let header = &rec.headers[bg.count + j];
+        let unmeasured = pipe.unmeasured_pixels(f);
+        total_unmeasured += unmeasured;
         if online {
             pipe.add_xi_evidence(obs);
         }
@@ -278,6 +280,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             "xi": xi.xi,
             "xi_interval": xi.interval,
             "translucent_pixels": out.translucent_pixels,
+            "unmeasured_pixels": unmeasured,
             "recovered_pixels": out.recovered_pixels,
             "pinned_pixels": out.pinned_pixels,
             "unresolved_pixels": out.unresolved_pixels,
@@ -354,6 +357,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         }),
         "xi_profile": xi.as_ref().map(|x| x.profile.clone()),
         "translucent_pixels": total_px,
+        "unmeasured_pixels": total_unmeasured,
         "frames_written": rec.frames.len(),
         "passed_through": passed,
         "materials": pipe.materials().filter_map(|m| {
@@ -608,6 +612,11 @@ fn summary(r: &serde_json::Value, rec: &Recording) -> String {
         r["per_frame"].as_array().map(|v| v.len()).unwrap_or(0),
         r["translucent_pixels"]
     ));
+    if let Some(n) = r["unmeasured_pixels"].as_u64().filter(|n| *n > 0) {
+        s.push_str(&format!(
+            "{n} pixels read invalid over the valid background (a depth engine's invalidated pixels): published unmeasured\n"
+        ));
+    }
     s.push_str(&format!("{}\n", written_line(r)));
     if let Some(line) = r["error_summary"].as_str() {
         s.push_str(line);

@@ -13,7 +13,7 @@ use crate::physics::ImageBuf;
 use crate::sim::render::{render, scene_intrinsics, scene_sensor};
 use crate::sim::Scene;
 
-use super::common::{describe_model, OutputArgs, PhysicsFile};
+use super::common::{describe_model, DepthEngineArgs, OutputArgs, PhysicsFile};
 
 /// Arguments of `simulate`.
 #[derive(Debug, Args)]
@@ -26,6 +26,9 @@ pub struct SimulateArgs {
     /// Override the scene's noise seed.
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Render through a camera's depth engine (over the scene's `[camera.depth_engine]`).
+    #[command(flatten)]
+    pub depth_engine: DepthEngineArgs,
     #[command(flatten)]
     pub output: OutputArgs,
 }
@@ -36,6 +39,9 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     if let Some(s) = a.seed {
         scene.seed = s;
     }
+    if let Some(e) = a.depth_engine.engine()? {
+        scene.camera.depth_engine = Some(e);
+    }
     let k = scene_intrinsics(&scene);
     let c = &scene.camera;
     let ns = c.namespace.trim_end_matches('/').to_string();
@@ -44,7 +50,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     // The physics the frames are made with, first in the bag: replay, calibrate-xi and audit
     // take it from there (a bag cut short keeps it).
     let sensor = scene_sensor(&scene);
-    let physics = PhysicsFile::complete(&scene.physics, &sensor.waveform);
+    let physics = PhysicsFile::complete(&scene.physics, &sensor);
     let physics_toml = format!(
         "# The physics translucent_tof simulate rendered this bag with, from the scene {}.\n{}",
         a.scene

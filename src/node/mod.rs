@@ -672,6 +672,7 @@ fn output_qos(s: &NodeSettings, given: &BTreeMap<String, ParamValue>) -> anyhow:
     let outputs_qos: Vec<(String, QosProfile)> = [
         (names::CORRECTED, qos_outputs()),
         (names::CORRECTED_INFO, qos_outputs()),
+        (names::CORRECTED_SIGMA, qos_outputs()),
         (names::MASK, qos_outputs()),
         (names::POINTS, qos_outputs()),
         (names::TRANSLUCENCY, qos_estimate()),
@@ -832,7 +833,7 @@ fn advertise(
     const IMAGE: (&str, &str) = ("sensor_msgs", "Image");
     let (corrected, corrected_n) = topics.publisher(node, s, names::CORRECTED, IMAGE)?;
     let (corrected_info, cinfo_n) = topics.publisher(node, s, names::CORRECTED_INFO, ("sensor_msgs", "CameraInfo"))?;
-    let (sigma, _) = topics.publisher(node, s, names::CORRECTED_SIGMA, IMAGE)?;
+    let (sigma, sigma_n) = topics.publisher(node, s, names::CORRECTED_SIGMA, IMAGE)?;
     let (mask, mask_n) = topics.publisher(node, s, names::MASK, IMAGE)?;
     let (points, points_n) = topics.publisher(node, s, names::POINTS, ("sensor_msgs", "PointCloud2"))?;
     let estimate_type = (crate::msgs::translucent_tof::PACKAGE, "TranslucencyEstimate");
@@ -855,7 +856,7 @@ fn advertise(
     Ok((
         outputs,
         diagnostics,
-        vec![corrected_n, cinfo_n, points_n, mask_n, est_n, diag_n],
+        vec![corrected_n, cinfo_n, sigma_n, points_n, mask_n, est_n, diag_n],
     ))
 }
 
@@ -934,6 +935,15 @@ fn announce(s: &NodeSettings, i: &Subscribed, published: &[String], services: &S
             crate::pipeline::XiChoice::Estimate(m) => format!("estimated ({})", m.as_str()),
         }
     );
+    if let Some(e) = s.config.model.sensor.depth_engine() {
+        info!(
+            "depth engine: depth and IR unwrapped from {:?} Hz{}",
+            e.frequencies_hz,
+            e.max_disagreement_mm.map_or(String::new(), |mm| format!(
+                ", pixels invalid past {mm} mm of disagreement"
+            ))
+        );
+    }
     if let Some(f) = &s.multi_frequency {
         info!(
             "multi-frequency path: phasors at {f:?} Hz on {}; publishes {}{}",

@@ -359,10 +359,26 @@ impl Peer {
 
     /// Drains until `stamp` has its corrected depth, or `timeout`.
     pub async fn wait_for(&mut self, stamp: u64, timeout: Duration) -> bool {
+        self.wait_until(timeout, |r| r.corrected.contains_key(&stamp)).await
+    }
+
+    /// Drains until `stamp` has its corrected depth, mask, sigma and camera_info (each a
+    /// separate DDS writer, so they arrive in no fixed order), or `timeout`.
+    pub async fn wait_for_every(&mut self, stamp: u64, timeout: Duration) -> bool {
+        self.wait_until(timeout, |r| {
+            r.corrected.contains_key(&stamp)
+                && r.mask.contains_key(&stamp)
+                && r.sigma.contains_key(&stamp)
+                && r.camera_info.contains_key(&stamp)
+        })
+        .await
+    }
+
+    async fn wait_until(&mut self, timeout: Duration, done: impl Fn(&Received) -> bool) -> bool {
         let until = tokio::time::Instant::now() + timeout;
         loop {
             self.drain();
-            if self.received.corrected.contains_key(&stamp) {
+            if done(&self.received) {
                 return true;
             }
             if tokio::time::Instant::now() >= until {

@@ -102,6 +102,22 @@ impl<T> SparseImage<T> {
         Some(out)
     }
 
+    /// The values `values` at the pixels `pixels` (ascending, one value each); `None` when
+    /// the image has `u32::MAX` pixels or more, or the pixels are not ascending within it.
+    pub fn from_pixels(width: usize, height: usize, pixels: Vec<u32>, values: Vec<T>) -> Option<Self> {
+        let mut out = Self::empty(width, height)?;
+        let ascending = pixels.windows(2).all(|p| p[0] < p[1]);
+        let inside = pixels.last().is_none_or(|&p| (p as usize) < out.slot.len());
+        if pixels.len() != values.len() || !ascending || !inside {
+            return None;
+        }
+        for (k, &p) in pixels.iter().enumerate() {
+            out.slot[p as usize] = k as u32;
+        }
+        (out.pixels, out.values) = (pixels, values);
+        Some(out)
+    }
+
     /// The value at pixel `i`, if any.
     #[inline]
     pub fn get(&self, i: usize) -> Option<&T> {
@@ -263,5 +279,12 @@ mod tests {
         assert_eq!(s.pixels().collect::<Vec<_>>(), pixels);
         assert_eq!(s.values(), values);
         assert!(SparseImage::<u8>::empty(1 << 16, 1 << 16).is_none());
+        // The same image from its pixels and values; pixels out of order or outside refused.
+        let again = SparseImage::from_pixels(w, h, s.pixels.clone(), s.values.clone()).unwrap();
+        assert_eq!(again, s);
+        assert!(SparseImage::from_pixels(w, h, vec![3, 1], vec![0.0, 1.0]).is_none());
+        assert!(SparseImage::from_pixels(w, h, vec![1, 1], vec![0.0, 1.0]).is_none());
+        assert!(SparseImage::from_pixels(w, h, vec![(w * h) as u32], vec![0.0]).is_none());
+        assert!(SparseImage::from_pixels(w, h, vec![1], vec![0.0, 1.0]).is_none());
     }
 }

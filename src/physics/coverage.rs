@@ -161,7 +161,8 @@ fn reading_phasor(model: &ForwardModel, distance_mm: f64, ir: f64) -> C {
 
 /// The share of pixel `obs` that a layer of `xi` at ray distance `df` covers, from
 /// `M - B = c (P0 - B) + (c X) P1` (the module's doc), with `c X >= 0`. `None` where the
-/// model's reading is not a phasor (a square-wave sensor, IR as the sum of the returns),
+/// model's reading is not a phasor (a square-wave sensor, IR as the sum of the returns, a
+/// depth engine),
 /// the inputs are not finite, or the layer's return and the background's are parallel
 /// (the layer a whole number of ranges before the background: `c` and `X` trade).
 pub fn layer_coverage(
@@ -171,7 +172,8 @@ pub fn layer_coverage(
     xi: f64,
     noise: ReadingNoise,
 ) -> Option<Coverage> {
-    if model.sensor.waveform != Waveform::Sinusoid || model.options.ir_mode != IrMode::Amplitude {
+    let engine = model.sensor.depth_engine().is_some();
+    if model.sensor.waveform != Waveform::Sinusoid || model.options.ir_mode != IrMode::Amplitude || engine {
         return None;
     }
     let offset = model.options.ambient_offset;

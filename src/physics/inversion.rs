@@ -126,6 +126,9 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
         let b = (1.0 - xi) * obs.emitted_light / (df * df);
         return albedo_closed_form(a, b, ir, o.transmission_albedo_power, x_max);
     }
+    if let Some(x) = engine_albedo_cos(model, obs, df, xi, x_max) {
+        return x;
+    }
     let g = |x: f64| model.layer_ir(&obs.layer_scene(df, xi, x, o.ambient_offset)) - obs.ir;
     // Bracket the first crossing on a coarse scan (the amplitude need not be monotone in X).
     const SCAN: usize = 16;
@@ -151,6 +154,118 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
         lo = hi;
     }
     None
+}
+
+/// [`albedo_cos`] for a depth engine's amplitude IR where the returns are linear in `X`
+/// (two returns, `L2 = Ib xi^2` without `X`): at each frequency the phasor is
+/// `X A_k + C_k` (`C_k` the background's share, `A_k` the layer's per unit `X`), so the
+/// IR `mean_k |X A_k + C_k|` (or one frequency's) is convex in `X` and crosses the
+/// observed IR at most once upward; Newton's method from `x_max` finds it. Where the IR
+/// first falls with `X` and crosses twice, the upper root is taken (the generic search
+/// gives none there): a layer on the lower branch is not found at its own distance.
+/// The outer `None`: not this case (the generic search runs); the inner one: no
+/// admissible root, as [`albedo_cos`] says it.
+fn engine_albedo_cos(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    df: f64,
+    xi: f64,
+    x_max: f64,
+) -> Option<Option<f64>> {
+    let o = &model.options;
+    let e = model.sensor.engine()?;
+    let linear = o.bounces == 2
+        && o.transmission_albedo_power == 0.0
+        && o.wall_interreflection == 0.0
+        && o.diffuse_transmission == 0.0
+        && o.hollow_depth_mm == 0.0;
+    if !(linear && o.ir_mode == IrMode::Amplitude) {
+        return None;
+    }
+    let k = e.len();
+    let phasors_at = |x: f64| {
+        let mut r = [super::model::Return::default(); super::model::MAX_BOUNCES];
+        let n = model.layer_returns(&obs.layer_scene(df, xi, x, o.ambient_offset), &mut r);
+        e.phasors(&model.sensor, &r[..n])
+    };
+    let (c, one) = (phasors_at(0.0), phasors_at(1.0));
+    let a: [(f64, f64); super::depth_engine::MAX_ENGINE_FREQUENCIES] =
+        std::array::from_fn(|j| (one[j].a - c[j].a, one[j].b - c[j].b));
+    let (first, last) = match e.ir_frequency_index() {
+        Some(j) => (j, j + 1),
+        None => (0, k),
+    };
+    let ir = obs.ir - o.ambient_offset;
+    // g(X) = IR(X) - I and its derivative.
+    let g = |x: f64| {
+        let (mut v, mut dv) = (0.0, 0.0);
+        for j in first..last {
+            let (re, im) = (x * a[j].0 + c[j].a, x * a[j].1 + c[j].b);
+            let len = re.hypot(im);
+            v += len;
+            if len > 0.0 {
+                dv += (re * a[j].0 + im * a[j].1) / len;
+            }
+        }
+        let n = (last - first) as f64;
+        (v / n - ir, dv / n)
+    };
+    let (mut g_hi, mut dg_hi) = g(x_max);
+    if g_hi < 0.0 {
+        return Some(None);
+    }
+    // Where the layer's return first cancels the background's (g falls from X = 0), the
+    // IR is met twice or not at all: the root on the rising side is taken, past g's minimum.
+    let Some(mut lo) = rising_from(&g, x_max) else {
+        return Some(None);
+    };
+    // Safeguarded Newton from the upper end of the bracket [lo, hi], g(lo) <= 0 <= g(hi).
+    let mut hi = x_max;
+    for _ in 0..100 {
+        if g_hi == 0.0 || hi - lo <= 1e-13 * x_max {
+            break;
+        }
+        let newton = hi - g_hi / dg_hi;
+        let x = if dg_hi > 0.0 && newton > lo && newton < hi {
+            newton
+        } else {
+            0.5 * (lo + hi)
+        };
+        let (gx, dgx) = g(x);
+        if gx >= 0.0 {
+            (hi, g_hi, dg_hi) = (x, gx, dgx);
+        } else {
+            lo = x;
+        }
+        if gx.abs() <= 1e-12 * ir.abs() {
+            hi = x;
+            break;
+        }
+    }
+    Some((hi.is_finite() && hi >= 0.0 && hi <= x_max).then_some(hi))
+}
+
+/// For a convex `g` (value and slope) on `[0, x_max]`: 0 where `g(0) <= 0`, else the
+/// point of its minimum (bisection on the slope) where `g` is not positive there; `None`
+/// where `g` stays positive.
+fn rising_from(g: &impl Fn(f64) -> (f64, f64), x_max: f64) -> Option<f64> {
+    let (g0, dg0) = g(0.0);
+    if g0 <= 0.0 {
+        return Some(0.0);
+    }
+    if dg0 >= 0.0 {
+        return None;
+    }
+    let (mut a, mut b) = (0.0, x_max);
+    for _ in 0..60 {
+        let m = 0.5 * (a + b);
+        if g(m).1 < 0.0 {
+            a = m
+        } else {
+            b = m
+        }
+    }
+    (g(b).0 <= 0.0).then_some(b)
 }
 
 /// The non-negative root of `b X + a X^p = ir` (the IR equation of two
@@ -398,7 +513,10 @@ fn foreground_distance_generic(
             x,
         })
     };
-    let samples = scan(&eval, lo, hi, bounds.scan_step_mm);
+    let mut samples = scan(&eval, lo, hi, bounds.scan_step_mm);
+    if sensor.depth_engine().is_some() {
+        samples = around_jumps(&eval, &samples);
+    }
     let (pick, best) = roots_of(&samples, &eval, sensor, obs, prefer_mm);
     let (s, pinned) = match pick.chosen {
         Some((root, _)) => (root, false),
@@ -459,6 +577,41 @@ fn scan(eval: &impl Fn(f64) -> Option<Sample>, lo: f64, hi: f64, step_mm: f64) -
     samples
 }
 
+/// A refined sign change of the residual whose residual is still larger than this, mm,
+/// is a depth engine's jump, not a root (a jump moves the engine's weighted mean by a
+/// whole wrap of one frequency times its weight share: tens of mm).
+const ENGINE_JUMP_MM: f64 = 1.0;
+
+/// A step of the residual larger than this between neighbouring samples, mm, is looked
+/// into for a depth engine's jump ([`around_jumps`]).
+const ENGINE_STEP_MM: f64 = 50.0;
+
+/// The scan's samples with more where the residual steps by over [`ENGINE_STEP_MM`]
+/// between two of them: bisected down to 0.05 mm, so that a depth engine's jump (where
+/// its wrap hypothesis changes) is pinned between two samples and a root on either side
+/// of it, which a coarse step would straddle with the jump, is bracketed on its own.
+fn around_jumps(eval: &impl Fn(f64) -> Option<Sample>, samples: &[Sample]) -> Vec<Sample> {
+    fn split(eval: &impl Fn(f64) -> Option<Sample>, p: Sample, c: Sample, out: &mut Vec<Sample>, depth: u32) {
+        if depth == 0 || c.df - p.df < 0.05 || (c.residual - p.residual).abs() <= ENGINE_STEP_MM {
+            return;
+        }
+        let Some(m) = eval(0.5 * (p.df + c.df)) else {
+            return;
+        };
+        split(eval, p, m, out, depth - 1);
+        out.push(m);
+        split(eval, m, c, out, depth - 1);
+    }
+    let mut out = Vec::with_capacity(samples.len() + 32);
+    for (i, &p) in samples.iter().enumerate() {
+        out.push(p);
+        if let Some(&c) = samples.get(i + 1).filter(|c| !p.df.is_nan() && !c.df.is_nan()) {
+            split(eval, p, c, &mut out, 16);
+        }
+    }
+    out
+}
+
 /// The roots the scan brackets, refined and picked among; and the sample of least residual
 /// (the pinned answer where there is no root).
 fn roots_of(
@@ -481,7 +634,10 @@ fn roots_of(
         }
         let crosses = (p.residual <= 0.0) != (c.residual <= 0.0);
         if crosses && (p.residual - c.residual).abs() < range / 4.0 {
-            if let Some(root) = refine(eval, p, c) {
+            // A depth engine's reading jumps where its wrap hypothesis changes: a sign
+            // change there is no root (the residual stays off zero on both sides).
+            let jump = |root: &Sample| sensor.depth_engine().is_some() && root.residual.abs() > ENGINE_JUMP_MM;
+            if let Some(root) = refine(eval, p, c).filter(|r| !jump(r)) {
                 pick.offer(sensor, root);
             }
         }
@@ -562,7 +718,8 @@ impl FastModel {
         };
         // Powers with a closed-form albedo only (others iterate: the generic path).
         let closed = [0.0, 1.0, 2.0].contains(&o.transmission_albedo_power);
-        if *o != known || !closed || model.sensor.waveform != Waveform::Sinusoid {
+        let engine = model.sensor.depth_engine().is_some();
+        if *o != known || !closed || model.sensor.waveform != Waveform::Sinusoid || engine {
             return None;
         }
         let range = model.sensor.unambiguous_range_mm();
@@ -1227,6 +1384,76 @@ mod tests {
             background_ir: bg.ir,
             emitted_light: lin,
             wall_view_factor: f,
+        }
+    }
+
+    /// The default physics read through a 16/80/120 MHz depth engine.
+    fn engine_model(ir_mode: IrMode) -> ForwardModel {
+        let engine = crate::physics::DepthEngine::at(&[16e6, 80e6, 120e6]).expect("an engine");
+        let mut m = ForwardModel::physical(Sensor::sr4000().with_depth_engine(&engine).expect("an engine"));
+        m.options.ir_mode = ir_mode;
+        m
+    }
+
+    #[test]
+    fn a_pixel_read_through_a_depth_engine_inverts_to_its_layer() {
+        let bounds = InversionBounds::default();
+        let (mut found, mut lost) = (0, 0);
+        for ir_mode in [IrMode::Amplitude, IrMode::Sum] {
+            let m = engine_model(ir_mode);
+            for db in [2000.0, 3300.0] {
+                for df in (5..db as usize / 100 - 1).map(|k| 100.0 * k as f64 + 17.0) {
+                    let obs = observe(&m, df, db, 0.65, 0.6, 0.9);
+                    // Where the IR is met twice the lower albedo is lost (albedo_cos' doc); where
+                    // the residual only touches zero at the layer (a double root) it is pinned.
+                    if albedo_cos(&m, &obs, df, 0.65, 1.0).is_none_or(|x| (x - 0.6).abs() > 1e-6) {
+                        lost += 1;
+                        continue;
+                    }
+                    // Alone where it has one root; where the engine's jumps leave several, with
+                    // a neighbourhood's surface to pick by (as recovery gives one).
+                    let alone = foreground_distance(&m, &obs, 0.65, &bounds, None)
+                        .unwrap_or_else(|| panic!("{ir_mode:?} db {db} df {df}: no layer, {obs:?}"));
+                    let prefer = (alone.roots > 1).then_some(df + 30.0);
+                    let e = foreground_distance(&m, &obs, 0.65, &bounds, prefer).expect("a layer");
+                    if e.pinned {
+                        lost += 1;
+                        continue;
+                    }
+                    assert!(
+                        (e.foreground_distance_mm - df).abs() < 0.5 && !e.pinned,
+                        "{ir_mode:?} db {db} df {df}: {e:?} (reading {})",
+                        obs.distance_mm
+                    );
+                    // The albedo the engine's IR implies is the true one.
+                    assert!(
+                        (e.albedo_cos - 0.6).abs() < 1e-6,
+                        "{ir_mode:?} df {df}: X {}",
+                        e.albedo_cos
+                    );
+                    found += 1;
+                }
+            }
+        }
+        assert!(found >= 6 * lost && found > 60, "found {found}, lost {lost}");
+    }
+
+    #[test]
+    fn the_engine_albedo_solves_the_ir_equation() {
+        let m = engine_model(IrMode::Amplitude);
+        for df in [600.0, 1111.0, 1800.0] {
+            let obs = observe(&m, df, 2000.0, 0.5, 0.45, 1.0);
+            for xi in [0.3, 0.5, 0.7] {
+                let Some(x) = albedo_cos(&m, &obs, df, xi, 1.0) else {
+                    continue;
+                };
+                let ir = m.layer_ir(&obs.layer_scene(df, xi, x, 0.0));
+                assert!(
+                    (ir - obs.ir).abs() < 1e-9 * obs.ir,
+                    "df {df} xi {xi}: {ir} vs {}",
+                    obs.ir
+                );
+            }
         }
     }
 

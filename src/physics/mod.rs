@@ -10,12 +10,14 @@ pub mod buffer;
 
 pub use buffer::{ImageBuf, Region, SparseImage};
 pub mod coverage;
+pub mod depth_engine;
 pub mod diffuse;
 pub mod model;
 pub mod multifreq;
 pub mod near_wall;
 pub mod sensor;
 
+pub use depth_engine::DepthEngine;
 pub use model::{ForwardModel, IrMode, LayerScene, Measurement, ModelOptions, Preset, Return};
 pub use sensor::{Sensor, Waveform};
 pub mod inversion;

@@ -342,26 +342,35 @@ impl ForwardModel {
     }
 
     /// Mixes returns in the buckets (Eq. 5), decodes them (Eq. 6, 11) and forms
-    /// the IR value (Eq. 7, or the amplitude).
+    /// the IR value (Eq. 7, or the amplitude). With a depth engine on the
+    /// sensor the distance and the amplitude are the engine's, from the
+    /// returns' phasors at its frequencies ([`super::depth_engine`]); the
+    /// buckets stay the sensor's own frequency's.
     pub fn measure(&self, returns: &[Return]) -> Measurement {
         let mut buckets = Buckets::default();
         let mut total = 0.0;
-        let (mut re, mut im) = (0.0, 0.0);
         for r in returns {
             buckets += self.sensor.buckets(r.strength, r.distance_mm);
             total += r.strength;
-            if self.options.ir_mode == IrMode::Amplitude {
-                let (s, c) = self.sensor.phase(r.distance_mm).sin_cos();
-                re += r.strength * c;
-                im += r.strength * s;
-            }
         }
-        let ir = match self.options.ir_mode {
-            IrMode::Sum => total,
-            IrMode::Amplitude => re.hypot(im),
-        } + self.options.ambient_offset;
+        let amplitude = self.options.ir_mode == IrMode::Amplitude;
+        let (distance_mm, ir) = match self.sensor.engine() {
+            Some(e) => {
+                let p = e.phasors(&self.sensor, returns);
+                let reading = e.read(&self.sensor, &p[..e.len()]);
+                (
+                    reading.distance_mm,
+                    if amplitude { reading.ir_amplitude } else { total },
+                )
+            }
+            None => (
+                self.sensor.decode(buckets).unwrap_or(f64::NAN),
+                if amplitude { self.own_amplitude(returns) } else { total },
+            ),
+        };
+        let ir = ir + self.options.ambient_offset;
         Measurement {
-            distance_mm: self.sensor.decode(buckets).unwrap_or(f64::NAN),
+            distance_mm,
             ir,
             buckets,
             total_light: total,
@@ -379,19 +388,27 @@ impl ForwardModel {
     pub fn layer_ir(&self, s: &LayerScene) -> f64 {
         let mut r = [Return::default(); MAX_BOUNCES];
         let n = self.layer_returns(s, &mut r);
-        let ir = match self.options.ir_mode {
-            IrMode::Sum => r[..n].iter().map(|r| r.strength).sum(),
-            IrMode::Amplitude => {
-                let (mut re, mut im) = (0.0, 0.0);
-                for r in &r[..n] {
-                    let (s, c) = self.sensor.phase(r.distance_mm).sin_cos();
-                    re += r.strength * c;
-                    im += r.strength * s;
-                }
-                re.hypot(im)
+        let r = &r[..n];
+        let ir = match (self.options.ir_mode, self.sensor.engine()) {
+            (IrMode::Sum, _) => r.iter().map(|r| r.strength).sum(),
+            (IrMode::Amplitude, None) => self.own_amplitude(r),
+            (IrMode::Amplitude, Some(e)) => {
+                let p = e.phasors(&self.sensor, r);
+                e.ir_amplitude(&p[..e.len()])
             }
         };
         ir + self.options.ambient_offset
+    }
+
+    /// The demodulated amplitude `|sum_k L_k exp(i phi_k)|` at the sensor's own frequency.
+    fn own_amplitude(&self, returns: &[Return]) -> f64 {
+        let (mut re, mut im) = (0.0, 0.0);
+        for r in returns {
+            let (s, c) = self.sensor.phase(r.distance_mm).sin_cos();
+            re += r.strength * c;
+            im += r.strength * s;
+        }
+        re.hypot(im)
     }
 }
 

@@ -19,7 +19,8 @@ impl ShotNoise {
     /// The `k` under which a single opaque return of `strength` reads with a
     /// distance noise of `sigma_mm` (sinusoidal phase noise `sigma / strength`).
     pub fn calibrated(sensor: &Sensor, strength: f64, sigma_mm: f64, read_noise: f64) -> Self {
-        let sigma_phase = sigma_mm * std::f64::consts::TAU / sensor.unambiguous_range_mm();
+        // At the sensor's own frequency (with a depth engine too: the buckets' noise is the light's).
+        let sigma_phase = sigma_mm * sensor.phase(1.0);
         let sigma_bucket = sigma_phase * strength;
         Self {
             coefficient: sigma_bucket / (strength + read_noise * read_noise).sqrt(),

@@ -48,6 +48,26 @@ where
     out
 }
 
+/// `items.iter().filter_map(f)`, in order, as the results of consecutive chunks of `chunk`
+/// items each (the last may be shorter): in parallel over the current rayon pool when there
+/// are at least `min_parallel` items, else in turn. The parts stay apart: each is small, and
+/// the caller lays them out once at their total size (a whole image's results gathered in
+/// one growing `Vec` would be moved to new pages at each doubling).
+pub fn filter_map_parts<T, R, F>(items: &[T], min_parallel: usize, chunk: usize, f: F) -> Vec<Vec<R>>
+where
+    T: Sync,
+    R: Send,
+    F: Fn(&T) -> Option<R> + Sync + Send,
+{
+    let part = |c: &[T]| c.iter().filter_map(&f).collect::<Vec<R>>();
+    let size = chunk.max(1);
+    if items.len() < min_parallel {
+        items.chunks(size).map(part).collect()
+    } else {
+        items.par_chunks(size).map(part).collect()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -82,5 +102,18 @@ mod tests {
         assert_eq!(sequential.len(), 1000);
         assert_eq!(parallel[999], 998_001);
         assert!(map_chunks_ordered(&[] as &[u32], 8, 0, squares).is_empty());
+    }
+
+    #[test]
+    fn filtered_parts_in_order_either_way() {
+        let items: Vec<u32> = (0..1000).collect();
+        let odd_squares = |v: &u32| (v % 2 == 1).then(|| u64::from(*v) * u64::from(*v));
+        let want: Vec<u64> = items.iter().filter_map(odd_squares).collect();
+        let sequential = filter_map_parts(&items, usize::MAX, 64, odd_squares);
+        let parallel = filter_map_parts(&items, 0, 7, odd_squares);
+        assert_eq!(sequential.len(), 16);
+        assert_eq!(sequential.concat(), want);
+        assert_eq!(parallel.concat(), want);
+        assert!(filter_map_parts(&[] as &[u32], 0, 8, odd_squares).is_empty());
     }
 }

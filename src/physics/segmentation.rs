@@ -541,23 +541,18 @@ pub fn split_reading_modes(
     let (mut labels, mut sizes) = (labels, sizes);
     // A region may chain more than two objects: split the pieces again, a few times.
     for _ in 0..3 {
-        let mut members: Vec<Vec<usize>> = vec![vec![]; sizes.len() + 1];
-        for (i, &l) in labels.data.iter().enumerate() {
-            if l != 0 {
-                members[l as usize].push(i);
-            }
-        }
+        let members = Members::of(&labels, sizes.len());
         let mut split_any = false;
-        for pixels in members.iter().skip(1) {
+        for pixels in (1..=sizes.len()).map(|l| members.of_label(l)) {
             let Some(far) = far_mode(pixels, distance_mm, background_mm, range_mm, min_pixels) else {
                 continue;
             };
             sizes.push(far.len());
             let id = sizes.len() as u32;
-            let old = labels.data[pixels[0]] as usize;
+            let old = labels.data[pixels[0] as usize] as usize;
             sizes[old - 1] -= far.len();
             for i in far {
-                labels.data[i] = id;
+                labels.data[i as usize] = id;
             }
             split_any = true;
         }
@@ -568,6 +563,46 @@ pub fn split_reading_modes(
     (labels, sizes)
 }
 
+/// Each region's pixels, ascending, the regions one after another in label order: laid
+/// out at their counts in two passes over the labels (no list growing per region).
+pub struct Members {
+    /// The labelled pixels, grouped by label.
+    pixels: Vec<u32>,
+    /// Where each label's pixels start in `pixels` (label `l` at `start[l]..start[l + 1]`).
+    start: Vec<usize>,
+}
+
+impl Members {
+    /// The members of labels `1..=regions` (a pixel of a larger label is left out).
+    pub fn of(labels: &ImageBuf<u32>, regions: usize) -> Self {
+        let mut start = vec![0usize; regions + 2];
+        for &l in &labels.data {
+            if let Some(n) = start.get_mut(l as usize + 1) {
+                *n += 1;
+            }
+        }
+        start[1] = 0; // label 0: off the regions, not listed
+        for l in 1..start.len() {
+            start[l] += start[l - 1];
+        }
+        let mut next = start.clone();
+        let mut pixels = vec![0u32; start[regions + 1]];
+        for (i, &l) in labels.data.iter().enumerate() {
+            if l != 0 && (l as usize) <= regions {
+                // Images are indexed in u32 (`observe` refuses larger ones).
+                pixels[next[l as usize]] = i as u32;
+                next[l as usize] += 1;
+            }
+        }
+        Self { pixels, start }
+    }
+
+    /// The pixels of label `l`, ascending.
+    pub fn of_label(&self, l: usize) -> &[u32] {
+        &self.pixels[self.start[l]..self.start[l + 1]]
+    }
+}
+
 /// Width of the reading histogram's bins that [`far_mode`] splits, mm.
 const SPLIT_BIN_MM: f64 = 5.0;
 
@@ -575,18 +610,18 @@ const SPLIT_BIN_MM: f64 = 5.0;
 /// objects ([`split_reading_modes`]); `None` when they are one. The modes are found on a
 /// histogram of the readings (Otsu's split), so a region costs one pass over its pixels.
 fn far_mode(
-    pixels: &[usize],
+    pixels: &[u32],
     distance_mm: &ImageBuf<f64>,
     background_mm: &ImageBuf<f64>,
     range_mm: f64,
     min_pixels: usize,
-) -> Option<Vec<usize>> {
+) -> Option<Vec<u32>> {
     let n = pixels.len();
     if n < 2 * min_pixels.max(2) {
         return None;
     }
-    let centre = distance_mm.data[pixels[n / 2]];
-    let unwrapped = |i: usize| centre + wrapped_difference(distance_mm.data[i], centre, range_mm);
+    let centre = distance_mm.data[pixels[n / 2] as usize];
+    let unwrapped = |i: u32| centre + wrapped_difference(distance_mm.data[i as usize], centre, range_mm);
     let (lo, hi) = pixels
         .iter()
         .map(|&i| unwrapped(i))
@@ -627,11 +662,11 @@ fn far_mode(
         return None;
     }
     let split = lo + k as f64 * bin;
-    let (near_px, far_px): (Vec<usize>, Vec<usize>) = pixels.iter().partition(|&&i| !(unwrapped(i) >= split));
-    let behind = |side: &[usize]| {
+    let (near_px, far_px): (Vec<u32>, Vec<u32>) = pixels.iter().partition(|&&i| !(unwrapped(i) >= split));
+    let behind = |side: &[u32]| {
         let mut v: Vec<f64> = side
             .iter()
-            .map(|&i| background_mm.data[i])
+            .map(|&i| background_mm.data[i as usize])
             .filter(|d| d.is_finite())
             .collect();
         Some(crate::physics::stats::median_select(&mut v)).filter(|m| m.is_finite())
@@ -784,6 +819,19 @@ fn renumber(mut labels: ImageBuf<u32>, sizes: &[usize]) -> (ImageBuf<u32>, Vec<u
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn members_list_each_region_in_pixel_order() {
+        let labels = ImageBuf::from_vec(4, 2, vec![0, 2, 1, 2, 1, 0, 3, 2]).unwrap();
+        let m = super::Members::of(&labels, 3);
+        assert_eq!(m.of_label(1), &[2, 4]);
+        assert_eq!(m.of_label(2), &[1, 3, 7]);
+        assert_eq!(m.of_label(3), &[6]);
+        // Labels past the regions asked for are left out.
+        let m = super::Members::of(&labels, 2);
+        assert_eq!((m.of_label(1), m.of_label(2)), (&[2u32, 4][..], &[1u32, 3, 7][..]));
+        assert_eq!(m.pixels.len(), 5);
+    }
+
     #[test]
     fn opening_drops_thin_lines_and_keeps_a_region_with_its_rim() {
         let (w, h) = (20, 12);

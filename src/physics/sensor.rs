@@ -6,6 +6,8 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
+use super::depth_engine::{DepthEngine, DepthEngineError, PreparedEngine};
+
 /// Speed of light in millimetres per second.
 pub const SPEED_OF_LIGHT_MM_PER_S: f64 = 299_792_458_000.0;
 
@@ -82,6 +84,9 @@ pub struct Sensor {
     /// For waveforms without a closed-form decoder: true phase at evenly
     /// spaced single-surface `atan2` angles over `[0, 2 pi]`.
     decode_table: Option<Arc<Vec<f64>>>,
+    /// A multi-frequency camera's depth engine ([`super::depth_engine`]): the
+    /// depth and IR the camera reports come from it, not from this frequency.
+    depth_engine: Option<Arc<PreparedEngine>>,
 }
 
 const DECODE_TABLE_LEN: usize = 8192;
@@ -107,7 +112,26 @@ impl Sensor {
             waveform,
             range_mm,
             decode_table,
+            depth_engine: None,
         }
+    }
+
+    /// This sensor reporting its depth and IR through `engine` (a camera that
+    /// unwraps its depth from several frequencies); the waveform is the
+    /// engine's at each of its frequencies.
+    pub fn with_depth_engine(mut self, engine: &DepthEngine) -> Result<Self, DepthEngineError> {
+        self.depth_engine = Some(Arc::new(engine.prepare()?));
+        Ok(self)
+    }
+
+    /// The depth engine's parameters, if the camera has one.
+    pub fn depth_engine(&self) -> Option<&DepthEngine> {
+        self.depth_engine.as_deref().map(|e| &e.engine)
+    }
+
+    /// The prepared depth engine, if any.
+    pub(crate) fn engine(&self) -> Option<&PreparedEngine> {
+        self.depth_engine.as_deref()
     }
 
     /// The MESA SR4000 of the paper: 30 MHz, sinusoidal correlation.
@@ -115,9 +139,10 @@ impl Sensor {
         Self::new(30.0e6, Waveform::Sinusoid)
     }
 
-    /// Unambiguous range `R = c / (2 f)` in millimetres.
+    /// Unambiguous range of the depth the camera reports, mm: `R = c / (2 f)`,
+    /// or with a depth engine its common range `c / (2 gcd f_k)`.
     pub fn unambiguous_range_mm(&self) -> f64 {
-        self.range_mm
+        self.engine().map_or(self.range_mm, |e| e.range_mm)
     }
 
     /// Phase of a return at `distance_mm`: `2 pi d / R` (not wrapped).
@@ -127,7 +152,12 @@ impl Sensor {
 
     /// Bucket differences of one return of `strength` at `distance_mm` (Eq. 5).
     pub fn buckets(&self, strength: f64, distance_mm: f64) -> Buckets {
-        let phi = self.phase(distance_mm);
+        self.buckets_at_phase(strength, self.phase(distance_mm))
+    }
+
+    /// Bucket differences of one return of `strength` at phase `phi` (Eq. 5 at
+    /// any frequency: the waveform's correlation sampled at `phi`, `phi - pi/2`).
+    pub fn buckets_at_phase(&self, strength: f64, phi: f64) -> Buckets {
         match self.waveform {
             Waveform::Sinusoid => {
                 let (s, c) = phi.sin_cos();
@@ -144,8 +174,16 @@ impl Sensor {
     }
 
     /// The device's decoder: the distance in `[0, R)` of the single opaque
-    /// surface that gives this bucket ratio. `None` when both buckets are 0.
+    /// surface that gives this bucket ratio, at this sensor's own frequency.
+    /// `None` when both buckets are 0.
     pub fn decode(&self, b: Buckets) -> Option<f64> {
+        let phi = self.decode_phase(b)?;
+        Some((phi / TAU * self.range_mm).rem_euclid(self.range_mm))
+    }
+
+    /// The decoder's phase in `[0, 2 pi)`: that of the single surface giving
+    /// this bucket ratio (the same at every frequency for one waveform).
+    pub fn decode_phase(&self, b: Buckets) -> Option<f64> {
         if b.a == 0.0 && b.b == 0.0 || !b.a.is_finite() || !b.b.is_finite() {
             return None;
         }
@@ -171,12 +209,14 @@ impl Sensor {
                 table[i] * (1.0 - t) + table[i + 1] * t
             }
         };
-        Some((phi.rem_euclid(TAU) / TAU * self.range_mm).rem_euclid(self.range_mm))
+        Some(phi.rem_euclid(TAU))
     }
 
-    /// `d1 - d2` as a wrapped distance in `(-R/2, R/2]` (phases compared, not distances).
+    /// `d1 - d2` as a wrapped distance in `(-R/2, R/2]` (phases compared, not
+    /// distances), `R` the reported depth's range ([`Self::unambiguous_range_mm`]).
     pub fn wrapped_difference_mm(&self, d1: f64, d2: f64) -> f64 {
-        wrap_phase(self.phase(d1 - d2)) / TAU * self.range_mm
+        let range = self.unambiguous_range_mm();
+        wrap_phase(TAU * (d1 - d2) / range) / TAU * range
     }
 }
 

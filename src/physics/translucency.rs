@@ -17,7 +17,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::buffer::{ImageBuf, SparseImage};
+use super::buffer::{ImageBuf, Region, SparseImage};
 use super::inversion::{albedo_cos_clamped, predicted_reading, InversionBounds, PixelObservation, PixelsOverXi};
 use super::model::ForwardModel;
 use super::stats::{median_and_sigma, student_t975};
@@ -230,6 +230,27 @@ impl FrameSample {
         }
     }
 
+    /// The sample cut to the rectangle around its observations, its edges on the grid of
+    /// `align x align` blocks from the lattice's corner ([`Region::around`]): the same
+    /// observations, rays and normals' blocks in a lattice without the empty rows and
+    /// columns around the object (a small object far from the camera has a fine lattice
+    /// over the whole image). `None` when it is already that rectangle or has no observation.
+    pub fn around_observations(&self, align: usize) -> Option<Self> {
+        let obs = &self.observations;
+        let held = ImageBuf {
+            width: obs.width,
+            height: obs.height,
+            data: obs.data.iter().map(Option::is_some).collect(),
+        };
+        let region = Region::around(&held, align)?;
+        (region.len() < obs.len()).then(|| Self {
+            observations: region.crop(obs),
+            rays: region.crop(&self.rays),
+            truth_mm: self.truth_mm.as_ref().map(|t| region.crop(t)),
+            stride: self.stride,
+        })
+    }
+
     /// Observations present.
     pub fn pixel_count(&self) -> usize {
         self.observations.data.iter().filter(|o| o.is_some()).count()
@@ -344,28 +365,11 @@ pub fn frame_profile(
     settings: &XiSettings,
     usage: ProfileUse,
 ) -> FrameProfile {
-    let frame = ProfileFrame::new(model, bounds, sample, settings, usage);
-    let mut out = FrameProfile {
-        groups: vec![],
-        pinned_fraction: vec![],
-        eq12: vec![],
-        truth: vec![],
-        pixels: frame.distances.len(),
-        median_distance_mm: frame
-            .distances
-            .get(frame.distances.len() / 2)
-            .copied()
-            .unwrap_or(f64::NAN),
-    };
-    // Each ξ on its own (in parallel over the current rayon pool), gathered in grid order.
-    let rows: Vec<_> = xi_grid().par_iter().map(|&xi| frame.at(xi)).collect();
-    for (stats, pinned_fraction, eq12, fit) in rows {
-        out.groups.push(stats);
-        out.pinned_fraction.push(pinned_fraction);
-        out.eq12.push(eq12);
-        out.truth.push(fit);
-    }
-    out
+    // Every stage below looks only at observed pixels and the windows around them, on the
+    // normals' block grid: the lattice cut to its observations gives the same profile.
+    let cropped = sample.around_observations(settings.normal_block_steps.max(1));
+    let frame = ProfileFrame::new(model, bounds, cropped.as_ref().unwrap_or(sample), settings, usage);
+    frame.profile()
 }
 
 /// What [`frame_profile`] holds fixed over the ξ grid for one frame's sample.
@@ -453,6 +457,31 @@ impl<'a> ProfileFrame<'a> {
             edges,
             distances,
         }
+    }
+
+    /// The frame's statistics at every ξ of the grid (in parallel over the current rayon
+    /// pool, gathered in grid order).
+    fn profile(&self) -> FrameProfile {
+        let mut out = FrameProfile {
+            groups: vec![],
+            pinned_fraction: vec![],
+            eq12: vec![],
+            truth: vec![],
+            pixels: self.distances.len(),
+            median_distance_mm: self
+                .distances
+                .get(self.distances.len() / 2)
+                .copied()
+                .unwrap_or(f64::NAN),
+        };
+        let rows: Vec<_> = xi_grid().par_iter().map(|&xi| self.at(xi)).collect();
+        for (stats, pinned_fraction, eq12, fit) in rows {
+            out.groups.push(stats);
+            out.pinned_fraction.push(pinned_fraction);
+            out.eq12.push(eq12);
+            out.truth.push(fit);
+        }
+        out
     }
 
     fn group_of(&self, i: usize) -> usize {
@@ -1036,7 +1065,7 @@ fn one_material_pooled<P: Borrow<FrameProfile>>(profiles: &[P]) -> Option<XiEsti
         profile: grid.iter().copied().zip(q.iter().copied()).collect(),
         note,
     };
-    if let Some(why) = undetermined(&grid, &q, kmin, groups, poses) {
+    if let Some(why) = undetermined(groups, poses) {
         // Every ξ: even the albedo bound that pins pixels at high ξ rests on the background
         // albedo `Lin` assumes, so it does not exclude them either.
         return Some(estimate(
@@ -1058,9 +1087,17 @@ fn one_material_pooled<P: Borrow<FrameProfile>>(profiles: &[P]) -> Option<XiEsti
     let (kwide, qwide) = argmin(&wide)?;
     let phi = (qwide / (groups as f64 - 2.0)).max(1.0);
     let level = qwide + 3.84 * phi;
-    let interval = cover(threshold_interval(&grid, &wide, kwide, level), xi);
+    let interval = cover(admissible_interval(&grid, &wide, kwide, level), xi);
+    let edge = if at_admissible_edge(&q, kmin) {
+        format!(
+            "; the objective falls to xi {:.2}, the edge of what the model admits, so the interval runs on past it",
+            grid[kmin]
+        )
+    } else {
+        String::new()
+    };
     let evidence = format!(
-        "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi_within:.2} within poses and {phi:.2} left, pose misfit sd {:.3} in log albedo (at least {:.3}, the groups')",
+        "albedo consistency over {groups} groups in {} frame(s), {poses} poses; overdispersion {phi_within:.2} within poses and {phi:.2} left, pose misfit sd {:.3} in log albedo (at least {:.3}, the groups'){edge}",
         profiles.len(),
         tau2.sqrt(),
         tau2_floor.sqrt()
@@ -1120,23 +1157,25 @@ fn split_statistic(a: &[&FrameProfile], b: &[&FrameProfile]) -> Option<f64> {
     Some((q_joint - q_a - q_b).max(0.0))
 }
 
-/// Why the albedo-consistency objective does not determine ξ, if it does not.
-fn undetermined(grid: &[f64], q: &[f64], kmin: usize, groups: usize, poses: usize) -> Option<String> {
-    let at_edge = |j: Option<usize>| j.is_none_or(|j| !q[j].is_finite());
-    // ξ = 0 is the physical end of the range (opaque), not an edge of what the data admit.
-    let boundary = (kmin > 0 && at_edge(kmin.checked_sub(1))) || at_edge((kmin + 1 < q.len()).then_some(kmin + 1));
+/// Why the albedo-consistency objective does not determine ξ, if it does not. A minimum at
+/// the edge of the admissible range is an estimate like any other: the data prefer as
+/// high a ξ as the model admits ([`at_admissible_edge`]), and the interval runs on to 1.
+fn undetermined(groups: usize, poses: usize) -> Option<String> {
     if groups < 3 {
         Some(format!("{groups} pixel group(s): too few to compare albedos"))
-    } else if boundary {
-        Some(format!(
-            "the albedo-consistency objective has no interior minimum (it falls to xi {:.2}, the edge of the admissible range)",
-            grid[kmin]
-        ))
     } else if poses < 2 {
         Some("the object has been seen in one pose only: one view of one surface does not determine xi (physics.md §3); move it to another distance or give xi".to_string())
     } else {
         None
     }
+}
+
+/// Whether the objective's least value `q[k]` lies next to an inadmissible ξ (not finite):
+/// beyond it the model explains fewer of the object's pixels ([`admissible_interval`]).
+/// ξ 0 is the physical end of the range, not an edge of what the data admit.
+fn at_admissible_edge(q: &[f64], k: usize) -> bool {
+    let inadmissible = |j: usize| q.get(j).is_none_or(|v| !v.is_finite());
+    (k > 0 && inadmissible(k - 1)) || inadmissible(k + 1)
 }
 
 /// ξ fitted to frames with known foreground distances (paper Sec. V-A):
@@ -1262,18 +1301,42 @@ fn refine_minimum(grid: &[f64], v: &[f64], k: usize) -> f64 {
     (-b / (2.0 * a)).clamp(x0, x2)
 }
 
-/// The connected run of grid points around `k` with value `<= level`, extended
-/// by linear interpolation to the crossing and by half a grid step.
-fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2] {
+/// [`threshold_interval`] over an objective that is not finite where ξ is inadmissible
+/// ([`eligible`]): a run that reaches an inadmissible ξ does not end there. There the model
+/// explains fewer of the object's pixels (no root, or an albedo beyond the bound), which is
+/// what an object it does not describe shows too (a box between a layer and the latched
+/// wall, a frosted layer): the albedo consistency has not rejected those ξ, so the interval
+/// runs on to that end of the range.
+fn admissible_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2] {
+    let [mut lo, mut hi] = threshold_interval(grid, v, k, level);
+    let (run_lo, run_hi) = run_below(v, k, level);
+    if run_lo > 0 && !v[run_lo - 1].is_finite() {
+        lo = 0.0;
+    }
+    if run_hi + 1 < v.len() && !v[run_hi + 1].is_finite() {
+        hi = 1.0;
+    }
+    [lo, hi]
+}
+
+/// The first and last index of the connected run of finite values `<= level` around `k`.
+fn run_below(v: &[f64], k: usize, level: f64) -> (usize, usize) {
     let below = |j: usize| v[j].is_finite() && v[j] <= level;
     let mut lo = k;
     while lo > 0 && below(lo - 1) {
         lo -= 1;
     }
     let mut hi = k;
-    while hi + 1 < grid.len() && below(hi + 1) {
+    while hi + 1 < v.len() && below(hi + 1) {
         hi += 1;
     }
+    (lo, hi)
+}
+
+/// The connected run of grid points around `k` with value `<= level`, extended
+/// by linear interpolation to the crossing and by half a grid step.
+fn threshold_interval(grid: &[f64], v: &[f64], k: usize, level: f64) -> [f64; 2] {
+    let (lo, hi) = run_below(v, k, level);
     let cross = |a: usize, b: usize| -> f64 {
         if !v[b].is_finite() {
             return grid[a];
@@ -1447,18 +1510,70 @@ mod tests {
         assert_eq!(cover([0.4, 0.5], 0.52), [0.4, 0.52]);
     }
 
+    /// An objective inadmissible (NaN) above ξ 0.55, where the model would explain fewer
+    /// pixels: a run that reaches it does not end there (the albedo consistency has not
+    /// rejected those ξ), one that ends before it by the data does.
+    #[test]
+    fn an_interval_that_reaches_the_inadmissible_range_runs_on_to_its_end() {
+        let grid = xi_grid();
+        let v: Vec<f64> = grid
+            .iter()
+            .map(|&x| if x > 0.55 { f64::NAN } else { (x / 0.1).powi(2) })
+            .collect();
+        let (k, _) = argmin(&v).unwrap();
+        // Rising to the edge: the data end the run at ξ 0.3 (level 9), before the edge.
+        assert!(admissible_interval(&grid, &v, k, 9.0)[1] < 0.35);
+        // Still under the level at the edge: every ξ above it stays possible.
+        assert_eq!(admissible_interval(&grid, &v, k, 40.0), [0.0, 1.0]);
+        assert!(threshold_interval(&grid, &v, k, 40.0)[1] < 0.6);
+    }
+
+    /// An objective that falls all the way to where the model stops admitting ξ (a faint,
+    /// high-ξ layer whose physics the model misses a little) is an estimate at that edge,
+    /// its interval from where the data rise above the level on to 1; an interior minimum
+    /// is no edge, and ξ 0 is the range's physical end, not an edge.
+    #[test]
+    fn a_minimum_at_the_admissible_edge_is_an_estimate_whose_interval_runs_on() {
+        let grid = xi_grid();
+        let v: Vec<f64> = grid
+            .iter()
+            .map(|&x| if x > 0.9 { f64::NAN } else { ((0.9 - x) / 0.05).powi(2) })
+            .collect();
+        let (k, _) = argmin(&v).unwrap();
+        assert!(at_admissible_edge(&v, k));
+        assert!((grid[k] - 0.9).abs() < 0.03, "{}", grid[k]);
+        let [lo, hi] = admissible_interval(&grid, &v, k, v[k] + 3.84);
+        assert_eq!(hi, 1.0);
+        assert!((0.78..0.85).contains(&lo), "{lo}");
+        let interior: Vec<f64> = grid.iter().map(|&x| ((x - 0.5) / 0.05).powi(2)).collect();
+        let (k, _) = argmin(&interior).unwrap();
+        assert!(!at_admissible_edge(&interior, k));
+        // Rising from ξ 0: opaque, its minimum at the range's physical end.
+        assert!(!at_admissible_edge(&grid, 0));
+        assert_eq!(undetermined(9, 2), None);
+        assert!(undetermined(9, 1).is_some() && undetermined(2, 3).is_some());
+    }
+
+    /// Unit rays of a `w x h` pinhole camera of focal length `f` pixels, its principal point
+    /// at the image's centre.
+    fn centred_rays(w: usize, h: usize, f: f64) -> ImageBuf<Vector3<f64>> {
+        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| Vector3::new(((i % w) as f64 - cx) / f, ((i / w) as f64 - cy) / f, 1.0).normalize())
+                .collect(),
+        }
+    }
+
     /// A box's corner, one face seen face-on and the other nearly edge-on (80° from the view):
     /// the first face's pixels read a usable normal at every ξ alike, the grazing face's do not
     /// (cos of incidence under 0.3), and are left out of the albedo statistics.
     #[test]
     fn a_face_seen_edge_on_is_not_readable_and_one_seen_face_on_is() {
         let (w, h, f) = (48usize, 32usize, 60.0);
-        let ray = |u: usize, v: usize| Vector3::new((u as f64 - 23.5) / f, (v as f64 - 15.5) / f, 1.0).normalize();
-        let rays = ImageBuf {
-            width: w,
-            height: h,
-            data: (0..w * h).map(|i| ray(i % w, i / w)).collect(),
-        };
+        let rays = centred_rays(w, h, f);
         // Left: z = 2000; right of x = 0: z = 2000 + x tan(80°), a face receding steeply.
         let steep = 80f64.to_radians().tan();
         let observations = ImageBuf {
@@ -1503,13 +1618,59 @@ mod tests {
         // Beyond the narrowest window's reach of the corner (3 pixels): windows there hold only
         // the edge-on face.
         let edge_on: Vec<usize> = (0..w)
-            .filter(|&u| ray(u, 16).x > 4.0 / f && mask.data[16 * w + u])
+            .filter(|&u| sample.rays.data[16 * w + u].x > 4.0 / f && mask.data[16 * w + u])
             .collect();
         assert!(!edge_on.is_empty());
         assert!(
             rows.clone().all(|v| edge_on.iter().all(|&u| !readable[v * w + u])),
             "the face seen edge-on"
         );
+    }
+
+    /// The profile of a sample cut to its observations is the profile of the whole lattice:
+    /// a tilted patch in the middle of an empty lattice.
+    #[test]
+    fn a_lattice_cut_to_its_observations_gives_the_same_profile() {
+        let (w, h, f) = (40usize, 30usize, 50.0);
+        let rays = centred_rays(w, h, f);
+        let patch = |i: usize| (7..23).contains(&(i / w)) && (8..31).contains(&(i % w));
+        let observations = ImageBuf {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| {
+                    let r = rays.data[i];
+                    // A layer at z = 1200 + 0.3 x, reading farther by a ξ-dependent share.
+                    let t = 1200.0 / (r.z - 0.3 * r.x) + 40.0 + (i % 7) as f64;
+                    patch(i).then_some(PixelObservation {
+                        distance_mm: t,
+                        ir: 900.0 + (i % 5) as f64 * 10.0,
+                        background_distance_mm: 2500.0,
+                        background_ir: 700.0,
+                        emitted_light: 3e9,
+                        wall_view_factor: 0.0,
+                    })
+                })
+                .collect(),
+        };
+        let sample = FrameSample {
+            observations,
+            rays,
+            truth_mm: None,
+            stride: 1,
+        };
+        let settings = XiSettings::default();
+        let cut = sample
+            .around_observations(settings.normal_block_steps)
+            .expect("a smaller lattice");
+        assert_eq!((cut.observations.width, cut.observations.height), (27, 18));
+        assert_eq!(cut.observations.data.iter().flatten().count(), 16 * 23);
+        let model = ForwardModel::physical(crate::physics::sensor::Sensor::sr4000());
+        let bounds = InversionBounds::default();
+        let whole = ProfileFrame::new(&model, &bounds, &sample, &settings, ProfileUse::Estimation).profile();
+        let profile = frame_profile(&model, &bounds, &sample, &settings, ProfileUse::Estimation);
+        assert!(whole.groups.iter().flatten().any(|g| g.count > 0));
+        assert_eq!(format!("{whole:?}"), format!("{profile:?}"));
     }
 
     #[test]

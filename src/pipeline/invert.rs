@@ -480,6 +480,14 @@ impl Pipeline {
         if ends.is_empty() {
             return share;
         }
+        // An interval that runs on to 1 (past what the model admits) leaves the layer where
+        // no reading places it: at ξ 1 it returns nothing, so the layer could be anywhere.
+        if xi.interval[1] >= 1.0 {
+            for &(i, _) in observed.iter().filter(|(i, _)| df[*i].is_finite()) {
+                share[i] = self.config.max_layer_sigma_mm;
+            }
+            return share;
+        }
         let (w, stride) = (width.max(1), self.config.prior_stride_px.max(1));
         let block = |i: usize| (i / w / stride) * w.div_ceil(stride) + (i % w) / stride;
         let recovered: Vec<(usize, &PixelObservation)> = observed

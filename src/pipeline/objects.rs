@@ -3,6 +3,7 @@
 //! materials.
 
 use super::*;
+use crate::physics::segmentation::Members;
 
 /// The ξ a near wall's view factors are found at before any estimate.
 const NOMINAL_XI: f64 = 0.5;
@@ -18,15 +19,9 @@ impl Pipeline {
         self.evidence_frames += 1;
         let settings = self.config.xi_settings;
         let single = obs.regions.len() == 1;
-        let mut pixels: Vec<Vec<u32>> = vec![vec![]; obs.regions.len()];
-        for (i, &l) in obs.labels.data.iter().enumerate() {
-            if let Some(p) = (l as usize).checked_sub(1).and_then(|k| pixels.get_mut(k)) {
-                // `observe` refused images with more pixels than u32 indexes.
-                p.push(i as u32);
-            }
-        }
-        let mut regions: Vec<RegionEvidence> = pixels
-            .iter()
+        let members = Members::of(&obs.labels, obs.regions.len());
+        let mut regions: Vec<RegionEvidence> = (1..=obs.regions.len())
+            .map(|l| members.of_label(l))
             .map(|pixels| {
                 let (distance_mm, spread_mm) = distance_quartiles(&obs.distance_mm, pixels);
                 let rays = pixels

@@ -2,7 +2,7 @@
 //! observations and regions, and whether the camera moved after the latch.
 
 use super::*;
-use crate::physics::parallel::map_ordered;
+use crate::physics::parallel::filter_map_parts;
 
 /// Fewest segmented pixels whose observations are gathered over the pool.
 const PARALLEL_PIXELS: usize = 16 * 1024;
@@ -50,15 +50,14 @@ impl Pipeline {
                 && o.emitted_light > 0.0;
             ok.then_some(o)
         };
-        // Over the pool, then set in the image in pixel order (as `from_mask` visits them).
         let too_large = || PipelineError::TooLarge {
             width: k.width,
             height: k.height,
         };
         let pixels = u32::try_from(mask.data.len()).map_err(|_| too_large())?;
-        let segmented: Vec<u32> = (0..pixels).filter(|&i| mask.data[i as usize]).collect();
-        let mut found = map_ordered(&segmented, PARALLEL_PIXELS, 1024, |&i| observation(i as usize)).into_iter();
-        let observations = SparseImage::from_mask(&mask, |_| found.next().flatten()).ok_or_else(too_large)?;
+        let mut segmented: Vec<u32> = Vec::with_capacity(mask.data.iter().filter(|&&m| m).count());
+        segmented.extend((0..pixels).filter(|&i| mask.data[i as usize]));
+        let observations = gather_observations(&segmented, k, observation).ok_or_else(too_large)?;
         let translucent_pixels = segmented.len();
         // A pixel's reading noise: the latch's, grown as shot noise where less light returns.
         let fallback = self.config.threshold_mm / NOISE_SIGMAS;
@@ -89,6 +88,22 @@ impl Pipeline {
         })
     }
 
+    /// The pixels a frame reads invalid (0 or NaN) where the latched background is valid:
+    /// a camera's depth engine invalidates a layer's pixels whose frequencies disagree
+    /// beyond its threshold. They stay unmeasured in the outputs (never a distance); this
+    /// counts them (0 without a background).
+    pub fn unmeasured_pixels(&self, frame: &DepthFrame) -> usize {
+        let Some(bg) = self.background.as_ref() else { return 0 };
+        let valid = |v: f64| v.is_finite() && v > 0.0;
+        frame
+            .z_mm
+            .data
+            .iter()
+            .zip(&bg.distance_mm.data)
+            .filter(|(&z, &db)| !valid(f64::from(z)) && valid(db))
+            .count()
+    }
+
     /// How a frame's readings depart from the background (`None` without one).
     pub fn departure(&self, obs: &Observed) -> Option<Departure> {
         let bg = self.background.as_ref()?;
@@ -107,6 +122,25 @@ impl Pipeline {
         }
         Some(out)
     }
+}
+
+/// The observations `observation` gives at the `segmented` pixels (ascending), over the pool
+/// in chunks, laid out once in pixel order; `None` for an image too large to index.
+fn gather_observations(
+    segmented: &[u32],
+    k: &Intrinsics,
+    observation: impl Fn(usize) -> Option<PixelObservation> + Sync + Send,
+) -> Option<SparseImage<PixelObservation>> {
+    let parts = filter_map_parts(segmented, PARALLEL_PIXELS, 1024, |&i| {
+        observation(i as usize).map(|o| (i, o))
+    });
+    let count = parts.iter().map(Vec::len).sum();
+    let (mut pixels, mut values) = (Vec::with_capacity(count), Vec::with_capacity(count));
+    for (i, o) in parts.into_iter().flatten() {
+        pixels.push(i);
+        values.push(o);
+    }
+    SparseImage::from_pixels(k.width, k.height, pixels, values)
 }
 
 #[cfg(test)]
@@ -139,6 +173,12 @@ mod tests {
             .observe(&frame(&k, |c, r| if patch(c, r) { 1500.0 } else { 2000.0 }))
             .expect("an observation");
         assert_eq!(obs.translucent_pixels, 120);
+        // A pixel read invalid over the valid wall is unmeasured, and counted.
+        let mut holed = frame(&k, |c, r| if patch(c, r) { 1500.0 } else { 2000.0 });
+        holed.z_mm.data[12 * k.width + 15] = 0.0;
+        holed.z_mm.data[13 * k.width + 15] = f32::NAN;
+        assert_eq!(pipe.unmeasured_pixels(&holed), 2);
+        assert_eq!(pipe.observe(&holed).expect("an observation").translucent_pixels, 118);
         assert_eq!(obs.regions.len(), 1);
         assert_eq!(obs.regions[0].pixels, 120);
         assert!((0..k.width * k.height).all(|i| obs.mask.data[i] == patch(i % k.width, i / k.width)));

@@ -11,7 +11,7 @@ use crate::physics::model::MAX_BOUNCES;
 use crate::physics::multifreq::MultiFrequencyModel;
 use crate::physics::near_wall;
 use crate::physics::noise::ShotNoise;
-use crate::physics::{ForwardModel, ImageBuf, Intrinsics, LayerScene, Return, Sensor, Waveform};
+use crate::physics::{ForwardModel, ImageBuf, Intrinsics, IrMode, LayerScene, Return, Sensor, Waveform};
 
 /// One rendered frame.
 #[derive(Debug, Clone)]
@@ -31,7 +31,9 @@ pub struct SimFrame {
     pub phasors: Vec<ImageBuf<[f32; 2]>>,
 }
 
-/// The camera and physics a scene implies.
+/// The camera and physics a scene implies: its modulation and waveform, and
+/// its depth engine where it has one (checked by [`Scene::validate`]; one
+/// that does not check is left off).
 pub fn scene_sensor(scene: &Scene) -> Sensor {
     let c = &scene.camera;
     let w = match c.waveform.as_str() {
@@ -42,7 +44,11 @@ pub fn scene_sensor(scene: &Scene) -> Sensor {
         },
         _ => Waveform::Sinusoid,
     };
-    Sensor::new(c.modulation_frequency_hz, w)
+    let sensor = Sensor::new(c.modulation_frequency_hz, w);
+    match &c.depth_engine {
+        Some(e) => sensor.clone().with_depth_engine(e).unwrap_or(sensor),
+        None => sensor,
+    }
 }
 
 /// The scene's intrinsics: K from the fields of view, and the lens (a
@@ -254,6 +260,49 @@ fn push_phasors(
     }
 }
 
+/// A noisy reading `(distance_mm, ir)` of `returns` through the sensor's depth
+/// engine: the phasor at each of its frequencies (Eq. 5 at `f_k`) with the bucket
+/// noise of the light received (the same at every frequency), read by the engine
+/// as the camera does (NaN where it invalidates the pixel). The IR is the
+/// engine's amplitude, or the sum of the returns (with its noise) for `IrMode::Sum`.
+fn engine_reading(model: &ForwardModel, returns: &[Return], noise: &ShotNoise, rng: &mut ChaCha8Rng) -> (f64, f64) {
+    let Some(e) = model.sensor.engine() else {
+        return (f64::NAN, 0.0);
+    };
+    let total: f64 = returns.iter().map(|r| r.strength).sum();
+    let s = noise.bucket_sigma(total);
+    let mut p = e.phasors(&model.sensor, returns);
+    for b in p.iter_mut().take(e.len()) {
+        let (za, zb): (f64, f64) = (rng.sample(StandardNormal), rng.sample(StandardNormal));
+        b.a += s * za;
+        b.b += s * zb;
+    }
+    let reading = e.read(&model.sensor, &p[..e.len()]);
+    let ir = match model.options.ir_mode {
+        IrMode::Amplitude => reading.ir_amplitude,
+        IrMode::Sum => total + s * rng.sample::<f64, _>(StandardNormal),
+    };
+    (reading.distance_mm, ir + model.options.ambient_offset)
+}
+
+/// What a pixel received before the sensor's effects and noise: nothing, the single
+/// frequency's measurement (Eq. 5), or the returns a depth engine reads.
+enum Pixel {
+    Empty,
+    Measured(crate::physics::Measurement),
+    Engine(Vec<Return>),
+}
+
+impl Pixel {
+    /// The single frequency's measurement, where the pixel has one.
+    fn measurement(&self) -> Option<crate::physics::Measurement> {
+        match self {
+            Pixel::Measured(m) => Some(*m),
+            _ => None,
+        }
+    }
+}
+
 /// Renders every frame of the scene: background frames, then each stage's.
 /// `on_frame` receives each frame as it is made (for progress and writing).
 pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result<(), String>) -> Result<(), String> {
@@ -299,7 +348,7 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
         let mut truth = Vec::with_capacity(npx);
         let mut phasors: Vec<Vec<[f32; 2]>> = vec![Vec::with_capacity(npx); multi.as_ref().map_or(0, |m| m.len())];
         let frame_time_s = index as f64 / scene.camera.frame_rate_hz;
-        let mut measurements: Vec<Option<crate::physics::Measurement>> = Vec::with_capacity(npx);
+        let mut measurements: Vec<Pixel> = Vec::with_capacity(npx);
         for i in 0..npx {
             let (col, row) = ((i % k.width) as f64, (i / k.width) as f64);
             // Sub-rays on a regular grid within the pixel, each with its share of the light:
@@ -333,19 +382,23 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
             if let Some(mf) = &multi {
                 push_phasors(mf, &returns, &noise, &mut phasor_rng, &mut phasors);
             }
-            measurements.push((!returns.is_empty()).then(|| model.measure(&returns)));
+            // A depth engine reads the returns themselves (several frequencies); the single
+            // frequency's measurement is made here and read after the frame's stray light.
+            if model.sensor.engine().is_some() && !returns.is_empty() {
+                measurements.push(Pixel::Engine(returns.clone()));
+            } else {
+                measurements.push(if returns.is_empty() {
+                    Pixel::Empty
+                } else {
+                    Pixel::Measured(model.measure(&returns))
+                });
+            }
         }
         // The sensor's effects past the model, on the whole frame's measurements (stray light
         // spreads the frame's light); none leaves each measurement as the model made it.
-        let frame_light = crate::sim::Artefacts::frame_light(&measurements);
-        for (i, meas) in measurements.into_iter().enumerate() {
-            let meas = meas.map(|m| {
-                if artefacts.none() {
-                    m
-                } else {
-                    artefacts.apply(&sensor, &m, frame_light)
-                }
-            });
+        let single: Vec<Option<crate::physics::Measurement>> = measurements.iter().map(Pixel::measurement).collect();
+        let frame_light = crate::sim::Artefacts::frame_light(&single);
+        for (i, pixel) in measurements.into_iter().enumerate() {
             let fg = foreground_hit(
                 &rays.data[i],
                 objects,
@@ -356,7 +409,14 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
                 rng.sample(StandardNormal),
                 rng.sample(StandardNormal),
             ];
-            let (d, v) = meas.map(|m| noise.apply(&sensor, &m, z)).unwrap_or((f64::NAN, 0.0));
+            let (d, v) = match pixel {
+                Pixel::Engine(returns) => engine_reading(&model, &returns, &noise, &mut rng),
+                Pixel::Measured(m) if !artefacts.none() => {
+                    noise.apply(&sensor, &artefacts.apply(&sensor, &m, frame_light), z)
+                }
+                Pixel::Measured(m) => noise.apply(&sensor, &m, z),
+                Pixel::Empty => (f64::NAN, 0.0),
+            };
             let share = scene.camera.invalid_share;
             let invalid = outside.get(i).copied().unwrap_or(false) || (share > 0.0 && invalid_rng.random_bool(share));
             depth.push(if invalid { f32::NAN } else { (d / scale.data[i]) as f32 });
@@ -484,6 +544,53 @@ mod tests {
             assert!((f64::from(a) - m.buckets.a).abs() < 1e-5 * scale, "{a} {:?}", m.buckets);
             assert!((f64::from(b) - m.buckets.b).abs() < 1e-5 * scale, "{b} {:?}", m.buckets);
         }
+    }
+
+    #[test]
+    fn a_depth_engine_renders_the_models_depth_and_invalidates_past_its_threshold() {
+        let mut s = scene(0.0);
+        s.camera.depth_engine = Some(crate::physics::DepthEngine::at(&[16e6, 80e6, 120e6]).unwrap());
+        let frames = render_all(&s);
+        let k = Intrinsics::sr4000();
+        let c = k.width / 2 + (k.height / 2) * k.width;
+        assert!(
+            (frames[0].depth_z_mm.data[c] - 2000.0).abs() < 0.01,
+            "the wall reads its distance"
+        );
+        // The layer's pixel reads the engine's depth of its returns, not the single frequency's.
+        let model = ForwardModel {
+            sensor: scene_sensor(&s),
+            options: s.physics.clone(),
+        };
+        let single = render_all(&scene(0.0));
+        let (got, one) = (frames[2].depth_z_mm.data[c], single[2].depth_z_mm.data[c]);
+        let scale = k.ray_scale(k.width / 2, k.height / 2);
+        let lin = emitted_light_map(&s).data[c];
+        let want = model
+            .measure_layer(&LayerScene {
+                foreground_distance_mm: 1000.0 * scale,
+                background_distance_mm: 2000.0 * scale,
+                translucency: 0.65,
+                foreground_albedo_cos: 0.6 / scale,
+                background_albedo_cos: 1.0 / scale,
+                emitted_light: lin,
+                wall_view_factor: 0.0,
+            })
+            .distance_mm
+            / scale;
+        assert!((f64::from(got) - want).abs() < 0.5, "engine {got}, model {want}");
+        assert!((got - one).abs() > 5.0, "engine {got}, single frequency {one}");
+        // A tight threshold leaves the layer's pixels unmeasured and the wall's valid.
+        if let Some(e) = s.camera.depth_engine.as_mut() {
+            e.max_disagreement_mm = Some(1.0);
+        }
+        let strict = render_all(&s);
+        assert!(
+            strict[2].depth_z_mm.data[c].is_nan(),
+            "{}",
+            strict[2].depth_z_mm.data[c]
+        );
+        assert!((strict[0].depth_z_mm.data[c] - 2000.0).abs() < 0.01);
     }
 
     #[test]

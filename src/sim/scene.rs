@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::physics::camera::{Distortion, DistortionError};
-use crate::physics::ModelOptions;
+use crate::physics::{DepthEngine, ModelOptions};
 
 /// What is wrong with a scene file.
 #[derive(Debug, Error)]
@@ -83,6 +83,10 @@ pub struct CameraSpec {
     /// Each gets a `32FC2` phasor image `phasor_<k>/image_raw` beside the
     /// depth and IR (which stay at `modulation_frequency_hz`).
     pub modulation_frequencies_hz: Vec<f64>,
+    /// A camera that unwraps its depth from several frequencies (issue 51):
+    /// its depth engine, whose depth and IR the depth and IR images are
+    /// (`[camera.depth_engine]`, as in a physics file; none by default).
+    pub depth_engine: Option<DepthEngine>,
     /// `sinusoid`, `triangle` or `harmonics`.
     pub waveform: String,
     /// Relative 3rd and 5th harmonic amplitudes when `waveform = "harmonics"`.
@@ -136,6 +140,7 @@ impl Default for CameraSpec {
             vfov_deg: 35.0,
             modulation_frequency_hz: 30.0e6,
             modulation_frequencies_hz: vec![],
+            depth_engine: None,
             waveform: "sinusoid".into(),
             harmonics: [0.0, 0.0],
             frame_rate_hz: 10.0,
@@ -321,6 +326,13 @@ impl Scene {
             return Err("camera modulation_frequency_hz and frame_rate_hz must be positive".into());
         }
         check_frequencies(&c.modulation_frequencies_hz)?;
+        if let Some(e) = &c.depth_engine {
+            e.check().map_err(|e| format!("camera.depth_engine: {e}"))?;
+            let a = &c.artefacts;
+            if a.stray_light != 0.0 || a.saturation_ir != 0.0 || a.amplitude_power != 1.0 {
+                return Err("camera.depth_engine: the artefacts that act on the single frequency's buckets (stray_light, saturation_ir, amplitude_power) do not apply to a depth engine; only phase_drift_mm_per_s does".into());
+            }
+        }
         if !["sinusoid", "triangle", "harmonics"].contains(&c.waveform.as_str()) {
             return Err(format!(
                 "camera.waveform {:?}: expected sinusoid, triangle or harmonics",
@@ -489,5 +501,12 @@ mod tests {
         let e = Scene::from_toml("[background]\ndistance_mm = 5\ncolour = 3\n", "x.toml").unwrap_err();
         let e = chain(&e);
         assert!(e.contains("colour"), "{e}");
+        let e = Scene::from_toml(
+            "[background]\ndistance_mm = 2000\n[camera.depth_engine]\nfrequencies_hz = [16e6, 80e6, 120e6]\n[camera.artefacts]\nstray_light = 0.01\n",
+            "x.toml",
+        )
+        .unwrap_err();
+        let e = chain(&e);
+        assert!(e.contains("depth_engine") && e.contains("stray_light"), "{e}");
     }
 }

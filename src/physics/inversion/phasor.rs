@@ -40,8 +40,8 @@ pub(super) struct PhaseTrig {
 const WALL_STEPS: usize = 12;
 
 impl PhasorModel {
-    /// `None` unless `model` is two returns, `L2 = Ib xi^2`, amplitude IR, a sinusoid and
-    /// no refraction (an IR offset, a subsurface delay, a near wall's third return and a
+    /// `None` unless `model` is two returns, `L2 = Ib xi^2`, amplitude IR, a sinusoid without
+    /// a depth engine and no refraction (an IR offset, a subsurface delay, a near wall's third return and a
     /// hollow object's back wall are allowed).
     pub(super) fn new(model: &ForwardModel) -> Option<Self> {
         let o = &model.options;
@@ -52,7 +52,7 @@ impl PhasorModel {
             hollow_depth_mm: o.hollow_depth_mm,
             ..ModelOptions::physical()
         };
-        if *o != known || model.sensor.waveform != Waveform::Sinusoid {
+        if *o != known || model.sensor.waveform != Waveform::Sinusoid || model.sensor.depth_engine().is_some() {
             return None;
         }
         let range_mm = model.sensor.unambiguous_range_mm();
