@@ -29,6 +29,10 @@ pub struct PixelObservation {
     /// `F`: the view factor from the background point to the layer, where the model's
     /// [`ModelOptions::wall_interreflection`] asks for it (0 until it is known).
     pub wall_view_factor: f64,
+    /// What the pixel sees through a frosted layer's lobe, where the model's
+    /// [`ModelOptions::diffuse_transmission`] asks for it and the layer's outline is known
+    /// ([`super::diffuse::lobe_returns`]); `None`: the layer taken as filling the view.
+    pub diffuse_lobe: Option<super::diffuse::DiffuseLobe>,
 }
 
 impl PixelObservation {
@@ -43,6 +47,7 @@ impl PixelObservation {
             background_albedo_cos: self.background_albedo_cos(ambient_offset),
             emitted_light: self.emitted_light,
             wall_view_factor: self.wall_view_factor,
+            diffuse_lobe: self.diffuse_lobe,
         }
     }
 
@@ -1374,6 +1379,7 @@ mod tests {
             background_albedo_cos: xb,
             emitted_light: lin,
             wall_view_factor: f,
+            diffuse_lobe: None,
         };
         let m = model.measure_layer(&s);
         let bg = model.measure(&[ForwardModel::opaque_return(db, xb, lin)]);
@@ -1384,6 +1390,7 @@ mod tests {
             background_ir: bg.ir,
             emitted_light: lin,
             wall_view_factor: f,
+            diffuse_lobe: None,
         }
     }
 

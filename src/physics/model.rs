@@ -6,7 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::diffuse::diffuse_second_return;
+use super::diffuse::{diffuse_second_return, DiffuseLobe};
 use super::near_wall::{third_return_distance, third_return_share};
 use super::sensor::{Buckets, Sensor};
 
@@ -57,7 +57,9 @@ pub struct ModelOptions {
     pub wall_interreflection: f64,
     /// Share (0..1) of the light crossing the layer that crosses diffusely, through a
     /// cosine lobe ([`super::diffuse`]; a frosted layer): that share of the second return
-    /// (Eq. 2) comes back over slanted paths, fainter and farther. 0 is a clear layer.
+    /// (Eq. 2) comes back over slanted paths, fainter and farther; where the layer's outline
+    /// is known ([`LayerScene::diffuse_lobe`]) the lobe sees the background outside the
+    /// layer's shadow too, lit straight. 0 is a clear layer.
     pub diffuse_transmission: f64,
     /// Depth of a hollow object of the layer's material (a bin, a closed box), mm: a back
     /// wall this far behind the front along the ray, seen through it, and the background
@@ -227,6 +229,10 @@ pub struct LayerScene {
     /// `F`: the view factor from the background point behind the pixel to the layer
     /// ([`super::near_wall::view_factor`]); 0 where it is not known or not wanted.
     pub wall_view_factor: f64,
+    /// What the pixel sees through a frosted layer of finite extent
+    /// ([`super::diffuse::lobe_returns`]); `None` takes the layer as filling the view
+    /// (`ψ²`, [`super::diffuse::diffuse_second_return`]).
+    pub diffuse_lobe: Option<DiffuseLobe>,
 }
 
 /// What the device reports for one pixel.
@@ -313,10 +319,26 @@ impl ForwardModel {
         let diffuse = o.diffuse_transmission.clamp(0.0, 1.0);
         if diffuse > 0.0 && n < MAX_BOUNCES {
             let k = self.sensor.phase(1.0);
-            let (length, extra_mm) = diffuse_second_return(db - df, k);
-            out[n] = Return {
-                strength: diffuse * length * out[1].strength,
-                distance_mm: df + extra_mm,
+            out[n] = match s.diffuse_lobe {
+                // The finite layer: `f (L2 / (ξ X^{p/2})) Z_lit + f L2 Z_shadow` at the layer's
+                // phase, the background outside the shadow crossing the layer once.
+                Some(lobe) => {
+                    let once = xb * xi * pow(x, o.transmission_albedo_power / 2.0) * lin / (db * db);
+                    let l2 = out[1].strength;
+                    let re = once * lobe.lit[0] + l2 * lobe.shadow[0];
+                    let im = once * lobe.lit[1] + l2 * lobe.shadow[1];
+                    Return {
+                        strength: diffuse * re.hypot(im),
+                        distance_mm: df + im.atan2(re) / k,
+                    }
+                }
+                None => {
+                    let (length, extra_mm) = diffuse_second_return(db - df, k);
+                    Return {
+                        strength: diffuse * length * out[1].strength,
+                        distance_mm: df + extra_mm,
+                    }
+                }
             };
             out[1].strength *= 1.0 - diffuse;
             n += 1;
@@ -438,6 +460,7 @@ mod tests {
             background_albedo_cos: 1.0,
             emitted_light: 1.0e10,
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
         }
     }
 
@@ -481,6 +504,7 @@ mod tests {
         let mut m = ForwardModel::physical(Sensor::sr4000());
         let s = LayerScene {
             wall_view_factor: 0.27,
+            diffuse_lobe: None,
             ..scene(1750.0, 2000.0, 0.65, 0.6)
         };
         let mut r = [Return::default(); MAX_BOUNCES];
@@ -492,6 +516,7 @@ mod tests {
         assert!((r[2].distance_mm - (2000.0 + 250.0 * std::f64::consts::SQRT_2)).abs() < 1e-9);
         let none = LayerScene {
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
             ..s
         };
         assert_eq!(m.layer_returns(&none, &mut r), 2, "no view, no third return");

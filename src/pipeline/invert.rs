@@ -551,6 +551,7 @@ fn with_view_factors(
         let o = *observations.get(fi)?;
         Some(PixelObservation {
             wall_view_factor: by_pixel.get(&fi).copied().unwrap_or(0.0),
+            diffuse_lobe: None,
             ..o
         })
     })
@@ -764,6 +765,7 @@ mod tests {
             background_ir: 800.0,
             emitted_light: 1e10,
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
         }
     }
 

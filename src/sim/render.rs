@@ -219,6 +219,7 @@ fn ray_returns(
                     } else {
                         0.0
                     },
+                    diffuse_lobe: None,
                 },
                 &mut r,
             );
@@ -575,6 +576,7 @@ mod tests {
                 background_albedo_cos: 1.0 / scale,
                 emitted_light: lin,
                 wall_view_factor: 0.0,
+                diffuse_lobe: None,
             })
             .distance_mm
             / scale;
