@@ -116,6 +116,39 @@ pub struct DiffuseLobe {
     pub shadow: [f64; 2],
 }
 
+/// Layer distances in a [`LobeTable`].
+pub const LOBE_TABLE_LEN: usize = 16;
+
+/// A pixel's lobe at layer distances along its ray ([`ImageLayer::lobe_table`]): the lobe
+/// changes with the hypothesised layer's distance, the outline stays.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LobeTable {
+    /// The first layer distance, mm.
+    pub first_mm: f64,
+    /// The step between distances, mm.
+    pub step_mm: f64,
+    /// The lobe at each distance.
+    pub lobes: [DiffuseLobe; LOBE_TABLE_LEN],
+}
+
+impl LobeTable {
+    /// The lobe of a layer at `df`, mm (linear between the distances, held beyond them).
+    pub fn at(&self, df: f64) -> DiffuseLobe {
+        let x = ((df - self.first_mm) / self.step_mm).clamp(0.0, (LOBE_TABLE_LEN - 1) as f64);
+        if !x.is_finite() {
+            return self.lobes[0];
+        }
+        let j = (x as usize).min(LOBE_TABLE_LEN - 2);
+        let t = x - j as f64;
+        let (a, b) = (self.lobes[j], self.lobes[j + 1]);
+        let mix = |p: [f64; 2], q: [f64; 2]| [p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])];
+        DiffuseLobe {
+            lit: mix(a.lit, b.lit),
+            shadow: mix(a.shadow, b.shadow),
+        }
+    }
+}
+
 /// Where a pixel's lobe starts and what it falls on.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LobeGeometry {
@@ -205,6 +238,117 @@ pub fn lobe_returns(
         }
     }
     out
+}
+
+/// A layer seen in the image, for its pixels' lobes: its outline (`mask`, the whole image's),
+/// its patches and normal, and the emitted light `Lin` per pixel.
+pub struct ImageLayer<'a> {
+    /// The camera.
+    pub intrinsics: &'a super::camera::Intrinsics,
+    /// The layer's pixels (its outline is its shadow's).
+    pub mask: &'a super::ImageBuf<bool>,
+    /// `Lin` per pixel (Eq. 13).
+    pub emitted_light: &'a super::ImageBuf<f64>,
+    /// The layer as patches ([`super::near_wall::layer_patches`]).
+    pub patches: &'a [super::near_wall::Patch],
+    /// The layer's unit normal toward the background ([`layer_normal`]).
+    pub normal: Vector3<f64>,
+}
+
+impl ImageLayer<'_> {
+    /// The pixel on `ray` (unit) at `df` before a background at `db` (ray distances, mm):
+    /// its lobe ([`lobe_returns`]), `k` the sensor's radians per mm.
+    pub fn lobe(&self, ray: &Vector3<f64>, df: f64, db: f64, k: f64) -> DiffuseLobe {
+        let (point, wall) = (ray * df, ray * db);
+        let lin0 = self.lin_at(&wall);
+        let lin = |w: &Vector3<f64>| self.lin_at(w).or(lin0).unwrap_or(0.0);
+        let inward = inward_light(&wall, &self.normal, self.patches);
+        lobe_returns(
+            &LobeGeometry {
+                point,
+                normal: self.normal,
+                wall,
+            },
+            k,
+            |w| {
+                self.pixel(w)
+                    .is_some_and(|(c, r)| self.mask.data[r * self.mask.width + c])
+            },
+            lin,
+            inward,
+        )
+    }
+
+    /// The pixel on `ray` before a background at `db`: its lobe at [`LOBE_TABLE_LEN`] layer
+    /// distances from `near_mm` to just before the background.
+    pub fn lobe_table(&self, ray: &Vector3<f64>, near_mm: f64, db: f64, k: f64) -> LobeTable {
+        let near = near_mm.min(0.9 * db).max(0.0);
+        let step_mm = (0.98 * db - near) / (LOBE_TABLE_LEN - 1) as f64;
+        LobeTable {
+            first_mm: near,
+            step_mm,
+            lobes: std::array::from_fn(|j| self.lobe(ray, near + step_mm * j as f64, db, k)),
+        }
+    }
+
+    /// The pixel where `w` is seen, `None` outside the image.
+    fn pixel(&self, w: &Vector3<f64>) -> Option<(usize, usize)> {
+        let [u, v] = self.intrinsics.project(w)?;
+        let (c, r) = (u.round(), v.round());
+        (c >= 0.0 && r >= 0.0 && (c as usize) < self.mask.width && (r as usize) < self.mask.height)
+            .then_some((c as usize, r as usize))
+    }
+
+    /// `Lin` toward `w`: its pixel's, or beyond the image the nearest border pixel's (the
+    /// pinhole's image point held to the image); `None` where not finite.
+    fn lin_at(&self, w: &Vector3<f64>) -> Option<f64> {
+        let k = self.intrinsics;
+        if !(w.z > 0.0) {
+            return None;
+        }
+        let [u, v] = k
+            .project(w)
+            .unwrap_or([k.cx + k.fx * w.x / w.z, k.cy + k.fy * w.y / w.z]);
+        let (wd, ht) = (self.emitted_light.width, self.emitted_light.height);
+        let c = u.round().clamp(0.0, wd.saturating_sub(1) as f64) as usize;
+        let r = v.round().clamp(0.0, ht.saturating_sub(1) as f64) as usize;
+        self.emitted_light
+            .data
+            .get(r * wd + c)
+            .copied()
+            .filter(|l| l.is_finite() && *l > 0.0)
+    }
+}
+
+/// The unit normal of the plane through the patches' points (least squares), toward the
+/// background (positive z); the optical axis for fewer than three.
+pub fn layer_normal(patches: &[super::near_wall::Patch]) -> Vector3<f64> {
+    if patches.len() < 3 {
+        return Vector3::z();
+    }
+    let mean = patches.iter().map(|p| p.point).sum::<Vector3<f64>>() / patches.len() as f64;
+    let mut cov = nalgebra::Matrix3::<f64>::zeros();
+    for p in patches {
+        let d = p.point - mean;
+        cov += d * d.transpose();
+    }
+    let eig = nalgebra::SymmetricEigen::new(cov);
+    let (mut j, mut least) = (0, f64::INFINITY);
+    for (i, &v) in eig.eigenvalues.iter().enumerate() {
+        if v < least {
+            (j, least) = (i, v);
+        }
+    }
+    let n: Vector3<f64> = eig.eigenvectors.column(j).into_owned();
+    if !n.iter().all(|v| v.is_finite()) || n.norm() == 0.0 {
+        return Vector3::z();
+    }
+    let n = n.normalize();
+    if n.z < 0.0 {
+        -n
+    } else {
+        n
+    }
 }
 
 #[cfg(test)]

@@ -32,7 +32,7 @@ pub struct PixelObservation {
     /// What the pixel sees through a frosted layer's lobe, where the model's
     /// [`ModelOptions::diffuse_transmission`] asks for it and the layer's outline is known
     /// ([`super::diffuse::lobe_returns`]); `None`: the layer taken as filling the view.
-    pub diffuse_lobe: Option<super::diffuse::DiffuseLobe>,
+    pub diffuse_lobe: Option<super::diffuse::LobeTable>,
 }
 
 impl PixelObservation {
@@ -47,7 +47,7 @@ impl PixelObservation {
             background_albedo_cos: self.background_albedo_cos(ambient_offset),
             emitted_light: self.emitted_light,
             wall_view_factor: self.wall_view_factor,
-            diffuse_lobe: self.diffuse_lobe,
+            diffuse_lobe: self.diffuse_lobe.map(|t| t.at(df)),
         }
     }
 
