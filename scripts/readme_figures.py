@@ -174,7 +174,7 @@ def rendered_value(value):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--write", action="store_true", help="rewrite the figures in place")
-    ap.add_argument("--exe", default=os.path.join(REPO, "target", "release", "translucent_tof"))
+    ap.add_argument("--exe", default=results.RELEASE_EXE)
     ap.add_argument("--rows", action="append", default=[], help="RUN=FILE: that run's rows (results.py --json)")
     ap.add_argument("--demo-log", help="a file holding the demo's output")
     ap.add_argument("--skip", action="append", default=[], help="a run not to check")

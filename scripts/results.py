@@ -78,6 +78,9 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# The release binary cargo builds: under CARGO_TARGET_DIR when set (relative to the repository,
+# where scripts/results runs cargo), else target/.
+RELEASE_EXE = os.path.join(REPO, os.environ.get("CARGO_TARGET_DIR") or "target", "release", "translucent_tof")
 
 
 def image_values(msg):
@@ -614,7 +617,7 @@ def main():
     ap.add_argument("--write-baseline", help="write this run as a baseline, its failures as the known ones")
     ap.add_argument("--markdown", action="store_true", help="also print the rows as the README's table")
     ap.add_argument("--replay-arg", action="append", default=[], help="an argument for replay (repeat)")
-    ap.add_argument("--exe", default=os.path.join(REPO, "target", "release", "translucent_tof"))
+    ap.add_argument("--exe", default=RELEASE_EXE)
     a = ap.parse_args()
     bags = a.bags or default_bags()
     rows = []

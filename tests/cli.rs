@@ -21,6 +21,9 @@ use translucent_tof::physics::ImageBuf;
 use translucent_tof::sim::render::scene_intrinsics;
 use translucent_tof::sim::{render_all, Scene, SimFrame};
 
+mod common;
+use common::cli::{assert_ok, describe, run};
+
 // ---------------------------------------------------------------- helpers
 
 fn repo() -> PathBuf {
@@ -31,30 +34,8 @@ fn bundled(name: &str) -> PathBuf {
     repo().join("bags").join(name)
 }
 
-/// Runs the binary with `dir` as its working directory.
-fn run(dir: &Path, args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_translucent_tof"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .expect("running the translucent_tof binary")
-}
-
 fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()
-}
-
-fn describe(out: &Output) -> String {
-    format!(
-        "status {:?}\n--- stdout ---\n{}\n--- stderr ---\n{}",
-        out.status.code(),
-        text(&out.stdout),
-        text(&out.stderr)
-    )
-}
-
-fn assert_ok(out: &Output) {
-    assert!(out.status.success(), "expected success, got {}", describe(out));
 }
 
 fn read_json(path: &Path) -> Value {

@@ -189,6 +189,13 @@ impl BagWriter {
         result.map_err(|source| self.write_error(source))
     }
 
+    /// Writes the physics the recording was made with (a physics file's TOML) as its
+    /// [`PHYSICS_RECORD`](super::PHYSICS_RECORD), which replay, calibrate-xi and audit read.
+    pub fn write_physics_record(&mut self, physics_toml: String) -> Result<(), BagError> {
+        let entries = BTreeMap::from([(super::PHYSICS_RECORD_KEY.to_string(), physics_toml)]);
+        self.write_metadata(super::PHYSICS_RECORD, entries)
+    }
+
     /// Writes the summary and footer, syncs, and renames `PATH.partial` to `PATH`.
     pub fn finish(mut self) -> Result<(), BagError> {
         // On error, drop removes the partial file.

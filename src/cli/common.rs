@@ -470,7 +470,7 @@ impl PhysicsChoice {
     }
 }
 
-fn waveform(name: &str, harmonics: Option<[f64; 2]>) -> Result<Waveform> {
+pub(crate) fn waveform(name: &str, harmonics: Option<[f64; 2]>) -> Result<Waveform> {
     Ok(match name {
         "sinusoid" => Waveform::Sinusoid,
         "triangle" => Waveform::Triangle,

@@ -3,13 +3,14 @@
 mod audit;
 mod bench;
 mod calibrate;
-mod common;
+pub(crate) mod common;
 mod demo;
 mod node;
-mod recording;
+pub(crate) mod recording;
 mod replay;
 mod replay_multifreq;
 mod simulate;
+mod through_engine;
 
 use clap::{Parser, Subcommand};
 
@@ -43,6 +44,8 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Time the real-time path (recovery, segmentation, ξ estimation, replay) against the plain 1 mm grid search.
     Bench(bench::BenchArgs),
+    /// Read a multi-frequency recording's phasors through a camera's depth engine: the depth + IR bag its driver would publish.
+    ThroughEngine(through_engine::ThroughEngineArgs),
     /// Compare the model with a ground-truthed recording: locate, name and fit the physics it leaves out.
     Audit(audit::AuditArgs),
     /// The latency benchmark's transport baseline: answers each frame with same-size outputs once its depth and IR images are both in.
@@ -71,6 +74,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::CalibrateLin(a) => calibrate::run_lin(a),
         Command::Node(a) => node::run(a).map(|_| ()),
         Command::Demo(a) => demo::run(a),
+        Command::ThroughEngine(a) => through_engine::run(a),
         Command::DdsEcho(a) => {
             let domain = std::env::var("ROS_DOMAIN_ID")
                 .ok()

@@ -64,10 +64,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         options: scene.physics.clone(),
     };
     writer
-        .write_metadata(
-            crate::bag::PHYSICS_RECORD,
-            std::collections::BTreeMap::from([(crate::bag::PHYSICS_RECORD_KEY.to_string(), physics_toml.clone())]),
-        )
+        .write_physics_record(physics_toml.clone())
         .with_context(|| format!("writing {}", a.out.display()))?;
     let frequencies = &c.modulation_frequencies_hz;
     if !frequencies.is_empty() {

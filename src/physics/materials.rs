@@ -522,6 +522,9 @@ struct Pair {
     /// hold make up for (the share of the smaller footprint the other covers).
     step_mm: f64,
     motion: Motion,
+    /// Whether the region lies within a step of the object's place too (consecutive
+    /// captures, [`Place::may_step_to`]): a move that a step would also explain.
+    steps: bool,
     region: usize,
     object: usize,
 }
@@ -663,6 +666,7 @@ impl Materials {
                     moved,
                     step_mm,
                     motion,
+                    steps,
                     region: k,
                     object: i,
                 });
@@ -709,7 +713,9 @@ impl Materials {
             .zip(stands)
             .filter(|(p, stands)| match p.motion {
                 Motion::Still => true,
-                Motion::Moving => beyond_doubt || (*stands && !cut),
+                // A cut elsewhere casts doubt on a move, not on one a step explains as well:
+                // that stands as a step would.
+                Motion::Moving => beyond_doubt || (*stands && (!cut || p.steps)),
                 Motion::Stepped => beyond_doubt || *stands,
                 Motion::Jumped => beyond_doubt,
                 Motion::Replaced => false,
@@ -1481,6 +1487,27 @@ mod tests {
         );
         assert_ne!(second[0], first[0]);
         assert_eq!(second[1], first[1]);
+    }
+
+    #[test]
+    fn a_move_a_step_explains_too_keeps_its_identity_when_another_object_jumps() {
+        // A sheet carried 150 mm away over the same pixels (a move within the speed limit,
+        // and a step), while another object in view, over its own earlier pixels, reads 700 mm
+        // farther, beyond any step: that one is a cut, and casts no doubt on the sheet's move.
+        let mut objects = Materials::default();
+        let px: Vec<Vec<u32>> = (0..2).map(|k| (k * 1000..k * 1000 + 400).collect()).collect();
+        let first = add(
+            &mut objects,
+            1,
+            vec![placed(&px[0], -600.0, 0.0, 2000.0), placed(&px[1], 600.0, 0.0, 1000.0)],
+        );
+        let second = add(
+            &mut objects,
+            2,
+            vec![placed(&px[0], -600.0, 0.0, 2150.0), placed(&px[1], 600.0, 0.0, 1700.0)],
+        );
+        assert_eq!(second[0], first[0], "{first:?} {second:?}");
+        assert_ne!(second[1], first[1], "{first:?} {second:?}");
     }
 
     #[test]

@@ -508,6 +508,9 @@ pub struct MultiFrequencyInversion {
     settings: ScanSettings,
     coarse_step_mm: f64,
     common_range_mm: f64,
+    /// Per frequency, the unit return turned back by each of [`NEAR_BACKGROUND_MM`]:
+    /// `e^{-i omega_k s}` (sinusoids; empty otherwise).
+    near_turns: Vec<[Phasor; NEAR_BACKGROUND_POINTS]>,
 }
 
 /// The weighted inner products of one pixel that do not depend on `d1`:
@@ -520,7 +523,7 @@ struct Fixed {
 }
 
 /// The inner products with the layer's unit phasor `u(d1)`: `<u, u>`, `<u, B>`, `<u, M>`.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 struct Gram {
     uu: f64,
     ub: f64,
@@ -648,7 +651,18 @@ impl MultiFrequencyInversion {
             .iter()
             .map(Sensor::unambiguous_range_mm)
             .fold(f64::INFINITY, f64::min);
+        let near_turns = sensors
+            .iter()
+            .filter(|s| s.waveform == Waveform::Sinusoid)
+            .map(|s| {
+                NEAR_BACKGROUND_MM.map(|off| {
+                    let (sin, cos) = s.phase(-off).sin_cos();
+                    Phasor { a: cos, b: sin }
+                })
+            })
+            .collect();
         Ok(Self {
+            near_turns,
             sensors,
             delay_mm: model.models()[0].options.subsurface_delay_mm,
             settings,
@@ -663,42 +677,15 @@ impl MultiFrequencyInversion {
     /// chi^2 = sum_k |M_k - a u_k(d1) - ξ² B_k|^2 / sigma_k^2
     /// ```
     ///
-    /// `d1` on a grid over `[d_min, db - separation]` refined by Brent's
-    /// search around the two best cells; `(a, ξ²)` in closed form at each
-    /// `d1`. The pixel is opaque (ξ = 0, `d1` the single return's distance,
+    /// `(a, ξ²)` in closed form at each `d1` (variable projection), `d1` by a
+    /// coarse scan over `[d_min, db - separation]` refined by Newton's method
+    /// ([`Self::layer_and_single`]). The pixel is opaque (ξ = 0, `d1` the single return's distance,
     /// searched up to `db`) when dropping the background term raises `chi^2`
     /// by at most [`CHI_SQUARE_1_95`].
     pub fn invert(&self, px: &PixelPhasors) -> Result<MultiFrequencyEstimate, MultiFrequencyError> {
         let p = self.pixel(px)?;
-        let db = px.background_distance_mm;
-        let two = |g: Gram| g.two_returns(&p.fixed).chi_square;
-        let one = |g: Gram| g.chi_square(&p.fixed, g.return_at(0.0), 0.0);
-        // One scan serves both: the layer's objective up to `db - separation`, the single
-        // return's up to `db`.
-        let (cells, h) = self.grid(p.lo, db);
-        let (mut layer_minima, mut single_minima) = (GridMinima::default(), GridMinima::default());
-        self.scan_grams(&p, p.lo, h, cells, |d, g| {
-            layer_minima.push(d, if d <= p.hi { two(g) } else { f64::INFINITY }, Some(g));
-            single_minima.push(d, one(g), Some(g));
-        });
-        // A second minimum is searched only where it could beat the first.
-        let slack = self.cell_slack(&p, h);
-        let layer_lowest = worth_refining(layer_minima.lowest(), slack.map(|s| s.layer), &p.fixed, two);
-        let single_lowest = worth_refining(single_minima.lowest(), slack.map(|s| s.single), &p.fixed, one);
-        // Both objectives' searches stepped together (the same points as one after the other).
-        let [l0, l1] = self.searches(layer_lowest, p.lo, p.hi, h);
-        let [s0, s1] = self.searches(single_lowest, p.lo, db, h);
-        let [l0, l1, s0, s1] = search_together([l0, l1, s0, s1], |i, d| {
-            let g = self.gram(&p, d);
-            if i < 2 {
-                two(g)
-            } else {
-                one(g)
-            }
-        });
-        let (d1, _) = lowest_found(&[l0, l1], p.lo);
+        let [(d1, _), (d0, single_chi_square)] = self.layer_and_single(&p);
         let layer = self.gram(&p, d1).two_returns(&p.fixed);
-        let (d0, single_chi_square) = lowest_found(&[s0, s1], p.lo);
         let opacity_statistic = (single_chi_square - layer.chi_square).max(0.0);
         if opacity_statistic <= CHI_SQUARE_1_95 {
             return Ok(self.opaque_estimate(&p, d0, single_chi_square, opacity_statistic));
@@ -719,6 +706,170 @@ impl MultiFrequencyInversion {
                 var_t.sqrt().sqrt()
             },
         })
+    }
+
+    /// The layer's per-pixel fit of [`Self::invert`] before the opacity test: `d1`, `a >= 0`
+    /// and ξ of the global minimum of `chi^2` over `[d_min, db - separation]` (what the plain
+    /// grid of `bench::reference` finds at its resolution).
+    pub fn layer(&self, px: &PixelPhasors) -> Result<TranslucencyFit, MultiFrequencyError> {
+        let p = self.pixel(px)?;
+        let [(d1, _), _] = self.layer_and_single(&p);
+        Ok(self.layer_fit(&p, d1))
+    }
+
+    /// The layer's fit with its distance held at `d1`: `a >= 0` and `ξ² = t` in `[0, 1]` by the
+    /// closed-form least squares, and its `chi^2` (the projected objective at one point).
+    pub fn layer_at(&self, px: &PixelPhasors, d1: f64) -> Result<TranslucencyFit, MultiFrequencyError> {
+        Ok(self.layer_fit(&self.pixel(px)?, d1))
+    }
+
+    fn layer_fit(&self, p: &Pixel, d1: f64) -> TranslucencyFit {
+        let layer = self.gram(p, d1).two_returns(&p.fixed);
+        TranslucencyFit {
+            translucency: layer.t.max(0.0).sqrt(),
+            foreground_distance_mm: d1,
+            first_return: layer.a,
+            chi_square: layer.chi_square,
+        }
+    }
+
+    /// The global minima `(d, chi^2)` of the layer's projected `chi^2` over `[d_min, db -
+    /// separation]` and of the single return's over `[d_min, db]`, the amplitudes eliminated
+    /// in closed form at each distance (variable projection). One coarse scan finds each
+    /// objective's two lowest grid minima (tens of points, no trigonometry: the start); a
+    /// second is dropped where a bound shows it cannot win; each kept one is refined within
+    /// its cells by Newton's method on the projected objective (sinusoids), else by Brent's
+    /// search.
+    fn layer_and_single(&self, p: &Pixel) -> [(f64, f64); 2] {
+        let db = p.px.background_distance_mm;
+        let two = |g: Gram| g.two_returns(&p.fixed).chi_square;
+        let one = |g: Gram| g.chi_square(&p.fixed, g.return_at(0.0), 0.0);
+        // One scan serves both: the layer's objective up to `db - separation` (its last point
+        // moved there: a layer at the background's return may fit best at the bound, in a
+        // well narrower than a cell), the single return's up to `db`.
+        let (cells, h) = self.grid(p.lo, db);
+        let (mut layer_minima, mut single_minima) = (GridMinima::default(), GridMinima::default());
+        self.scan_grams(p, p.lo, h, cells, |d, g| {
+            if d <= p.hi {
+                layer_minima.push(d, two(g), Some(g));
+            } else if d - h < p.hi {
+                let end = self.gram(p, p.hi);
+                layer_minima.push(p.hi, two(end), Some(end));
+            }
+            single_minima.push(d, one(g), Some(g));
+        });
+        // A second minimum is searched only where it could beat the first.
+        let slack = self.cell_slack(p, h);
+        let layer_lowest = worth_refining(layer_minima.lowest(), slack.map(|s| s.layer), &p.fixed, two);
+        let single_lowest = worth_refining(single_minima.lowest(), slack.map(|s| s.single), &p.fixed, one);
+        if self.sinusoid() && self.sensors.len() <= ROTATED_FREQUENCIES {
+            let tol = self.settings.tolerance_mm;
+            let layer = layer_lowest.map(|m| newton_near(&m, (p.lo, p.hi), h, tol, |d| self.layer_projected(p, d)));
+            let single = single_lowest.map(|m| newton_near(&m, (p.lo, db), h, tol, |d| self.single_projected(p, d)));
+            let near = self.near_background(p, tol);
+            return [lowest_of(&[layer[0], layer[1], near], p.lo), lowest_of(&single, p.lo)];
+        }
+        // Both objectives' searches stepped together (the same points as one after the other).
+        let [l0, l1] = self.searches(layer_lowest, p.lo, p.hi, h);
+        let [s0, s1] = self.searches(single_lowest, p.lo, db, h);
+        let [l0, l1, s0, s1] = search_together([l0, l1, s0, s1], |i, d| {
+            let g = self.gram(p, d);
+            if i < 2 {
+                two(g)
+            } else {
+                one(g)
+            }
+        });
+        [lowest_found(&[l0, l1], p.lo), lowest_found(&[s0, s1], p.lo)]
+    }
+
+    /// The layer's lowest minimum within [`NEAR_BACKGROUND_MM`] of the bound `db - separation`
+    /// (sinusoids), `(d1, chi^2)`: there the layer's return and the background's are nearly
+    /// parallel, the two amplitudes ill-conditioned, and a well a few millimetres wide (the
+    /// background's own return moved: `t = 0`, `a` its strength) hides between the coarse
+    /// scan's points. Its points step away from the bound geometrically (each `u(d1)` the
+    /// bound's turned by a fixed phasor); the lowest is refined by Newton's method between
+    /// its neighbours.
+    fn near_background(&self, p: &Pixel, tol: f64) -> (f64, f64) {
+        let mut grams = [Gram::default(); NEAR_BACKGROUND_POINTS];
+        let px = p.px;
+        for (k, ((s, b), m)) in self.sensors.iter().zip(px.background).zip(px.measured).enumerate() {
+            let (w, u) = (p.weight(k), self.unit_return(s, p.hi));
+            for (g, t) in grams.iter_mut().zip(&self.near_turns[k]) {
+                let v = Phasor {
+                    a: u.a * t.a - u.b * t.b,
+                    b: u.a * t.b + u.b * t.a,
+                };
+                g.uu += w * dot(v, v);
+                g.ub += w * dot(v, *b);
+                g.um += w * dot(v, *m);
+            }
+        }
+        let at = |j: usize| p.hi - NEAR_BACKGROUND_MM[j];
+        let mut best = (0, f64::INFINITY);
+        for (j, g) in grams.iter().enumerate() {
+            let chi = g.two_returns(&p.fixed).chi_square;
+            if at(j) >= p.lo && chi < best.1 {
+                best = (j, chi);
+            }
+        }
+        let j = best.0;
+        let bracket = (
+            at((j + 1).min(NEAR_BACKGROUND_POINTS - 1)).max(p.lo),
+            at(j.saturating_sub(1)),
+        );
+        newton_minimum(bracket, at(j), tol, |d| self.layer_projected(p, d))
+    }
+
+    /// The layer's projected `chi^2` at `d1` with its first two derivatives: `(a, ξ²)` of the
+    /// closed-form least squares ([`Gram::two_returns`]), and the slopes of whichever piece
+    /// of it is active there ([`Projection`]).
+    fn layer_projected(&self, p: &Pixel, d1: f64) -> Projected {
+        let s = self.gram_slopes(p, d1);
+        let fit = s.gram.two_returns(&p.fixed);
+        let piece = if fit.a > 0.0 && fit.t > 0.0 && fit.t < 1.0 {
+            Projection::Both
+        } else if fit.a > 0.0 {
+            Projection::LayerAt(fit.t)
+        } else {
+            Projection::NoLayer
+        };
+        s.projected(&p.fixed, fit.chi_square, piece)
+    }
+
+    /// The single return's projected `chi^2` (`ξ = 0`, `a >= 0`) at `d` with its first two
+    /// derivatives.
+    fn single_projected(&self, p: &Pixel, d: f64) -> Projected {
+        let s = self.gram_slopes(p, d);
+        let a = s.gram.return_at(0.0);
+        let piece = if a > 0.0 {
+            Projection::LayerAt(0.0)
+        } else {
+            Projection::NoLayer
+        };
+        s.projected(&p.fixed, s.gram.chi_square(&p.fixed, a, 0.0), piece)
+    }
+
+    /// The Gram products at `d1` and the first two derivatives of `<u, B>` and `<u, M>` (the
+    /// sinusoid: `u_k' = i omega_k u_k`, `u_k'' = -omega_k^2 u_k`, `<u, u>` constant): one
+    /// sine and cosine per frequency give all three.
+    fn gram_slopes(&self, p: &Pixel, d1: f64) -> GramSlopes {
+        let mut s = GramSlopes::default();
+        let px = p.px;
+        for (k, ((sensor, b), m)) in self.sensors.iter().zip(px.background).zip(px.measured).enumerate() {
+            let (w, omega) = (p.weight(k), sensor.phase(1.0));
+            let u = self.unit_return(sensor, d1);
+            let turned = Phasor { a: -u.b, b: u.a };
+            let (ub, um) = (dot(u, *b), dot(u, *m));
+            s.gram.uu += w * dot(u, u);
+            s.gram.ub += w * ub;
+            s.gram.um += w * um;
+            s.ub1 += w * omega * dot(turned, *b);
+            s.um1 += w * omega * dot(turned, *m);
+            s.ub2 -= w * omega * omega * ub;
+            s.um2 -= w * omega * omega * um;
+        }
+        s
     }
 
     /// The best layer with ξ held: `d1` scanned as in [`Self::invert`], `a`
@@ -1413,7 +1564,9 @@ impl MultiFrequencyInversion {
         for (k, ((s, m), b)) in self.sensors.iter().zip(p.px.measured).zip(p.px.background).enumerate() {
             let omega = s.phase(1.0);
             let curvature = p.weight(k) * omega * omega;
-            let (m, b) = (m.a.hypot(m.b), b.a.hypot(b.b));
+            // `sqrt` rather than `hypot`: the phasors are far from overflow, and the bound
+            // carries a rounding margin (`worth_refining`).
+            let (m, b) = ((m.a * m.a + m.b * m.b).sqrt(), (b.a * b.a + b.b * b.b).sqrt());
             single += curvature * m;
             layer += curvature * (m + b);
         }
@@ -1434,6 +1587,147 @@ impl MultiFrequencyInversion {
                 .then(|| BrentSearch::new(((m.x - h).max(lo), (m.x + h).min(hi)), m.seed(h), tol))
         })
     }
+}
+
+/// The Gram products at one `d1` ([`Gram`]) and the first (`1`) and second (`2`)
+/// derivatives in `d1` of `<u, B>` and `<u, M>`.
+#[derive(Debug, Clone, Copy, Default)]
+struct GramSlopes {
+    gram: Gram,
+    ub1: f64,
+    um1: f64,
+    ub2: f64,
+    um2: f64,
+}
+
+/// Which piece of a projected objective is active at a distance: the least squares over
+/// the amplitudes lands inside their bounds, on one bound of `t` (or `t` held), or at
+/// `a = 0` (no return at `d1`: the objective does not depend on `d1` there).
+#[derive(Debug, Clone, Copy)]
+enum Projection {
+    /// `a > 0`, `0 < t < 1`: `chi^2 = <M, M> - v^T G^-1 v`, `v = (<u, M>, <B, M>)`, `G`
+    /// the 2 x 2 Gram matrix of `u` and `B`.
+    Both,
+    /// `a > 0` at this `t`: `chi^2 = |M - t B|^2 - <u, M - t B>^2 / <u, u>`.
+    LayerAt(f64),
+    /// `a = 0`.
+    NoLayer,
+}
+
+/// A projected objective's value at one distance and its first two derivatives there.
+#[derive(Debug, Clone, Copy)]
+struct Projected {
+    value: f64,
+    slope: f64,
+    curvature: f64,
+}
+
+impl GramSlopes {
+    /// `value` with the slope and curvature of `piece` of the projected `chi^2` (the
+    /// variable projection's closed form differentiated; `<u, u>` is constant).
+    fn projected(&self, f: &Fixed, value: f64, piece: Projection) -> Projected {
+        let g = &self.gram;
+        let (slope, curvature) = match piece {
+            Projection::Both => {
+                // P = N / D is what the two amplitudes explain: chi^2 = <M, M> - P.
+                let n = f.bb * g.um * g.um - 2.0 * f.bm * g.ub * g.um + g.uu * f.bm * f.bm;
+                let n1 = 2.0 * f.bb * g.um * self.um1 - 2.0 * f.bm * (self.ub1 * g.um + g.ub * self.um1);
+                let n2 = 2.0 * f.bb * (self.um1 * self.um1 + g.um * self.um2)
+                    - 2.0 * f.bm * (self.ub2 * g.um + 2.0 * self.ub1 * self.um1 + g.ub * self.um2);
+                let d = g.uu * f.bb - g.ub * g.ub;
+                let d1 = -2.0 * g.ub * self.ub1;
+                let d2 = -2.0 * (self.ub1 * self.ub1 + g.ub * self.ub2);
+                let p = n / d;
+                let p1 = (n1 - p * d1) / d;
+                let p2 = (n2 - 2.0 * p1 * d1 - p * d2) / d;
+                (-p1, -p2)
+            }
+            Projection::LayerAt(t) => {
+                let r = g.um - t * g.ub;
+                let r1 = self.um1 - t * self.ub1;
+                let r2 = self.um2 - t * self.ub2;
+                (-2.0 * r * r1 / g.uu, -2.0 * (r1 * r1 + r * r2) / g.uu)
+            }
+            Projection::NoLayer => (0.0, 0.0),
+        };
+        Projected {
+            value,
+            slope,
+            curvature,
+        }
+    }
+}
+
+/// Distances before the layer's bound `db - separation` of the near-background scan
+/// ([`MultiFrequencyInversion::near_background`]), mm: geometric, to about a coarse cell.
+const NEAR_BACKGROUND_MM: [f64; NEAR_BACKGROUND_POINTS] = [0.0, 1.0, 2.0, 3.0, 5.0, 8.0, 13.0, 21.0, 34.0, 55.0, 90.0];
+
+/// Points of the near-background scan.
+const NEAR_BACKGROUND_POINTS: usize = 11;
+
+/// Newton's steps at most per refinement (safeguarded: each one at least halves the bracket
+/// when Newton's own step is not taken).
+const NEWTON_STEPS: usize = 40;
+
+/// The minimum of a projected objective `f` near grid minimum `m` (cells of width `h`, within
+/// `[lo, hi]`), `(x, f(x))`: [`newton_minimum`] from `m`; `(lo, inf)` for no minimum.
+fn newton_near(m: &GridPoint, (lo, hi): (f64, f64), h: f64, tol: f64, f: impl Fn(f64) -> Projected) -> (f64, f64) {
+    if !m.value.is_finite() {
+        return (lo, f64::INFINITY);
+    }
+    newton_minimum(((m.x - h).max(lo), (m.x + h).min(hi)), m.x, tol, f)
+}
+
+/// Newton's method for the minimum of `f` on `bracket` from `x0`, safeguarded: the bracket
+/// narrows to the downhill side of each point taken; a step that leaves it, or taken where
+/// `f` bends down, becomes a bisection; a point no lower than the best narrows the bracket
+/// and is not taken. Stops once Newton's step or the bracket is under `tol`. The point
+/// returned is never worse than `x0`.
+fn newton_minimum(bracket: (f64, f64), x0: f64, tol: f64, f: impl Fn(f64) -> Projected) -> (f64, f64) {
+    let (mut lo, mut hi) = bracket;
+    let (mut x, mut p) = (x0, f(x0));
+    for _ in 0..NEWTON_STEPS {
+        if p.slope > 0.0 {
+            hi = x;
+        } else if p.slope < 0.0 {
+            lo = x;
+        } else {
+            break;
+        }
+        if hi - lo <= tol {
+            break;
+        }
+        let newton = x - p.slope / p.curvature;
+        let u = if p.curvature > 0.0 && newton > lo && newton < hi {
+            if (newton - x).abs() <= 0.5 * tol {
+                // Newton's own step says the minimum is within half the tolerance.
+                break;
+            }
+            newton
+        } else {
+            0.5 * (lo + hi)
+        };
+        let q = f(u);
+        if q.value <= p.value {
+            (x, p) = (u, q);
+        } else if u > x {
+            hi = u;
+        } else {
+            lo = u;
+        }
+    }
+    (x, p.value)
+}
+
+/// The lowest of `found`, in order (the first of equals).
+fn lowest_of(found: &[(f64, f64)], lo: f64) -> (f64, f64) {
+    let mut best = (lo, f64::INFINITY);
+    for &(x, fx) in found {
+        if fx < best.1 {
+            best = (x, fx);
+        }
+    }
+    best
 }
 
 /// [`MultiFrequencyInversion::cell_slack`]: how far `<u(d), M - t B>` can rise within a

@@ -106,8 +106,9 @@ pub enum MultiFrequencyStageError {
     /// Nothing latched yet.
     #[error("no phasor background latched")]
     NoBackground,
-    /// Too few frames to measure the background's noise.
-    #[error("the phasor background needs at least 2 frames to measure its noise, got {0}")]
+    /// Too few frames to measure the background's noise. A recording with no frame of the
+    /// empty scene (a moving camera, say) is recovered with no background latched.
+    #[error("the phasor background needs at least 2 frames to measure its noise, got {0}; a recording with no frames of the empty scene (a moving camera) is recovered with no background latched: pass --no-latch (node parameter no_latch)")]
     TooFewFrames(usize),
     /// Too few pixels with usable background phasors.
     #[error("the phasor background has {valid} usable pixels of {total}: too few (no light returned?)")]
@@ -2974,10 +2975,14 @@ albedo = 0.7
         let (p, d, _) = &all[0];
         assert!(matches!(s.process(p, d), Err(MultiFrequencyStageError::NoBackground)));
         let range = Sensor::sr4000().unambiguous_range_mm();
-        assert!(matches!(
-            s.latch(&[(p, d)], range),
-            Err(MultiFrequencyStageError::TooFewFrames(1))
-        ));
+        let one = s.latch(&[(p, d)], range).unwrap_err();
+        assert!(matches!(one, MultiFrequencyStageError::TooFewFrames(1)), "{one}");
+        // A recording with no empty frames is told the way for a moving camera (issue 48, item 5).
+        let said = one.to_string();
+        assert!(
+            said.contains("--no-latch") && said.contains("node parameter no_latch"),
+            "{said}"
+        );
         let two = PhasorFrame {
             phasors: p.phasors[..2].to_vec(),
             ..p.clone()

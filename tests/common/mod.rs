@@ -2,6 +2,7 @@
 //! in-memory pipeline run.
 #![allow(dead_code)]
 
+pub mod cli;
 pub mod netns;
 
 use rand::{Rng, SeedableRng};
