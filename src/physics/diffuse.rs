@@ -259,10 +259,20 @@ impl ImageLayer<'_> {
     /// The pixel on `ray` (unit) at `df` before a background at `db` (ray distances, mm):
     /// its lobe ([`lobe_returns`]), `k` the sensor's radians per mm.
     pub fn lobe(&self, ray: &Vector3<f64>, df: f64, db: f64, k: f64) -> DiffuseLobe {
+        self.lobe_with(ray, df, db, k, self.inward_light(ray, db))
+    }
+
+    /// The layer's light on the background at `db` along `ray` ([`inward_light`]): what the
+    /// pixel's lobes share at every layer distance.
+    fn inward_light(&self, ray: &Vector3<f64>, db: f64) -> (f64, f64) {
+        inward_light(&(ray * db), &self.normal, self.patches)
+    }
+
+    /// [`Self::lobe`] with the layer's light on the background, `inward`, already found.
+    fn lobe_with(&self, ray: &Vector3<f64>, df: f64, db: f64, k: f64, inward: (f64, f64)) -> DiffuseLobe {
         let (point, wall) = (ray * df, ray * db);
         let lin0 = self.lin_at(&wall);
         let lin = |w: &Vector3<f64>| self.lin_at(w).or(lin0).unwrap_or(0.0);
-        let inward = inward_light(&wall, &self.normal, self.patches);
         lobe_returns(
             &LobeGeometry {
                 point,
@@ -284,10 +294,11 @@ impl ImageLayer<'_> {
     pub fn lobe_table(&self, ray: &Vector3<f64>, near_mm: f64, db: f64, k: f64) -> LobeTable {
         let near = near_mm.min(0.9 * db).max(0.0);
         let step_mm = (0.98 * db - near) / (LOBE_TABLE_LEN - 1) as f64;
+        let inward = self.inward_light(ray, db);
         LobeTable {
             first_mm: near,
             step_mm,
-            lobes: std::array::from_fn(|j| self.lobe(ray, near + step_mm * j as f64, db, k)),
+            lobes: std::array::from_fn(|j| self.lobe_with(ray, near + step_mm * j as f64, db, k, inward)),
         }
     }
 

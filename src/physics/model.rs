@@ -424,13 +424,28 @@ impl ForwardModel {
 
     /// The demodulated amplitude `|sum_k L_k exp(i phi_k)|` at the sensor's own frequency.
     fn own_amplitude(&self, returns: &[Return]) -> f64 {
+        let [re, im] = self.own_phasor(returns);
+        re.hypot(im)
+    }
+
+    /// `sum_k L_k exp(i phi_k)` at the sensor's own frequency (real and imaginary parts).
+    pub fn own_phasor(&self, returns: &[Return]) -> [f64; 2] {
         let (mut re, mut im) = (0.0, 0.0);
         for r in returns {
             let (s, c) = self.sensor.phase(r.distance_mm).sin_cos();
             re += r.strength * c;
             im += r.strength * s;
         }
-        re.hypot(im)
+        [re, im]
+    }
+
+    /// Whether, in any scene, every return's strength is affine in the layer's albedo-cosine
+    /// `X` and its distance free of it ([`Self::layer_returns`]): the transmission law's power
+    /// 0 (no return through the layer carries `X`) and at most one inter-reflection (Eq. 3's
+    /// first term, linear in `X`); a near wall's third return, a frosted layer's diffuse part
+    /// and a hollow object's back wall stay so. The returns' phasor is then `X A + C`.
+    pub fn returns_affine_in_albedo(&self) -> bool {
+        self.options.transmission_albedo_power == 0.0 && self.options.bounces <= 3
     }
 }
 
@@ -462,6 +477,69 @@ mod tests {
             wall_view_factor: 0.0,
             diffuse_lobe: None,
         }
+    }
+
+    /// A frosted layer's lobe with a shadowed and a lit part.
+    fn lobe() -> Option<DiffuseLobe> {
+        Some(DiffuseLobe {
+            lit: [0.21, 0.13],
+            shadow: [0.55, 0.31],
+        })
+    }
+
+    #[test]
+    fn returns_said_affine_in_the_albedo_are_and_others_are_not() {
+        // The returns' phasor and strengths at X = 0.5 against the mean of those at 0 and 1.
+        let off_affine = |m: &ForwardModel, s: &LayerScene| {
+            let at = |x: f64| {
+                let mut r = [Return::default(); MAX_BOUNCES];
+                let n = m.layer_returns(
+                    &LayerScene {
+                        foreground_albedo_cos: x,
+                        ..*s
+                    },
+                    &mut r,
+                );
+                let p = m.own_phasor(&r[..n]);
+                [p[0], p[1], r[..n].iter().map(|r| r.strength).sum()]
+            };
+            let (a, b, c) = (at(0.0), at(0.5), at(1.0));
+            (0..3)
+                .map(|j| (b[j] - 0.5 * (a[j] + c[j])).abs() / c[j].abs().max(b[j].abs()))
+                .fold(0.0, f64::max)
+        };
+        let s = LayerScene {
+            wall_view_factor: 0.3,
+            diffuse_lobe: lobe(),
+            ..scene(1400.0, 2100.0, 0.6, 0.5)
+        };
+        let mut m = ForwardModel::physical(Sensor::sr4000());
+        for (bounces, wall, diffuse, hollow, delay) in [
+            (2, 0.0, 0.0, 0.0, 0.0),
+            (3, 0.0, 0.8, 0.0, 0.0),
+            (3, 1.0, 0.6, 150.0, 12.0),
+            (2, 0.0, 0.7, 0.0, 0.0),
+        ] {
+            m.options.bounces = bounces;
+            m.options.wall_interreflection = wall;
+            m.options.diffuse_transmission = diffuse;
+            m.options.hollow_depth_mm = hollow;
+            m.options.subsurface_delay_mm = delay;
+            for lobe in [lobe(), None] {
+                let s = LayerScene {
+                    diffuse_lobe: lobe,
+                    ..s
+                };
+                assert!(m.returns_affine_in_albedo());
+                assert!(off_affine(&m, &s) < 1e-12, "{:?}: {}", m.options, off_affine(&m, &s));
+            }
+        }
+        // A second inter-reflection (X^2) or a transmission law with a power is not affine.
+        m.options.bounces = 4;
+        assert!(!m.returns_affine_in_albedo() && off_affine(&m, &s) > 1e-6);
+        m.options.bounces = 3;
+        m.options.transmission_albedo_power = 1.0;
+        assert!(!m.returns_affine_in_albedo() && off_affine(&m, &s) > 1e-6);
     }
 
     #[test]
