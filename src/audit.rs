@@ -9,9 +9,10 @@ use nalgebra::Vector3;
 
 use crate::physics::audit::{AuditData, AuditPixel, Trend};
 use crate::physics::camera::z_to_ray_distance;
-use crate::physics::near_wall;
+use crate::physics::camera::Intrinsics;
 use crate::physics::stats::median_sorted;
 use crate::physics::ImageBuf;
+use crate::physics::{diffuse, near_wall};
 use crate::pipeline::{rmse_against_truth, DepthFrame, Pipeline, PipelineError};
 
 /// Frames with fewer usable pixels than this carry no weight in the audit.
@@ -122,6 +123,14 @@ pub fn gather(
         let step = if step > 1 && step % 2 == 0 { step + 1 } else { step };
         let mut picked: Vec<AuditPixel> = px.iter().step_by(step).map(|p| AuditPixel { frame: f, ..*p }).collect();
         set_wall_view_factors(&mut picked, truth, &rays);
+        // Every candidate is fitted on these pixels: the lobes for diffuse transmission too.
+        set_diffuse_lobes(
+            &mut picked,
+            truth,
+            &rays,
+            (k, &bg.emitted_light),
+            (pipe.config.model.sensor.phase(1.0), pipe.bounds().min_distance_mm),
+        );
         pixels.extend(picked);
     }
     let coef = |f: &dyn Fn(usize) -> f64| {
@@ -162,6 +171,35 @@ fn set_wall_view_factors(px: &mut [AuditPixel], truth: &ImageBuf<f64>, rays: &Im
     for p in px.iter_mut() {
         let wall = rays.data[p.row * truth.width + p.col] * p.obs.background_distance_mm;
         p.obs.wall_view_factor = near_wall::view_factor(&wall, &patches);
+    }
+}
+
+/// Each pixel's lobe through the frame's true layer (`truth`: ray distances, NaN off it; its
+/// outline the layer's shadow), for a frosted layer's diffuse transmission
+/// ([`diffuse::ImageLayer`]), `k` the sensor's radians per mm.
+fn set_diffuse_lobes(
+    px: &mut [AuditPixel],
+    truth: &ImageBuf<f64>,
+    rays: &ImageBuf<Vector3<f64>>,
+    (intrinsics, lin): (&Intrinsics, &ImageBuf<f64>),
+    (k, near_mm): (f64, f64),
+) {
+    let patches = near_wall::layer_patches(&truth.data, rays, WALL_PATCH_STRIDE);
+    let mask = ImageBuf {
+        width: truth.width,
+        height: truth.height,
+        data: truth.data.iter().map(|t| t.is_finite()).collect(),
+    };
+    let layer = diffuse::ImageLayer {
+        intrinsics,
+        mask: &mask,
+        emitted_light: lin,
+        patches: &patches,
+        normal: diffuse::layer_normal(&patches),
+    };
+    for p in px.iter_mut() {
+        let ray = rays.data[p.row * truth.width + p.col];
+        p.obs.diffuse_lobe = Some(layer.lobe_table(&ray, near_mm, p.obs.background_distance_mm, k));
     }
 }
 

@@ -15,7 +15,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::Value;
 use translucent_tof::audit::gather;
-use translucent_tof::physics::audit::{run_audit, AuditResult, AuditSettings, Effect};
+use translucent_tof::physics::audit::{run_audit, AuditResult, AuditSettings, Effect, Quantity};
 use translucent_tof::physics::{ForwardModel, IrMode};
 use translucent_tof::pipeline::PipelineConfig;
 use translucent_tof::sim::render::scene_sensor;
@@ -329,13 +329,20 @@ fn audit_scene(scene: &translucent_tof::sim::Scene, label: &str) -> (AuditResult
         .iter()
         .map(|c| {
             format!(
-                "r{} {} {:?} gain {:.0}/{:.0} z {:.1}{}{}",
+                "r{} {} {:?} gain {:.0}/{:.0} z {:.1} sig {} z {:.1}->{:.1} expl {:.2} dom {} {:.1} expl {:.2}{}{}",
                 c.round,
                 c.effect.name(),
                 c.params,
                 c.gain,
                 c.threshold,
                 c.z,
+                c.signature.quantity.name(),
+                c.signature.observed_z,
+                c.signature.left_z,
+                c.signature.explained,
+                c.signature.dominant.name(),
+                c.signature.dominant_z,
+                c.signature.dominant_explained,
                 if c.accepted { " ACCEPTED" } else { "" },
                 if c.rejected.is_empty() {
                     String::new()
@@ -345,7 +352,11 @@ fn audit_scene(scene: &translucent_tof::sim::Scene, label: &str) -> (AuditResult
             )
         })
         .collect();
-    let text = format!("{text}\n    candidates: {}", scores.join("; "));
+    let text = format!(
+        "{text}\n    candidates: {}\n    left: {}",
+        scores.join("; "),
+        r.dependence.words
+    );
     (r, text)
 }
 
@@ -579,4 +590,191 @@ fn a_concealed_plain_law_is_fitted_within_a_tenth_of_power_0() {
         powers.iter().all(|p| p.is_some_and(|p| (0.0..=0.1).contains(&p))),
         "{powers:?}"
     );
+}
+
+/// Issue 50: on seeded ambient-offset draws the audit names `ambient_offset` and nothing
+/// beside it (it named `three_returns` beside it on the concealed set).
+#[test]
+fn seeded_ambient_offset_draws_name_it_alone() {
+    let seeds = [7009u64, 7010, 7011, 6003];
+    let results: Vec<Named> = std::thread::scope(|s| {
+        let hs: Vec<_> = [[seeds[0], seeds[2]], [seeds[1], seeds[3]]]
+            .into_iter()
+            .map(|pair| {
+                s.spawn(move || {
+                    pair.into_iter()
+                        .map(|seed| audit_draw(seed, Some(Effect::AmbientOffset)))
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        hs.into_iter().flat_map(|h| h.join().expect("draw thread")).collect()
+    });
+    let mut failures = vec![];
+    for (named, text) in &results {
+        println!("  {text}");
+        if named != &[Effect::AmbientOffset] {
+            failures.push(text.clone());
+        }
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+// ------------------------------------------------- effects held out of the catalogue (issue 50)
+
+/// A sensor effect the audit's catalogue lacks, drawn into a scene as an option of the
+/// simulator (`sim::Artefacts`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum HeldOut {
+    /// Lens stray light: a share of the frame's light on every pixel.
+    StrayLight,
+    /// Saturation of the bright pixels.
+    Saturation,
+    /// A nonlinear amplitude response.
+    AmplitudeResponse,
+    /// A phase offset drifting with the frame time.
+    PhaseDrift,
+}
+
+impl HeldOut {
+    const ALL: [HeldOut; 4] = [
+        HeldOut::StrayLight,
+        HeldOut::Saturation,
+        HeldOut::AmplitudeResponse,
+        HeldOut::PhaseDrift,
+    ];
+
+    /// The quantity its misfit follows: what the audit must state as the one strongest dependence.
+    fn follows(&self) -> Quantity {
+        match self {
+            HeldOut::StrayLight | HeldOut::Saturation | HeldOut::AmplitudeResponse => Quantity::IrLevel,
+            HeldOut::PhaseDrift => Quantity::Frame,
+        }
+    }
+}
+
+/// A drawn calibration sequence ([`drawn_scene`], no catalogue effect) with `effect` drawn
+/// from a seeded range. The poses are recorded in a drawn order, so that the frame time is
+/// not the distance, and a frame every 10 s (a camera warming over two minutes).
+fn held_out_scene(seed: u64, effect: HeldOut) -> translucent_tof::sim::Scene {
+    let mut scene = drawn_scene(seed, None);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed);
+    // Poses in a drawn order (Fisher-Yates).
+    for k in (1..scene.stages.len()).rev() {
+        let j = rng.random_range(0..=k);
+        scene.stages.swap(k, j);
+    }
+    scene.camera.frame_rate_hz = 0.1;
+    // The brightest layer pixels' IR, roughly: the nearest pose on the axis.
+    let near = scene
+        .stages
+        .iter()
+        .flat_map(|s| s.objects.iter().map(|o| o.center_mm[2]))
+        .fold(f64::INFINITY, f64::min);
+    let o = &scene.stages[0].objects[0];
+    let bright = (1.0 - o.xi) * o.albedo * scene.emitter.peak_emitted_light / (near * near);
+    let a = &mut scene.camera.artefacts;
+    match effect {
+        HeldOut::StrayLight => a.stray_light = rng.random_range(0.03..0.08),
+        HeldOut::Saturation => a.saturation_ir = bright * rng.random_range(0.45..0.7),
+        HeldOut::AmplitudeResponse => {
+            a.amplitude_power = if rng.random_bool(0.5) {
+                rng.random_range(0.75..0.88)
+            } else {
+                rng.random_range(1.12..1.25)
+            };
+            a.amplitude_reference = 0.3 * bright;
+        }
+        HeldOut::PhaseDrift => {
+            let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+            a.phase_drift_mm_per_s = sign * rng.random_range(0.2..0.4);
+        }
+    }
+    scene
+}
+
+/// Audits `per_effect` draws of every held-out effect from `first_seed`: the share that
+/// names no effect (the catalogue holds none of them) and the share whose one strongest
+/// dependence is the quantity the effect follows, each at least as asked.
+fn held_out_draws(per_effect: usize, first_seed: u64, min_none: f64, min_located: f64) {
+    let started = std::time::Instant::now();
+    let jobs: Vec<(u64, HeldOut)> = HeldOut::ALL
+        .iter()
+        .enumerate()
+        .flat_map(|(k, e)| (0..per_effect).map(move |j| (first_seed + (k * per_effect + j) as u64, *e)))
+        .collect();
+    let results: Vec<((u64, HeldOut), (AuditResult, String))> = std::thread::scope(|s| {
+        let halves = [
+            jobs.iter().step_by(2).collect::<Vec<_>>(),
+            jobs.iter().skip(1).step_by(2).collect(),
+        ];
+        let hs: Vec<_> = halves
+            .into_iter()
+            .map(|h| {
+                s.spawn(move || {
+                    h.into_iter()
+                        .map(|&(sd, e)| {
+                            let scene = held_out_scene(sd, e);
+                            (
+                                (sd, e),
+                                audit_scene(
+                                    &scene,
+                                    &format!("seed {sd} held out {e:?} {:?}", scene.camera.artefacts),
+                                ),
+                            )
+                        })
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        hs.into_iter().flat_map(|h| h.join().expect("draw thread")).collect()
+    });
+    let (mut named, mut misplaced) = (vec![], vec![]);
+    for ((_, e), (r, text)) in &results {
+        println!("  {text}");
+        if !r.final_fit().effects.is_empty() {
+            named.push(text.clone());
+        }
+        if r.dependence.quantity != Some(e.follows()) {
+            misplaced.push(format!(
+                "{e:?}: stated {:?}, follows {:?}: {}",
+                r.dependence.quantity,
+                e.follows(),
+                r.dependence.words
+            ));
+        }
+    }
+    let n = results.len() as f64;
+    println!(
+        "{} held-out draws took {:.0} s: {} named an effect, {} stated another dependence than the effect's",
+        results.len(),
+        started.elapsed().as_secs_f64(),
+        named.len(),
+        misplaced.len()
+    );
+    assert!(
+        (n - named.len() as f64) >= min_none * n,
+        "effects named that the scene does not hold (its effect is outside the catalogue): {named:#?}"
+    );
+    assert!(
+        (n - misplaced.len() as f64) >= min_located * n,
+        "the one strongest dependence is not the effect's: {misplaced:#?}"
+    );
+}
+
+/// Issue 50, item 4, the smaller version meant for CI: one draw of each held-out effect; no
+/// effect named in at least 90 % (all four), the dependence stated right in at least 80 %.
+#[test]
+#[ignore = "issue 50, item 4, open: on seeds 8000-8003 the phase drift is named subsurface_delay (54 mm: the drift's mean over the recording reads as a constant delay, each pose seen once), and the brightness effects' dependence is stated as the pose or the distance (pose 98.7 against ir_counts below it for stray light; pose 1316.5 against ir_counts 1183.2; distance 3012.8 against ir_counts 2699.8 for saturation): brightness, distance and pose are confounded in a calibration sequence"]
+fn held_out_effects_are_not_named_and_their_dependence_is_located() {
+    held_out_draws(1, 8000, 0.9, 0.8);
+}
+
+/// Issue 50, item 4: five draws of each held-out effect: no effect named in at least 90 %,
+/// the dependence stated right in at least 80 %.
+/// `cargo test --release --test audit held_out_effect_rates -- --ignored --nocapture`
+#[test]
+#[ignore]
+fn held_out_effect_rates() {
+    held_out_draws(5, 8100, 0.9, 0.8);
 }

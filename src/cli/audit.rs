@@ -9,7 +9,8 @@ use serde_json::{json, Value};
 
 use crate::audit::{gather, recovery_rmse, trend_svg};
 use crate::physics::audit::{
-    run_audit_with_progress, where_it_helped, AuditResult, AuditSettings, CandidateScore, Effect, Fit, Trend,
+    run_audit_with_progress, where_it_helped, AuditResult, AuditSettings, CandidateScore, Dependence, Effect, Fit,
+    SignatureTest, Trend,
 };
 use crate::physics::ImageBuf;
 use crate::physics::{IrMode, Waveform};
@@ -35,10 +36,115 @@ pub struct AuditArgs {
     /// Write the chosen effects and their fitted parameters as a physics file (TOML) for `replay --physics`.
     #[arg(long, value_name = "FILE")]
     pub physics_out: Option<PathBuf>,
+    /// Other ground-truthed recordings of the same camera: each is replayed with the physics
+    /// file the audit would write and with its baseline's, and the file is not written where it
+    /// worsens any by more than 10 % (every-pixel error).
+    #[arg(long = "check-on", value_name = "BAG", num_args = 1..)]
+    pub check_on: Vec<PathBuf>,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
     #[command(flatten)]
     pub output: OutputArgs,
+}
+
+/// Most a physics file may worsen another recording's every-pixel error (`--check-on`), as a share.
+const CHECK_MAX_WORSENING: f64 = 0.10;
+
+/// One `--check-on` recording replayed with the baseline's physics and with the file's.
+#[derive(Debug, Clone)]
+struct Check {
+    /// The recording.
+    bag: PathBuf,
+    /// Every-pixel error with the baseline's physics, mm.
+    baseline_mm: f64,
+    /// Every-pixel error with the physics file, mm.
+    file_mm: f64,
+}
+
+impl Check {
+    /// The file worsens this recording by more than [`CHECK_MAX_WORSENING`].
+    fn worsens(&self) -> bool {
+        !(self.file_mm <= (1.0 + CHECK_MAX_WORSENING) * self.baseline_mm)
+    }
+
+    fn json(&self) -> Value {
+        json!({
+            "bag": self.bag.display().to_string(),
+            "baseline_every_pixel_rmse_mm": self.baseline_mm,
+            "file_every_pixel_rmse_mm": self.file_mm,
+            "ratio": self.file_mm / self.baseline_mm,
+            "worsens": self.worsens(),
+        })
+    }
+}
+
+/// Replays each of `bags` with `baseline` and with `file` (physics files) by this program's
+/// own `replay`, ξ estimated as for any scene: the every-pixel errors.
+fn check_on(bags: &[PathBuf], baseline: &PhysicsFile, file: &PhysicsFile) -> Result<Vec<Check>> {
+    let exe = std::env::current_exe().context("finding this program to replay the --check-on recordings")?;
+    let dir = std::env::temp_dir().join(format!("translucent_tof_audit_check_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let result = (|| {
+        let mut paths = vec![];
+        for (name, f) in [("baseline.toml", baseline), ("file.toml", file)] {
+            let path = dir.join(name);
+            let text = toml::to_string(f).context("writing a physics file to check")?;
+            write_atomic(&path, text.as_bytes())?;
+            paths.push(path);
+        }
+        bags.iter()
+            .map(|bag| {
+                Ok(Check {
+                    bag: bag.clone(),
+                    baseline_mm: replay_every_pixel(&exe, bag, &paths[0], &dir)?,
+                    file_mm: replay_every_pixel(&exe, bag, &paths[1], &dir)?,
+                })
+            })
+            .collect::<Result<Vec<_>>>()
+    })();
+    // Best effort: a leftover temporary folder is no error of the audit's.
+    let _ = std::fs::remove_dir_all(&dir);
+    result
+}
+
+/// `replay BAG --physics PHYSICS`: its every-pixel error, mm.
+fn replay_every_pixel(
+    exe: &std::path::Path,
+    bag: &std::path::Path,
+    physics: &std::path::Path,
+    dir: &std::path::Path,
+) -> Result<f64> {
+    let json_path = dir.join("replay.json");
+    let out = std::process::Command::new(exe)
+        .arg("replay")
+        .arg(bag)
+        .arg("--physics")
+        .arg(physics)
+        .arg("--json")
+        .arg(&json_path)
+        .arg("--out")
+        .arg(dir.join("replay.mcap"))
+        .output()
+        .with_context(|| format!("--check-on {}: running replay", bag.display()))?;
+    if !out.status.success() {
+        bail!(
+            "--check-on {}: replay failed: {}",
+            bag.display(),
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    let text = std::fs::read_to_string(&json_path).with_context(|| format!("reading {}", json_path.display()))?;
+    let v: Value =
+        serde_json::from_str(&text).with_context(|| format!("--check-on {}: replay's report", bag.display()))?;
+    v["every_pixel_rmse_mm"]
+        .as_f64()
+        .filter(|e| e.is_finite())
+        .ok_or_else(|| {
+            anyhow!(
+                "--check-on {}: the recording has no ground truth (ground_truth/depth) to measure the file against",
+                bag.display()
+            )
+        })
 }
 
 /// Runs `audit`.
@@ -99,7 +205,13 @@ pub fn run(a: AuditArgs) -> Result<()> {
         objects: &objects,
     };
     let [before, after, kept] = replayed.recoveries(&result)?;
-    let choice = ModelChoice::new(&result, base, before, kept, a.physics_out.as_deref());
+    let mut choice = ModelChoice::new(&result, base, before, kept, a.physics_out.as_deref());
+    let checks = if a.check_on.is_empty() || result.kept_fit().effects.is_empty() || !choice.written {
+        vec![]
+    } else {
+        check_on(&a.check_on, &physics_file(&result.baseline, base), &choice.physics)?
+    };
+    choice.checked(&result, &a.check_on, &checks, a.physics_out.as_deref());
     let plots = write_plots(&a, &result)?;
     if let (Some(out), true) = (&a.physics_out, choice.written) {
         write_physics_file(out, &result, &choice)?;
@@ -185,6 +297,10 @@ struct ModelChoice {
     written: bool,
     /// Why it stops where it does, or why nothing was written; empty when all is well.
     note: String,
+    /// Where it was checked, in words.
+    checked_on: String,
+    /// The `--check-on` recordings replayed with it.
+    checks: Vec<Value>,
 }
 
 impl ModelChoice {
@@ -220,6 +336,64 @@ impl ModelChoice {
             recovery,
             written,
             note,
+            checked_on: String::new(),
+            checks: vec![],
+        }
+    }
+}
+
+impl ModelChoice {
+    /// Where the file was checked, and refused where it worsens a `--check-on` recording by
+    /// more than [`CHECK_MAX_WORSENING`].
+    fn checked(&mut self, result: &AuditResult, bags: &[PathBuf], checks: &[Check], out: Option<&std::path::Path>) {
+        self.checks = checks.iter().map(Check::json).collect();
+        self.checked_on = if result.kept_fit().effects.is_empty() {
+            "the file is the baseline's physics: nothing to check".to_string()
+        } else if !self.written {
+            "not checked on other recordings: it is not written".to_string()
+        } else if bags.is_empty() {
+            "checked on its own recording only (give other ground-truthed recordings of the camera with --check-on)"
+                .to_string()
+        } else {
+            let figures: Vec<String> = checks
+                .iter()
+                .map(|c| {
+                    format!(
+                        "{} {:.1} -> {:.1} mm",
+                        c.bag
+                            .file_name()
+                            .map_or(c.bag.display().to_string(), |n| n.to_string_lossy().into_owned()),
+                        c.baseline_mm,
+                        c.file_mm
+                    )
+                })
+                .collect();
+            format!(
+                "checked on {} other recording(s), every-pixel error with the baseline's physics -> with the file: {}",
+                checks.len(),
+                figures.join(", ")
+            )
+        };
+        if let Some(c) = checks.iter().find(|c| c.worsens()) {
+            let what = out.map_or("no physics file would be written".to_string(), |p| {
+                format!(
+                    "--physics-out {} NOT WRITTEN (a file already there is from before)",
+                    p.display()
+                )
+            });
+            let r = format!(
+                "{what}: it worsens {} by more than {:.0} % (every-pixel error {:.1} mm against {:.1} with the baseline's physics)",
+                c.bag.display(),
+                100.0 * CHECK_MAX_WORSENING,
+                c.file_mm,
+                c.baseline_mm
+            );
+            self.note = if self.note.is_empty() {
+                r
+            } else {
+                format!("{r}; {}", self.note)
+            };
+            self.written = false;
         }
     }
 }
@@ -358,6 +532,7 @@ fn summary(
             bound_text(&s.at_bound)
         );
     }
+    summary += &format!("left unexplained: {}\n", result.dependence.words);
     if let (Some(b), Some(f)) = (before, after) {
         summary += &format!("recovery on this recording: {:.1} -> {:.1} mm RMS\n", b.0, f.0);
     }
@@ -374,6 +549,9 @@ fn summary(
     let warned_apart = out.is_some() && !choice.written;
     if !choice.note.is_empty() && !warned_apart {
         summary += &format!("{}{}\n", if choice.written { "" } else { "WARNING: " }, choice.note);
+    }
+    if !choice.checked_on.is_empty() {
+        summary += &format!("{}\n", choice.checked_on);
     }
     if let (true, Some(out)) = (choice.written, out) {
         summary += &format!("wrote {}\n", out.display());
@@ -501,6 +679,7 @@ fn report(
         },
         "physics_out": physics_out_json(a, r, choice, before),
         "candidates": r.candidates.iter().map(candidate_json).collect::<Vec<_>>(),
+        "dependence": dependence_json(&r.dependence),
         "recovery_rmse_mm": {
             "before": before.map(|b| b.0),
             "after": after.map(|b| b.0),
@@ -525,6 +704,16 @@ fn strongest(trends: &[Trend]) -> Vec<Value> {
     t.iter()
         .map(|t| json!({"quantity": t.quantity.name(), "z": t.systematic_z, "where": t.worst_bin()}))
         .collect()
+}
+
+/// The one strongest dependence of the residual left, against the others.
+fn dependence_json(d: &Dependence) -> Value {
+    json!({
+        "quantity": d.quantity.map(|q| q.name()),
+        "z": d.z,
+        "against": d.against.iter().map(|(q, z)| json!({"quantity": q.name(), "z": z})).collect::<Vec<_>>(),
+        "words": d.words,
+    })
 }
 
 fn trend_json(t: &Trend) -> Value {
@@ -591,8 +780,26 @@ fn candidate_json(c: &CandidateScore) -> Value {
         "xi": c.xi,
         "params": c.params.iter().map(|(k, v)| (k.clone(), json!(v))).collect::<serde_json::Map<_, _>>(),
         "at_bound": c.at_bound,
+        "signature": signature_json(&c.signature),
         "accepted": c.accepted,
         "rejected": c.rejected,
+    })
+}
+
+/// A candidate's signature test: what its misfit follows and whether the residual shows it.
+fn signature_json(t: &SignatureTest) -> Value {
+    json!({
+        "quantity": t.quantity.name(),
+        "observed_z": t.observed_z,
+        "left_z": t.left_z,
+        "explained": t.explained,
+        "correlation": t.correlation,
+        "dominant": t.dominant.name(),
+        "dominant_z": t.dominant_z,
+        "dominant_explained": t.dominant_explained,
+        "plausible": t.plausible,
+        "passed": t.passed,
+        "failed": t.failed,
     })
 }
 
@@ -615,6 +822,8 @@ fn physics_out_json(a: &AuditArgs, r: &AuditResult, choice: &ModelChoice, before
         "baseline_recovery_rmse_mm": before.map(|b| b.0),
         "physics": serde_json::to_value(&choice.physics).unwrap_or(Value::Null),
         "note": choice.note,
+        "checked_on": choice.checked_on,
+        "check_on": choice.checks,
     })
 }
 

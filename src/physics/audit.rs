@@ -96,6 +96,44 @@ impl Effect {
         }
     }
 
+    /// The quantity the effect's misfit follows (its signature): where the model without
+    /// it must leave a residual that varies along this, and the effect must take that away.
+    pub fn signature(&self) -> Quantity {
+        match self {
+            // Eq. 3's terms grow as the layer nears the wall.
+            Effect::HigherOrderBounces => Quantity::Separation,
+            // A non-sinusoidal correlation bends the reading periodically in phase.
+            Effect::WaveformHarmonics => Quantity::Phase,
+            // Amplitude and sum part as the two returns' phases part: with the gap.
+            Effect::IrAmplitude => Quantity::Separation,
+            // An offset weighs most where the signal is faint.
+            Effect::AmbientOffset => Quantity::IrLevel,
+            // The delayed first return's share of the mix falls with distance.
+            Effect::SubsurfaceDelay => Quantity::ForegroundDistance,
+            // `X = rho_f cos(theta_f)` in L2: the law shows as X changes with the incidence.
+            Effect::TransmissionLaw => Quantity::IncidenceAngle,
+            // A displaced background shows along the image where the wall changes.
+            Effect::RefractionShift => Quantity::ImageColumn,
+            // The third return scales with the view factor from the wall to the layer.
+            Effect::WallInterreflection => Quantity::ViewFactor,
+            // The lobe's slanted paths lengthen with the gap.
+            Effect::DiffuseTransmission => Quantity::Separation,
+            // A back wall behind the layer: its return against the background's, with the gap.
+            Effect::ThreeReturns => Quantity::Separation,
+        }
+    }
+
+    /// Quantities besides [`Effect::signature`] the same misfit follows by the effect's
+    /// geometry (a displacement along rows shows along rows).
+    fn other_signatures(&self) -> &'static [Quantity] {
+        match self {
+            Effect::RefractionShift => &[Quantity::ImageRow],
+            Effect::TransmissionLaw => &[Quantity::ForegroundDistance],
+            Effect::SubsurfaceDelay => &[Quantity::IncidenceAngle],
+            _ => &[],
+        }
+    }
+
     /// Parameters counted by the penalty: a discrete switch counts as one.
     pub fn penalty_params(&self) -> usize {
         self.param_names().len().max(1)
@@ -248,6 +286,8 @@ pub struct CandidateScore {
     pub at_bound: Vec<String>,
     /// ξ refitted with it.
     pub xi: f64,
+    /// Its signature test: the misfit it predicts against the observed one, and plausibility.
+    pub signature: SignatureTest,
     /// Accepted.
     pub accepted: bool,
     /// Why it was not accepted though its loss gain passed (held-out depth error worse beyond noise);
@@ -255,31 +295,87 @@ pub struct CandidateScore {
     pub rejected: String,
 }
 
+/// An effect's signature test ([`Effect::signature`]): the misfit it predicts along its
+/// quantity set against the misfit observed there, and whether its parameters are plausible.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SignatureTest {
+    /// The quantity the effect's misfit follows (the one of its signatures that shows most).
+    pub quantity: Quantity,
+    /// Trend of the model's held-out residual without the effect along the quantity, beyond
+    /// noise: `(chi2 - dof) / sqrt(2 dof)` of the bin means, depth and IR in noise units.
+    pub observed_z: f64,
+    /// The same with the effect.
+    pub left_z: f64,
+    /// Share of the observed trend beyond noise that the effect's predicted change takes away.
+    pub explained: f64,
+    /// Correlation over the bins of the effect's predicted change with the observed residual.
+    pub correlation: f64,
+    /// The quantity the residual without the effect follows most, of its signatures and
+    /// [`LOCATING`]: the misfit's dominant structure.
+    pub dominant: Quantity,
+    /// Its trend, z.
+    pub dominant_z: f64,
+    /// Share of that trend beyond noise the effect takes away: physics the recording holds
+    /// takes away the misfit's main structure, not only a part along its own quantity.
+    pub dominant_explained: f64,
+    /// The parameters are physically plausible ([`plausibility`]).
+    pub plausible: bool,
+    /// Why the test fails, in words; empty where it passes.
+    pub failed: String,
+    /// The misfit follows the quantity, the effect takes most of that away, and its
+    /// parameters are plausible.
+    pub passed: bool,
+}
+
+/// Least trend (z) a residual must show along an effect's signature for the effect to be named.
+pub const SIGNATURE_MIN_Z: f64 = 3.0;
+/// Least share of that trend the effect must take away.
+pub const SIGNATURE_MIN_EXPLAINED: f64 = 0.5;
+/// Largest ambient offset that is plausible, as a share of the layer's median IR: an offset
+/// is a small part of the signal (dark level, ambient light), not the signal itself.
+pub const AMBIENT_MAX_SHARE: f64 = 0.25;
+/// Parameters whose physical range ends at a limit of plausibility, not at a physical
+/// state: a fit on that end is the effect stretched to take up a misfit of another kind.
+const PLAUSIBLE_INSIDE: [&str; 5] = [
+    "subsurface_delay_mm",
+    "shift_columns_px",
+    "shift_rows_px",
+    "wall_interreflection",
+    "hollow_depth_mm",
+];
+
 /// A quantity residuals are tested against.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Quantity {
-    /// Layer separation `db - df`, mm.
+    /// Layer-to-background gap `db - df`, mm.
     Separation,
     /// Foreground distance `df`, mm.
     ForegroundDistance,
     /// The reading's phase as a fraction of the unambiguous range.
     Phase,
-    /// IR level, counts.
+    /// Brightness: the IR level, counts.
     IrLevel,
-    /// Incidence angle on the layer, degrees.
+    /// Incidence angle on the layer (from the true surface's normal), degrees.
     IncidenceAngle,
     /// Image column.
     ImageColumn,
     /// Image row.
     ImageRow,
-    /// Frame index.
+    /// Image position: distance from the image's centre, pixels.
+    ImageRadius,
+    /// Frame time: the frame's index in the recording's order.
     Frame,
+    /// Pose: the index of the frame's pose (frames whose layer's median true distance
+    /// agrees within [`POSE_TOLERANCE_MM`]), in order of distance.
+    Pose,
+    /// View factor from the pixel's background point to the layer (a near wall's third return).
+    ViewFactor,
 }
 
 impl Quantity {
     /// Every quantity.
-    pub const ALL: [Quantity; 8] = [
+    pub const ALL: [Quantity; 11] = [
         Quantity::Separation,
         Quantity::ForegroundDistance,
         Quantity::Phase,
@@ -287,7 +383,10 @@ impl Quantity {
         Quantity::IncidenceAngle,
         Quantity::ImageColumn,
         Quantity::ImageRow,
+        Quantity::ImageRadius,
         Quantity::Frame,
+        Quantity::Pose,
+        Quantity::ViewFactor,
     ];
 
     /// Name in reports and file names.
@@ -300,20 +399,64 @@ impl Quantity {
             Quantity::IncidenceAngle => "incidence_deg",
             Quantity::ImageColumn => "image_column",
             Quantity::ImageRow => "image_row",
+            Quantity::ImageRadius => "image_radius_px",
             Quantity::Frame => "frame",
+            Quantity::Pose => "pose",
+            Quantity::ViewFactor => "wall_view_factor",
         }
     }
 
-    fn value(&self, p: &AuditPixel, range_mm: f64) -> f64 {
+    /// The quantity in words, for the dependence the audit states.
+    pub fn words(&self) -> &'static str {
+        match self {
+            Quantity::Separation => "the layer-to-background gap",
+            Quantity::ForegroundDistance => "the layer's distance",
+            Quantity::Phase => "the reading's phase",
+            Quantity::IrLevel => "the brightness (IR level)",
+            Quantity::IncidenceAngle => "the incidence angle on the layer",
+            Quantity::ImageColumn => "the image column",
+            Quantity::ImageRow => "the image row",
+            Quantity::ImageRadius => "the image position (distance from the centre)",
+            Quantity::Frame => "the frame time",
+            Quantity::Pose => "the pose",
+            Quantity::ViewFactor => "the view factor from the background to the layer",
+        }
+    }
+
+    fn value(&self, p: &AuditPixel, ctx: &QuantityContext) -> f64 {
         match self {
             Quantity::Separation => p.obs.background_distance_mm - p.truth_mm,
             Quantity::ForegroundDistance => p.truth_mm,
-            Quantity::Phase => (p.obs.distance_mm / range_mm).rem_euclid(1.0),
+            Quantity::Phase => (p.obs.distance_mm / ctx.range_mm).rem_euclid(1.0),
             Quantity::IrLevel => p.obs.ir,
             Quantity::IncidenceAngle => p.incidence_cos.clamp(-1.0, 1.0).acos().to_degrees(),
             Quantity::ImageColumn => p.col as f64,
             Quantity::ImageRow => p.row as f64,
+            Quantity::ImageRadius => (p.col as f64 - ctx.centre[0]).hypot(p.row as f64 - ctx.centre[1]),
             Quantity::Frame => p.frame as f64,
+            Quantity::Pose => ctx.pose_of_frame.get(p.frame).map_or(f64::NAN, |&k| k as f64),
+            Quantity::ViewFactor => p.obs.wall_view_factor,
+        }
+    }
+}
+
+/// What the quantities need beyond a pixel: the unambiguous range, each frame's pose and
+/// the image's centre.
+#[derive(Debug, Clone)]
+pub struct QuantityContext {
+    range_mm: f64,
+    pose_of_frame: Vec<usize>,
+    centre: [f64; 2],
+}
+
+impl QuantityContext {
+    /// The context of a recording read at unambiguous range `range_mm`.
+    pub fn new(data: &AuditData, range_mm: f64) -> Self {
+        let b = &data.background_distance_mm;
+        Self {
+            range_mm,
+            pose_of_frame: frame_poses(data).0,
+            centre: [(b.width as f64 - 1.0) / 2.0, (b.height as f64 - 1.0) / 2.0],
         }
     }
 }
@@ -469,6 +612,86 @@ pub struct AuditResult {
     /// RMS of the final model's held-out residuals in units of the noise (about 1 when
     /// the noise model and the physics are right).
     pub final_noise_ratio: f64,
+    /// The one quantity the final model's residual follows most: what no effect named explains.
+    pub dependence: Dependence,
+}
+
+/// The quantities a residual no effect explains is located by (issue 50: distance, incidence,
+/// brightness, image position, pose, frame time, gap).
+pub const LOCATING: [Quantity; 9] = [
+    Quantity::ForegroundDistance,
+    Quantity::IncidenceAngle,
+    Quantity::IrLevel,
+    Quantity::ImageRadius,
+    Quantity::ImageColumn,
+    Quantity::ImageRow,
+    Quantity::Pose,
+    Quantity::Frame,
+    Quantity::Separation,
+];
+
+/// Least trend (z) of the final residual along a quantity for the audit to state it as a
+/// dependence: below it the residual is noise along every quantity.
+pub const DEPENDENCE_MIN_Z: f64 = 5.0;
+
+/// Where the residual the final model leaves lies: the one strongest dependence, against the others.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Dependence {
+    /// The quantity the residual follows most, where it follows one beyond
+    /// [`DEPENDENCE_MIN_Z`]; `None` where it is noise along every one.
+    pub quantity: Option<Quantity>,
+    /// Its trend, z.
+    pub z: f64,
+    /// Every locating quantity's trend z, strongest first.
+    pub against: Vec<(Quantity, f64)>,
+    /// The dependence in words, with its strength against the next strongest.
+    pub words: String,
+}
+
+/// The one strongest dependence of `trends` (a fit's residual trends) among [`LOCATING`].
+pub fn strongest_dependence(trends: &[Trend]) -> Dependence {
+    let mut against: Vec<(Quantity, f64)> = trends
+        .iter()
+        .filter(|t| LOCATING.contains(&t.quantity) && t.systematic_z.is_finite())
+        .map(|t| (t.quantity, t.systematic_z))
+        .collect();
+    against.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let top = against.first().copied();
+    let next = against
+        .get(1)
+        .map_or(String::new(), |(q, z)| format!("; next {} {z:.1}", q.name()));
+    let (quantity, z, words) = match top {
+        Some((q, z)) if z >= DEPENDENCE_MIN_Z => {
+            let bin = trends
+                .iter()
+                .find(|t| t.quantity == q)
+                .map(|t| t.worst_bin())
+                .unwrap_or_default();
+            (
+                Some(q),
+                z,
+                format!(
+                    "the residual no effect explains follows {} most (trend z {z:.1}{next}); largest at {bin}",
+                    q.words()
+                ),
+            )
+        }
+        Some((q, z)) => (
+            None,
+            z,
+            format!(
+                "the residual follows no quantity beyond noise (strongest {} z {z:.1}, {DEPENDENCE_MIN_Z} needed)",
+                q.name()
+            ),
+        ),
+        None => (None, 0.0, "the residual could not be binned".to_string()),
+    };
+    Dependence {
+        quantity,
+        z,
+        against,
+        words,
+    }
 }
 
 impl AuditResult {
@@ -1149,6 +1372,19 @@ const POSE_TOLERANCE_MM: f64 = 10.0;
 /// interleaved, a few parameters can follow each pose's own misfit). With one pose, frames
 /// interleaved.
 fn frame_folds(data: &AuditData, folds: usize) -> (Vec<usize>, usize) {
+    let (pose, poses) = frame_poses(data);
+    if poses >= 2 {
+        let n = folds.clamp(2, poses);
+        (pose.iter().map(|&p| p % n).collect(), n)
+    } else {
+        let n = folds.clamp(2, data.frames.max(2));
+        ((0..data.frames).map(|f| f % n).collect(), n)
+    }
+}
+
+/// Each frame's pose (frames whose layer's median true distance agrees within
+/// [`POSE_TOLERANCE_MM`] show one pose), numbered in order of distance, and the number of poses.
+fn frame_poses(data: &AuditData) -> (Vec<usize>, usize) {
     let mut per_frame: Vec<Vec<f64>> = vec![vec![]; data.frames];
     for p in &data.pixels {
         if let Some(v) = per_frame.get_mut(p.frame) {
@@ -1171,13 +1407,7 @@ fn frame_folds(data: &AuditData, folds: usize) -> (Vec<usize>, usize) {
         }
         pose[f] = poses.saturating_sub(1);
     }
-    if poses >= 2 {
-        let n = folds.clamp(2, poses);
-        (pose.iter().map(|&p| p % n).collect(), n)
-    } else {
-        let n = folds.clamp(2, data.frames.max(2));
-        ((0..data.frames).map(|f| f % n).collect(), n)
-    }
+    (pose, poses)
 }
 
 /// The folds ([`frame_folds`], as `prep` holds them) and the gain of `new` over `old` in held-out loss from all
@@ -1234,42 +1464,20 @@ pub fn trends(
     sigma_ir_of: impl Fn(usize) -> f64,
     bins: usize,
 ) -> Vec<Trend> {
+    let ctx = QuantityContext::new(data, range_mm);
     Quantity::ALL
         .iter()
-        .map(|q| trend(data, fit, *q, range_mm, &sigma_ir_of, bins))
+        .map(|q| trend(data, fit, *q, &ctx, &sigma_ir_of, bins))
         .collect()
 }
 
-fn trend(
-    data: &AuditData,
-    fit: &Fit,
-    q: Quantity,
-    range_mm: f64,
-    sigma_ir_of: &dyn Fn(usize) -> f64,
-    bins: usize,
-) -> Trend {
-    let mut idx: Vec<(f64, usize)> = data
-        .pixels
-        .iter()
-        .enumerate()
-        .filter(|(i, _)| fit.heldout_residual_mm[*i].is_finite())
-        .map(|(i, p)| (q.value(p, range_mm), i))
-        .filter(|(v, _)| v.is_finite())
-        .collect();
+/// `(value, pixel)` pairs sorted by value in quantile groups of about `len / bins`, equal
+/// values kept in one group (frames, columns); none where fewer than `2 bins` pairs.
+fn quantile_groups(mut idx: Vec<(f64, usize)>, bins: usize) -> Vec<Vec<(f64, usize)>> {
     idx.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let mut t = Trend {
-        quantity: q,
-        bins: vec![],
-        counts: vec![],
-        mean_mm: vec![],
-        se_mm: vec![],
-        ir_mean_pct: vec![],
-        systematic_z: 0.0,
-    };
-    if idx.len() < 2 * bins {
-        return t;
+    if idx.len() < 2 * bins || bins == 0 {
+        return vec![];
     }
-    // Quantile bins, but equal values stay in one bin (frames, columns).
     let mut groups: Vec<Vec<(f64, usize)>> = vec![];
     let per = idx.len().div_ceil(bins);
     let mut cur: Vec<(f64, usize)> = vec![];
@@ -1282,22 +1490,44 @@ fn trend(
     if !cur.is_empty() {
         groups.push(cur);
     }
+    groups
+}
+
+fn trend(
+    data: &AuditData,
+    fit: &Fit,
+    q: Quantity,
+    ctx: &QuantityContext,
+    sigma_ir_of: &dyn Fn(usize) -> f64,
+    bins: usize,
+) -> Trend {
+    let idx: Vec<(f64, usize)> = data
+        .pixels
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| fit.heldout_residual_mm[*i].is_finite())
+        .map(|(i, p)| (q.value(p, ctx), i))
+        .filter(|(v, _)| v.is_finite())
+        .collect();
+    let mut t = Trend {
+        quantity: q,
+        bins: vec![],
+        counts: vec![],
+        mean_mm: vec![],
+        se_mm: vec![],
+        ir_mean_pct: vec![],
+        systematic_z: 0.0,
+    };
+    let groups = quantile_groups(idx, bins);
+    if groups.is_empty() {
+        return t;
+    }
+    let idx: Vec<(f64, usize)> = groups.iter().flatten().copied().collect();
     let z_all: Vec<(f64, f64)> = idx
         .iter()
         .map(|&(_, i)| (fit.heldout_residual_mm[i], fit.heldout_ir_residual[i] / sigma_ir_of(i)))
         .collect();
     let mean_of = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-    let robust_sd = |mut v: Vec<f64>| {
-        v.retain(|x| x.is_finite());
-        v.sort_by(f64::total_cmp);
-        if v.is_empty() {
-            return f64::NAN;
-        }
-        let m = super::stats::median_sorted(&v);
-        let mut dev: Vec<f64> = v.iter().map(|x| (x - m).abs()).collect();
-        dev.sort_by(f64::total_cmp);
-        1.4826 * super::stats::median_sorted(&dev)
-    };
     let sd_d = robust_sd(z_all.iter().map(|z| z.0).collect()).max(1e-9);
     let sd_i = robust_sd(z_all.iter().map(|z| z.1).filter(|v| v.is_finite()).collect()).max(1e-9);
     let gd = mean_of(&z_all.iter().map(|z| z.0).collect::<Vec<_>>());
@@ -1334,6 +1564,266 @@ fn trend(
     t
 }
 
+/// Bin means of two fits' held-out residuals along `q`, depth and IR in noise units (each
+/// pixel's clipped at 3 Huber thresholds), scaled by the spread of `before`'s: per bin and
+/// channel `(pixels, mean before, mean after)`.
+fn binned_pair(
+    prep: &Prepared,
+    ctx: &QuantityContext,
+    q: Quantity,
+    before: &Fit,
+    after: &Fit,
+    bins: usize,
+) -> Vec<(f64, f64, f64)> {
+    let clip = 3.0 * prep.huber_k;
+    let z = |f: &Fit, i: usize| {
+        [
+            (f.heldout_residual_mm[i] / prep.sigma_d[i]).clamp(-clip, clip),
+            (f.heldout_ir_residual[i] / prep.sigma_i[i]).clamp(-clip, clip),
+        ]
+    };
+    let known = |f: &Fit, i: usize| z(f, i).iter().all(|v| v.is_finite());
+    let idx: Vec<(f64, usize)> = prep
+        .data
+        .pixels
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| known(before, *i) && known(after, *i))
+        .map(|(i, p)| (q.value(p, ctx), i))
+        .filter(|(v, _)| v.is_finite())
+        .collect();
+    let groups = quantile_groups(idx, bins);
+    let mut out = vec![];
+    for c in 0..2 {
+        let spread = robust_sd(groups.iter().flatten().map(|&(_, i)| z(before, i)[c]).collect()).max(1e-9);
+        for g in &groups {
+            let n = g.len() as f64;
+            let (b, a) = g
+                .iter()
+                .fold((0.0, 0.0), |(b, a), &(_, i)| (b + z(before, i)[c], a + z(after, i)[c]));
+            out.push((n, b / n / spread, a / n / spread));
+        }
+    }
+    out
+}
+
+/// `(chi2 - dof) / sqrt(2 dof)` of bin means `(pixels, mean)` (in units of a pixel's spread)
+/// about their pixel-weighted mean, `dof` the bins less one per channel (`channels`).
+fn structure_z(bins: &[(f64, f64)], channels: usize) -> (f64, f64) {
+    let n: f64 = bins.iter().map(|b| b.0).sum();
+    if bins.len() <= channels || n <= 0.0 {
+        return (0.0, 0.0);
+    }
+    let per = bins.len() / channels;
+    let mut chi2 = 0.0;
+    for ch in bins.chunks(per) {
+        let m = ch.iter().map(|b| b.0 * b.1).sum::<f64>() / ch.iter().map(|b| b.0).sum::<f64>().max(1e-12);
+        chi2 += ch.iter().map(|b| b.0 * (b.1 - m).powi(2)).sum::<f64>();
+    }
+    let dof = (bins.len() - channels) as f64;
+    ((chi2 - dof) / (2.0 * dof).sqrt(), chi2)
+}
+
+/// The signature test of `effect`, `after` its fit added to `before`: along each of its
+/// signature quantities the residual `before` leaves must vary beyond noise
+/// ([`SIGNATURE_MIN_Z`]) and the effect must take at least [`SIGNATURE_MIN_EXPLAINED`] of
+/// that away; its parameters must be plausible ([`plausibility`]). The quantity reported is
+/// the signature along which the effect explains most.
+fn signature_test(
+    prep: &Prepared,
+    ctx: &QuantityContext,
+    effect: Effect,
+    before: &Fit,
+    after: &Fit,
+    bins: usize,
+) -> SignatureTest {
+    let mut best: Option<SignatureTest> = None;
+    let own: Vec<Quantity> = std::iter::once(effect.signature())
+        .chain(effect.other_signatures().iter().copied())
+        .collect();
+    // The misfit's dominant structure: the quantity the residual without the effect follows most.
+    let (mut dominant, mut dominant_z, mut dominant_explained) = (effect.signature(), f64::NEG_INFINITY, 0.0);
+    for &q in own.iter().chain(LOCATING.iter()) {
+        let (z, _, explained, _) = along(prep, ctx, q, before, after, bins);
+        if z > dominant_z {
+            (dominant, dominant_z, dominant_explained) = (q, z, explained);
+        }
+    }
+    for q in own {
+        let (observed_z, left_z, explained, correlation) = along(prep, ctx, q, before, after, bins);
+        let t = SignatureTest {
+            quantity: q,
+            observed_z,
+            left_z,
+            explained,
+            correlation,
+            dominant,
+            dominant_z,
+            dominant_explained,
+            plausible: true,
+            failed: String::new(),
+            passed: false,
+        };
+        if best
+            .as_ref()
+            .is_none_or(|b| t.explained * t.observed_z.max(0.0) > b.explained * b.observed_z.max(0.0))
+        {
+            best = Some(t);
+        }
+    }
+    let mut t = best.unwrap_or(SignatureTest {
+        quantity: effect.signature(),
+        observed_z: 0.0,
+        left_z: 0.0,
+        explained: 0.0,
+        correlation: 0.0,
+        dominant,
+        dominant_z,
+        dominant_explained,
+        plausible: true,
+        failed: String::new(),
+        passed: false,
+    });
+    let implausible = plausibility(effect, after, prep.data).err();
+    t.plausible = implausible.is_none();
+    t.failed = if t.observed_z < SIGNATURE_MIN_Z {
+        format!(
+            "no misfit along {} to explain (trend z {:.1}, {SIGNATURE_MIN_Z} needed)",
+            t.quantity.name(),
+            t.observed_z
+        )
+    } else if !(t.explained >= SIGNATURE_MIN_EXPLAINED) {
+        format!(
+            "its predicted misfit does not follow the observed one along {}: it takes {:.0} % of the trend away ({:.0} % needed; trend z {:.1} -> {:.1})",
+            t.quantity.name(),
+            100.0 * t.explained,
+            100.0 * SIGNATURE_MIN_EXPLAINED,
+            t.observed_z,
+            t.left_z
+        )
+    } else if !(t.dominant_explained >= SIGNATURE_MIN_EXPLAINED) {
+        format!(
+            "the misfit follows {} most (trend z {:.1}) and it takes {:.0} % of that away ({:.0} % needed)",
+            t.dominant.name(),
+            t.dominant_z,
+            100.0 * t.dominant_explained,
+            100.0 * SIGNATURE_MIN_EXPLAINED
+        )
+    } else {
+        implausible.unwrap_or_default()
+    };
+    t.passed = t.failed.is_empty();
+    t
+}
+
+/// The trend of `before`'s residual along `q` and of `after`'s (z), the share of the
+/// first beyond noise that `after` takes away, and the bins' correlation of the change
+/// with the residual.
+fn along(
+    prep: &Prepared,
+    ctx: &QuantityContext,
+    q: Quantity,
+    before: &Fit,
+    after: &Fit,
+    bins: usize,
+) -> (f64, f64, f64, f64) {
+    let pair = binned_pair(prep, ctx, q, before, after, bins);
+    let obs: Vec<(f64, f64)> = pair.iter().map(|p| (p.0, p.1)).collect();
+    let left: Vec<(f64, f64)> = pair.iter().map(|p| (p.0, p.2)).collect();
+    let (observed_z, chi_obs) = structure_z(&obs, 2);
+    let (left_z, chi_left) = structure_z(&left, 2);
+    let dof = pair.len().saturating_sub(2) as f64;
+    let explained = if chi_obs > dof {
+        (chi_obs - chi_left) / (chi_obs - dof)
+    } else {
+        0.0
+    };
+    (observed_z, left_z, explained, bin_correlation(&pair))
+}
+
+/// Correlation over bins and channels of the predicted change (before minus after) with
+/// the observed residual (before), each about its channel's pixel-weighted mean.
+fn bin_correlation(pair: &[(f64, f64, f64)]) -> f64 {
+    let per = (pair.len() / 2).max(1);
+    let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
+    for ch in pair.chunks(per) {
+        let w: f64 = ch.iter().map(|p| p.0).sum::<f64>().max(1e-12);
+        let mo = ch.iter().map(|p| p.0 * p.1).sum::<f64>() / w;
+        let mp = ch.iter().map(|p| p.0 * (p.1 - p.2)).sum::<f64>() / w;
+        for p in ch {
+            let (o, d) = (p.1 - mo, p.1 - p.2 - mp);
+            sxy += p.0 * o * d;
+            sxx += p.0 * o * o;
+            syy += p.0 * d * d;
+        }
+    }
+    if sxx > 0.0 && syy > 0.0 {
+        sxy / (sxx * syy).sqrt()
+    } else {
+        0.0
+    }
+}
+
+/// Whether a fit's parameters are physically plausible: an ambient offset a small share of
+/// the layer's IR ([`AMBIENT_MAX_SHARE`]), a hollow object's back wall before the
+/// background, and no parameter of [`PLAUSIBLE_INSIDE`] on the far end of its range.
+pub fn plausibility(effect: Effect, fit: &Fit, data: &AuditData) -> Result<(), String> {
+    let param = |name: &str| fit.params.iter().find(|(n, _)| n == name).map(|p| p.1);
+    match effect {
+        Effect::AmbientOffset => {
+            let ir = median(data.pixels.iter().map(|p| p.obs.ir).collect());
+            let offset = param("ambient_offset").unwrap_or(0.0);
+            if !(offset <= AMBIENT_MAX_SHARE * ir) {
+                return Err(format!(
+                    "an ambient offset of {offset:.0} counts is {:.0} % of the layer's median IR ({ir:.0} counts): more than a small part of the signal ({:.0} % at most)",
+                    100.0 * offset / ir,
+                    100.0 * AMBIENT_MAX_SHARE
+                ));
+            }
+        }
+        Effect::ThreeReturns => {
+            let gap = median(
+                data.pixels
+                    .iter()
+                    .map(|p| p.obs.background_distance_mm - p.truth_mm)
+                    .collect(),
+            );
+            let t = param("hollow_depth_mm").unwrap_or(0.0);
+            if !(t < gap) {
+                return Err(format!(
+                    "a back wall {t:.0} mm behind the layer lies behind the background for most pixels (median gap {gap:.0} mm)"
+                ));
+            }
+        }
+        _ => {}
+    }
+    for name in PLAUSIBLE_INSIDE {
+        if let Some(v) = param(name) {
+            let (lo, hi) = range_of(name);
+            let far = if lo < 0.0 { v.abs() >= hi } else { v >= hi };
+            if far {
+                return Err(format!(
+                    "{name} {v:.3} sits on the far end of its range: the effect stretched to take up another misfit"
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The spread of `v`'s finite values from their median absolute deviation (a normal's sd); NaN when none.
+fn robust_sd(mut v: Vec<f64>) -> f64 {
+    v.retain(|x| x.is_finite());
+    v.sort_by(f64::total_cmp);
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let m = super::stats::median_sorted(&v);
+    let mut dev: Vec<f64> = v.iter().map(|x| (x - m).abs()).collect();
+    dev.sort_by(f64::total_cmp);
+    1.4826 * super::stats::median_sorted(&dev)
+}
+
 /// Runs the audit: baseline, greedy forward selection over [`Effect::ALL`],
 /// trends before and after. `base` is the paper's model on the recording's
 /// sensor (its options are the baseline: normally the paper's defaults).
@@ -1365,8 +1855,9 @@ pub fn run_audit_with_progress(
     let mut steps: Vec<Fit> = vec![];
     let mut candidates = vec![];
     let mut remaining = candidate_effects(base);
+    let ctx = QuantityContext::new(data, range_mm);
     for round in 0..settings.max_effects {
-        let (scores, best) = run_round(&prep, &current, &remaining, round, settings, progress);
+        let (scores, best) = run_round(&prep, &ctx, &current, &remaining, round, settings, progress);
         candidates.extend(scores);
         let Some((fit, ci)) = best else {
             break;
@@ -1393,6 +1884,7 @@ pub fn run_audit_with_progress(
     };
     let recovery: Vec<&[f64]> = steps.iter().map(|s| s.heldout_recovery_blocks_mm.as_slice()).collect();
     let kept_steps = steps_recovering_no_worse(&baseline.heldout_recovery_blocks_mm, &recovery);
+    let dependence = strongest_dependence(&trends_after);
     Ok(AuditResult {
         baseline,
         steps,
@@ -1404,6 +1896,7 @@ pub fn run_audit_with_progress(
         pixels: data.pixels.len(),
         frames: data.frames,
         final_noise_ratio,
+        dependence,
     })
 }
 
@@ -1447,6 +1940,7 @@ fn candidate_effects(base: &ForwardModel) -> Vec<Effect> {
 /// and scored; the best one claimed (with its index in `remaining`), if any is.
 fn run_round(
     prep: &Prepared,
+    ctx: &QuantityContext,
     current: &Fit,
     remaining: &[Effect],
     round: usize,
@@ -1473,6 +1967,7 @@ fn run_round(
         let rest_needed = threshold * (folds as f64 - 1.0) / folds as f64;
         let depth_worse = squared_increase_z(&current.heldout_residual_mm, &fit.heldout_residual_mm)
             .is_none_or(|z| z > WORSE_BEYOND_NOISE_Z);
+        let signature = signature_test(prep, ctx, *e, current, &fit, settings.trend_bins);
         let rejected = if passes && one_fold < rest_needed {
             format!(
                 "its held-out gain comes from one fold of poses: {one_fold:.0} from the others against {rest_needed:.0} needed"
@@ -1482,6 +1977,8 @@ fn run_round(
                 "held-out depth error {:.1} mm against {:.1} without it, worse beyond noise",
                 fit.heldout_rmse_mm, current.heldout_rmse_mm
             )
+        } else if passes && !signature.passed {
+            format!("its signature test fails: {}", signature.failed)
         } else {
             String::new()
         };
@@ -1498,6 +1995,7 @@ fn run_round(
             params: fit.params.clone(),
             at_bound: fit.at_bound.clone(),
             xi: fit.xi,
+            signature,
             accepted: false,
             rejected,
         });

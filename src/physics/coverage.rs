@@ -224,6 +224,7 @@ mod tests {
             background_albedo_cos: 0.8,
             emitted_light: LIN,
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
         };
         let mut r = [Return::default(); MAX_BOUNCES];
         let n = model.layer_returns(&s, &mut r);
@@ -247,6 +248,7 @@ mod tests {
             background_ir: b.ir,
             emitted_light: LIN,
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
         }
     }
 

@@ -29,6 +29,10 @@ pub struct PixelObservation {
     /// `F`: the view factor from the background point to the layer, where the model's
     /// [`ModelOptions::wall_interreflection`] asks for it (0 until it is known).
     pub wall_view_factor: f64,
+    /// What the pixel sees through a frosted layer's lobe, where the model's
+    /// [`ModelOptions::diffuse_transmission`] asks for it and the layer's outline is known
+    /// ([`super::diffuse::lobe_returns`]); `None`: the layer taken as filling the view.
+    pub diffuse_lobe: Option<super::diffuse::LobeTable>,
 }
 
 impl PixelObservation {
@@ -43,6 +47,7 @@ impl PixelObservation {
             background_albedo_cos: self.background_albedo_cos(ambient_offset),
             emitted_light: self.emitted_light,
             wall_view_factor: self.wall_view_factor,
+            diffuse_lobe: self.diffuse_lobe.as_ref().map(|t| t.at(df)),
         }
     }
 
@@ -129,6 +134,16 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
     if let Some(x) = engine_albedo_cos(model, obs, df, xi, x_max) {
         return x;
     }
+    if let Some(x) = affine_albedo_cos(model, obs, df, xi, x_max) {
+        return x;
+    }
+    albedo_cos_scan(model, obs, df, xi, x_max)
+}
+
+/// [`albedo_cos`] on any model: the first crossing of the IR equation from `X = 0`,
+/// bracketed on a coarse scan and bisected.
+fn albedo_cos_scan(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64, x_max: f64) -> Option<f64> {
+    let o = &model.options;
     let g = |x: f64| model.layer_ir(&obs.layer_scene(df, xi, x, o.ambient_offset)) - obs.ir;
     // Bracket the first crossing on a coarse scan (the amplitude need not be monotone in X).
     const SCAN: usize = 16;
@@ -154,6 +169,61 @@ pub fn albedo_cos(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f64
         lo = hi;
     }
     None
+}
+
+/// [`albedo_cos`] on the sensor's own frequency where the returns are affine in `X`
+/// ([`ForwardModel::returns_affine_in_albedo`]; `C` and `A + C` the returns at `X = 0` and
+/// `X = 1`): the IR is `X s + t` (the sum; `s > 0`) or `|X A + C|` (the amplitude; convex in
+/// `X`), so from `g(0) <= 0` it is met once upward, the root [`albedo_cos_scan`] brackets and
+/// bisects, here in closed form: `|A|^2 X^2 + 2 Re(A C*) X + |C|^2 - I^2 = 0`. The outer
+/// `None`: not this case (a depth engine, another model, or `A = 0`).
+fn affine_albedo_cos(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    df: f64,
+    xi: f64,
+    x_max: f64,
+) -> Option<Option<f64>> {
+    if model.sensor.engine().is_some() || !model.returns_affine_in_albedo() {
+        return None;
+    }
+    let o = &model.options;
+    let returns_at = |x: f64| {
+        let mut r = [super::model::Return::default(); super::model::MAX_BOUNCES];
+        let n = model.layer_returns(&obs.layer_scene(df, xi, x, o.ambient_offset), &mut r);
+        (r, n)
+    };
+    let ((zero, n0), (one, n1)) = (returns_at(0.0), returns_at(1.0));
+    let (zero, one) = (&zero[..n0], &one[..n1]);
+    let ir = obs.ir - o.ambient_offset;
+    let x = match o.ir_mode {
+        IrMode::Sum => {
+            let t: f64 = zero.iter().map(|r| r.strength).sum();
+            let s = one.iter().map(|r| r.strength).sum::<f64>() - t;
+            if !(s > 0.0) {
+                return None;
+            }
+            if t > ir {
+                return Some(None);
+            }
+            (ir - t) / s
+        }
+        IrMode::Amplitude => {
+            let (c, p) = (model.own_phasor(zero), model.own_phasor(one));
+            let a = [p[0] - c[0], p[1] - c[1]];
+            let a2 = a[0] * a[0] + a[1] * a[1];
+            if !(a2 > 0.0) {
+                return None;
+            }
+            let c_len = c[0].hypot(c[1]);
+            if c_len > ir {
+                return Some(None);
+            }
+            let b = a[0] * c[0] + a[1] * c[1];
+            (-b + (b * b + a2 * (ir - c_len) * (ir + c_len)).sqrt()) / a2
+        }
+    };
+    Some((x.is_finite() && x <= x_max).then_some(x.max(0.0)))
 }
 
 /// [`albedo_cos`] for a depth engine's amplitude IR where the returns are linear in `X`
@@ -1374,6 +1444,7 @@ mod tests {
             background_albedo_cos: xb,
             emitted_light: lin,
             wall_view_factor: f,
+            diffuse_lobe: None,
         };
         let m = model.measure_layer(&s);
         let bg = model.measure(&[ForwardModel::opaque_return(db, xb, lin)]);
@@ -1384,7 +1455,89 @@ mod tests {
             background_ir: bg.ir,
             emitted_light: lin,
             wall_view_factor: f,
+            diffuse_lobe: None,
         }
+    }
+
+    /// Where the returns are affine in `X`, the closed form gives the root the scan brackets
+    /// and bisects (or none where the scan finds none): a frosted layer's lobe (a table along
+    /// the ray) and the filled view, with one inter-reflection, a near wall, a hollow object,
+    /// a delay and an IR offset, the amplitude IR and the sum, at hypothesised layers before,
+    /// at and past the pixel's own. A model that is not affine is left to the scan.
+    #[test]
+    fn the_affine_albedo_is_the_root_the_scan_finds() {
+        let table = crate::physics::diffuse::LobeTable {
+            first_mm: 500.0,
+            step_mm: 120.0,
+            lobes: std::array::from_fn(|j| crate::physics::diffuse::DiffuseLobe {
+                lit: [0.3 - 0.01 * j as f64, 0.1 + 0.005 * j as f64],
+                shadow: [0.5 - 0.02 * j as f64, 0.2 + 0.01 * j as f64],
+            }),
+        };
+        let x_max = InversionBounds::default().max_albedo_cos;
+        let (mut found, mut none) = (0, 0);
+        let mut m = ForwardModel::physical(Sensor::sr4000());
+        for (ir_mode, bounces, wall, hollow, delay, offset) in [
+            (IrMode::Amplitude, 3, 0.0, 0.0, 0.0, 0.0),
+            (IrMode::Amplitude, 2, 1.0, 150.0, 12.0, 40.0),
+            (IrMode::Sum, 3, 0.0, 0.0, 0.0, 0.0),
+            (IrMode::Sum, 2, 1.0, 150.0, 12.0, 40.0),
+        ] {
+            m.options.ir_mode = ir_mode;
+            m.options.bounces = bounces;
+            m.options.wall_interreflection = wall;
+            m.options.hollow_depth_mm = hollow;
+            m.options.subsurface_delay_mm = delay;
+            m.options.ambient_offset = offset;
+            m.options.diffuse_transmission = 0.8;
+            for lobe in [Some(table), None] {
+                for (df, xi, x) in [(800.0, 0.4, 0.3), (1300.0, 0.7, 0.6), (1900.0, 0.85, 0.9)] {
+                    let s = LayerScene {
+                        diffuse_lobe: lobe.map(|t| t.at(df)),
+                        ..LayerScene {
+                            foreground_distance_mm: df,
+                            background_distance_mm: 2600.0,
+                            translucency: xi,
+                            foreground_albedo_cos: x,
+                            background_albedo_cos: 0.8,
+                            emitted_light: 1.5e10,
+                            wall_view_factor: 0.25,
+                            diffuse_lobe: None,
+                        }
+                    };
+                    let me = m.measure_layer(&s);
+                    let bg = m.measure(&[ForwardModel::opaque_return(2600.0, 0.8, 1.5e10)]);
+                    let obs = PixelObservation {
+                        distance_mm: me.distance_mm,
+                        ir: me.ir,
+                        background_distance_mm: 2600.0,
+                        background_ir: bg.ir,
+                        emitted_light: 1.5e10,
+                        wall_view_factor: 0.25,
+                        diffuse_lobe: lobe,
+                    };
+                    let truth = affine_albedo_cos(&m, &obs, df, xi, x_max).expect("affine");
+                    assert!(truth.is_some_and(|got| (got - x).abs() < 1e-9), "{truth:?} against {x}");
+                    for h in [df - 450.0, df - 60.0, df, df + 140.0, df + 500.0] {
+                        let closed = affine_albedo_cos(&m, &obs, h, xi, x_max).expect("affine");
+                        let scan = albedo_cos_scan(&m, &obs, h, xi, x_max);
+                        match (closed, scan) {
+                            (Some(a), Some(b)) => {
+                                assert!((a - b).abs() < 1e-9 * x_max, "{:?} {h}: {a} against {b}", m.options);
+                                found += 1;
+                            }
+                            (None, None) => none += 1,
+                            _ => panic!("{:?} {h}: {closed:?} against the scan's {scan:?}", m.options),
+                        }
+                    }
+                }
+            }
+        }
+        println!("{found} roots alike, {none} with none");
+        assert!(found >= 60 && none >= 5, "{found} {none}");
+        m.options.transmission_albedo_power = 1.0;
+        let obs = observe(&m, 1200.0, 2600.0, 0.6, 0.5, 0.8);
+        assert!(affine_albedo_cos(&m, &obs, 1200.0, 0.6, x_max).is_none());
     }
 
     /// The default physics read through a 16/80/120 MHz depth engine.

@@ -6,7 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::diffuse::diffuse_second_return;
+use super::diffuse::{diffuse_second_return, DiffuseLobe};
 use super::near_wall::{third_return_distance, third_return_share};
 use super::sensor::{Buckets, Sensor};
 
@@ -57,7 +57,9 @@ pub struct ModelOptions {
     pub wall_interreflection: f64,
     /// Share (0..1) of the light crossing the layer that crosses diffusely, through a
     /// cosine lobe ([`super::diffuse`]; a frosted layer): that share of the second return
-    /// (Eq. 2) comes back over slanted paths, fainter and farther. 0 is a clear layer.
+    /// (Eq. 2) comes back over slanted paths, fainter and farther; where the layer's outline
+    /// is known ([`LayerScene::diffuse_lobe`]) the lobe sees the background outside the
+    /// layer's shadow too, lit straight. 0 is a clear layer.
     pub diffuse_transmission: f64,
     /// Depth of a hollow object of the layer's material (a bin, a closed box), mm: a back
     /// wall this far behind the front along the ray, seen through it, and the background
@@ -227,6 +229,10 @@ pub struct LayerScene {
     /// `F`: the view factor from the background point behind the pixel to the layer
     /// ([`super::near_wall::view_factor`]); 0 where it is not known or not wanted.
     pub wall_view_factor: f64,
+    /// What the pixel sees through a frosted layer of finite extent
+    /// ([`super::diffuse::lobe_returns`]); `None` takes the layer as filling the view
+    /// (`ψ²`, [`super::diffuse::diffuse_second_return`]).
+    pub diffuse_lobe: Option<DiffuseLobe>,
 }
 
 /// What the device reports for one pixel.
@@ -313,10 +319,26 @@ impl ForwardModel {
         let diffuse = o.diffuse_transmission.clamp(0.0, 1.0);
         if diffuse > 0.0 && n < MAX_BOUNCES {
             let k = self.sensor.phase(1.0);
-            let (length, extra_mm) = diffuse_second_return(db - df, k);
-            out[n] = Return {
-                strength: diffuse * length * out[1].strength,
-                distance_mm: df + extra_mm,
+            out[n] = match s.diffuse_lobe {
+                // The finite layer: `f (L2 / (ξ X^{p/2})) Z_lit + f L2 Z_shadow` at the layer's
+                // phase, the background outside the shadow crossing the layer once.
+                Some(lobe) => {
+                    let once = xb * xi * pow(x, o.transmission_albedo_power / 2.0) * lin / (db * db);
+                    let l2 = out[1].strength;
+                    let re = once * lobe.lit[0] + l2 * lobe.shadow[0];
+                    let im = once * lobe.lit[1] + l2 * lobe.shadow[1];
+                    Return {
+                        strength: diffuse * re.hypot(im),
+                        distance_mm: df + im.atan2(re) / k,
+                    }
+                }
+                None => {
+                    let (length, extra_mm) = diffuse_second_return(db - df, k);
+                    Return {
+                        strength: diffuse * length * out[1].strength,
+                        distance_mm: df + extra_mm,
+                    }
+                }
             };
             out[1].strength *= 1.0 - diffuse;
             n += 1;
@@ -402,13 +424,28 @@ impl ForwardModel {
 
     /// The demodulated amplitude `|sum_k L_k exp(i phi_k)|` at the sensor's own frequency.
     fn own_amplitude(&self, returns: &[Return]) -> f64 {
+        let [re, im] = self.own_phasor(returns);
+        re.hypot(im)
+    }
+
+    /// `sum_k L_k exp(i phi_k)` at the sensor's own frequency (real and imaginary parts).
+    pub fn own_phasor(&self, returns: &[Return]) -> [f64; 2] {
         let (mut re, mut im) = (0.0, 0.0);
         for r in returns {
             let (s, c) = self.sensor.phase(r.distance_mm).sin_cos();
             re += r.strength * c;
             im += r.strength * s;
         }
-        re.hypot(im)
+        [re, im]
+    }
+
+    /// Whether, in any scene, every return's strength is affine in the layer's albedo-cosine
+    /// `X` and its distance free of it ([`Self::layer_returns`]): the transmission law's power
+    /// 0 (no return through the layer carries `X`) and at most one inter-reflection (Eq. 3's
+    /// first term, linear in `X`); a near wall's third return, a frosted layer's diffuse part
+    /// and a hollow object's back wall stay so. The returns' phasor is then `X A + C`.
+    pub fn returns_affine_in_albedo(&self) -> bool {
+        self.options.transmission_albedo_power == 0.0 && self.options.bounces <= 3
     }
 }
 
@@ -438,7 +475,71 @@ mod tests {
             background_albedo_cos: 1.0,
             emitted_light: 1.0e10,
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
         }
+    }
+
+    /// A frosted layer's lobe with a shadowed and a lit part.
+    fn lobe() -> Option<DiffuseLobe> {
+        Some(DiffuseLobe {
+            lit: [0.21, 0.13],
+            shadow: [0.55, 0.31],
+        })
+    }
+
+    #[test]
+    fn returns_said_affine_in_the_albedo_are_and_others_are_not() {
+        // The returns' phasor and strengths at X = 0.5 against the mean of those at 0 and 1.
+        let off_affine = |m: &ForwardModel, s: &LayerScene| {
+            let at = |x: f64| {
+                let mut r = [Return::default(); MAX_BOUNCES];
+                let n = m.layer_returns(
+                    &LayerScene {
+                        foreground_albedo_cos: x,
+                        ..*s
+                    },
+                    &mut r,
+                );
+                let p = m.own_phasor(&r[..n]);
+                [p[0], p[1], r[..n].iter().map(|r| r.strength).sum()]
+            };
+            let (a, b, c) = (at(0.0), at(0.5), at(1.0));
+            (0..3)
+                .map(|j| (b[j] - 0.5 * (a[j] + c[j])).abs() / c[j].abs().max(b[j].abs()))
+                .fold(0.0, f64::max)
+        };
+        let s = LayerScene {
+            wall_view_factor: 0.3,
+            diffuse_lobe: lobe(),
+            ..scene(1400.0, 2100.0, 0.6, 0.5)
+        };
+        let mut m = ForwardModel::physical(Sensor::sr4000());
+        for (bounces, wall, diffuse, hollow, delay) in [
+            (2, 0.0, 0.0, 0.0, 0.0),
+            (3, 0.0, 0.8, 0.0, 0.0),
+            (3, 1.0, 0.6, 150.0, 12.0),
+            (2, 0.0, 0.7, 0.0, 0.0),
+        ] {
+            m.options.bounces = bounces;
+            m.options.wall_interreflection = wall;
+            m.options.diffuse_transmission = diffuse;
+            m.options.hollow_depth_mm = hollow;
+            m.options.subsurface_delay_mm = delay;
+            for lobe in [lobe(), None] {
+                let s = LayerScene {
+                    diffuse_lobe: lobe,
+                    ..s
+                };
+                assert!(m.returns_affine_in_albedo());
+                assert!(off_affine(&m, &s) < 1e-12, "{:?}: {}", m.options, off_affine(&m, &s));
+            }
+        }
+        // A second inter-reflection (X^2) or a transmission law with a power is not affine.
+        m.options.bounces = 4;
+        assert!(!m.returns_affine_in_albedo() && off_affine(&m, &s) > 1e-6);
+        m.options.bounces = 3;
+        m.options.transmission_albedo_power = 1.0;
+        assert!(!m.returns_affine_in_albedo() && off_affine(&m, &s) > 1e-6);
     }
 
     #[test]
@@ -481,6 +582,7 @@ mod tests {
         let mut m = ForwardModel::physical(Sensor::sr4000());
         let s = LayerScene {
             wall_view_factor: 0.27,
+            diffuse_lobe: None,
             ..scene(1750.0, 2000.0, 0.65, 0.6)
         };
         let mut r = [Return::default(); MAX_BOUNCES];
@@ -492,6 +594,7 @@ mod tests {
         assert!((r[2].distance_mm - (2000.0 + 250.0 * std::f64::consts::SQRT_2)).abs() < 1e-9);
         let none = LayerScene {
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
             ..s
         };
         assert_eq!(m.layer_returns(&none, &mut r), 2, "no view, no third return");

@@ -2066,6 +2066,7 @@ mod tests {
             background_albedo_cos: X_BACKGROUND,
             emitted_light: LIN,
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
         }
     }
 

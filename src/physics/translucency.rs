@@ -1594,6 +1594,7 @@ mod tests {
                         background_ir: 800.0,
                         emitted_light: 1e10,
                         wall_view_factor: 0.0,
+                        diffuse_lobe: None,
                     })
                 })
                 .collect(),
@@ -1649,6 +1650,7 @@ mod tests {
                         background_ir: 700.0,
                         emitted_light: 3e9,
                         wall_view_factor: 0.0,
+                        diffuse_lobe: None,
                     })
                 })
                 .collect(),

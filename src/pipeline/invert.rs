@@ -7,6 +7,7 @@ use nalgebra::Vector3;
 
 use super::{label_mask, restrict, DepthFrame, FrameOutput, Observed, Pipeline, RegionOutput};
 use crate::physics::coverage::{layer_coverage, ReadingNoise};
+use crate::physics::diffuse::{self, LobeTable};
 use crate::physics::near_wall;
 use crate::physics::parallel::{map_chunks_ordered, map_ordered};
 use crate::physics::segmentation::outline_pixels;
@@ -147,7 +148,8 @@ impl Pipeline {
     ) {
         let xi = xi_estimate.xi;
         // With a near wall's third return, each pixel's view factor to the layer first.
-        let walled = (self.config.model.options.wall_interreflection > 0.0)
+        let walled = self
+            .needs_layer_geometry()
             .then(|| self.with_wall_view_factors(observations, xi))
             .flatten();
         let observations = walled.as_ref().unwrap_or(observations);
@@ -235,17 +237,89 @@ impl Pipeline {
             .filter_map(|&(_, fi)| observations.get(fi).copied())
             .collect();
         let mut walled = None;
-        for _ in 0..WALL_PASSES {
+        // A frosted layer's lobes follow the hypothesised distance themselves (a table along
+        // the ray): one pass gives the outline's patches and normal.
+        let passes = if self.config.model.options.wall_interreflection > 0.0 {
+            WALL_PASSES
+        } else {
+            1
+        };
+        for _ in 0..passes {
             let layer_of = walled.as_ref().unwrap_or(observations);
             let roots = self.layer_roots((&observed, &held, layer_of), (&rays, &mask, &edge), xi, region.width);
             let factors = self.wall_view_factors(&observed, &held, &roots.df, &rays, region.width);
-            walled = Some(with_view_factors(observations, &observed, &factors)?);
+            let lobes = self.diffuse_lobes(&observed, &held, &roots.df, &rays, (region.width, &obs_mask));
+            walled = Some(with_view_factors(observations, &observed, &factors, &lobes)?);
             held = observed
                 .iter()
                 .filter_map(|&(_, fi)| walled.as_ref()?.get(fi).copied())
                 .collect();
         }
         walled
+    }
+
+    /// Whether the model needs the layer's geometry beyond each pixel's ray: a near wall's
+    /// view factors, a frosted layer's lobes.
+    pub(crate) fn needs_layer_geometry(&self) -> bool {
+        let o = &self.config.model.options;
+        o.wall_interreflection > 0.0 || o.diffuse_transmission > 0.0
+    }
+
+    /// Each observed pixel's lobe through a frosted layer at `df` (by the rectangle's index,
+    /// `width` wide; [`diffuse::ImageLayer`]), the layer's outline the frame's `mask` (whole
+    /// image), its patches and normal from `df`: found at each `prior_stride_px` block's first
+    /// observed pixel and taken by the block's others (relative to each one's own layer).
+    /// Empty where the model has no diffuse transmission or there is no latched `Lin`.
+    fn diffuse_lobes(
+        &self,
+        observed: &[(usize, usize)],
+        held: &[PixelObservation],
+        df: &[f64],
+        rays: &ImageBuf<Vector3<f64>>,
+        (width, mask): (usize, &ImageBuf<bool>),
+    ) -> Vec<Option<LobeTable>> {
+        let Some(bg) = self.background.as_ref() else {
+            return vec![];
+        };
+        if !(self.config.model.options.diffuse_transmission > 0.0) {
+            return vec![];
+        }
+        let (w, stride) = (width.max(1), self.config.prior_stride_px.max(1));
+        let block = |i: usize| (i / w / stride) * w.div_ceil(stride) + (i % w) / stride;
+        let patches = near_wall::layer_patches(df, rays, stride);
+        let layer = diffuse::ImageLayer {
+            intrinsics: &self.intrinsics,
+            mask,
+            emitted_light: &bg.emitted_light,
+            patches: &patches,
+            normal: diffuse::layer_normal(&patches),
+        };
+        let k = self.config.model.sensor.phase(1.0);
+        let mut first_of_block = vec![usize::MAX; block(df.len().saturating_sub(1)) + 1];
+        let mut items: Vec<(usize, Vector3<f64>, f64, f64)> = vec![];
+        for (&(i, _), o) in observed.iter().zip(held) {
+            if !df[i].is_finite() {
+                continue;
+            }
+            if let Some(first) = first_of_block.get_mut(block(i)).filter(|f| **f == usize::MAX) {
+                *first = i;
+                items.push((i, rays.data[i], df[i], o.background_distance_mm));
+            }
+        }
+        let near = self.bounds.min_distance_mm;
+        let lobes = map_ordered(&items, 4, 8, |(_, ray, _, db)| layer.lobe_table(ray, near, *db, k));
+        let mut by_index: Vec<Option<LobeTable>> = vec![None; df.len()];
+        for (&(i, ..), l) in items.iter().zip(lobes) {
+            by_index[i] = Some(l);
+        }
+        observed
+            .iter()
+            .map(|&(i, _)| {
+                first_of_block
+                    .get(block(i))
+                    .and_then(|&first| by_index.get(first).copied().flatten())
+            })
+            .collect()
     }
 
     /// The layer's roots at ξ over a rectangle `width` wide (its `rays` and `mask`): each
@@ -535,10 +609,12 @@ fn with_view_factors(
     observations: &SparseImage<PixelObservation>,
     observed: &[(usize, usize)],
     factors: &[f64],
+    lobes: &[Option<LobeTable>],
 ) -> Option<SparseImage<PixelObservation>> {
-    let mut by_pixel: std::collections::HashMap<usize, f64> = std::collections::HashMap::with_capacity(observed.len());
-    for (&(_, fi), &f) in observed.iter().zip(factors) {
-        by_pixel.insert(fi, f);
+    let mut by_pixel: std::collections::HashMap<usize, (f64, Option<LobeTable>)> =
+        std::collections::HashMap::with_capacity(observed.len());
+    for (j, (&(_, fi), &f)) in observed.iter().zip(factors).enumerate() {
+        by_pixel.insert(fi, (f, lobes.get(j).copied().flatten()));
     }
     let mask = ImageBuf {
         width: observations.width,
@@ -550,7 +626,8 @@ fn with_view_factors(
     SparseImage::from_mask(&mask, |fi| {
         let o = *observations.get(fi)?;
         Some(PixelObservation {
-            wall_view_factor: by_pixel.get(&fi).copied().unwrap_or(0.0),
+            wall_view_factor: by_pixel.get(&fi).map_or(0.0, |p| p.0),
+            diffuse_lobe: by_pixel.get(&fi).and_then(|p| p.1),
             ..o
         })
     })
@@ -764,6 +841,7 @@ mod tests {
             background_ir: 800.0,
             emitted_light: 1e10,
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
         }
     }
 

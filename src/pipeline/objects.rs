@@ -47,8 +47,9 @@ impl Pipeline {
         let budget = (settings.max_pixels_per_frame / count).max(settings.max_pixels_per_frame / 5);
         // With a near wall's third return, each pixel's view factor from the layer at the ξ
         // known so far (the middle of the range before any).
-        let wall_xi =
-            (self.config.model.options.wall_interreflection > 0.0).then(|| self.xi().map_or(NOMINAL_XI, |e| e.xi));
+        let wall_xi = self
+            .needs_layer_geometry()
+            .then(|| self.xi().map_or(NOMINAL_XI, |e| e.xi));
         for (k, region) in regions.iter_mut().enumerate().filter(|&(k, _)| needed[k]) {
             let observations = if single {
                 Some(std::borrow::Cow::Borrowed(&obs.observations))

@@ -42,6 +42,7 @@ impl Pipeline {
                 background_ir: ib,
                 emitted_light: bg.emitted_light.data[i],
                 wall_view_factor: 0.0,
+                diffuse_lobe: None,
             };
             let ok = ir.is_finite()
                 && ir > 0.0

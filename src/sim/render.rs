@@ -7,6 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
 use super::scene::{ObjectSpec, Scene};
+use crate::physics::diffuse::{layer_normal, DiffuseLobe, ImageLayer};
 use crate::physics::model::MAX_BOUNCES;
 use crate::physics::multifreq::MultiFrequencyModel;
 use crate::physics::near_wall;
@@ -174,19 +175,83 @@ fn plane_view_factor(wall: &Vector3<f64>, o: &ObjectSpec) -> f64 {
     near_wall::view_factor(wall, &patches)
 }
 
-/// The nearest object hit in front of the background along the unit ray `u`.
-fn foreground_hit<'a>(u: &Vector3<f64>, objects: &'a [ObjectSpec], bg: Option<Hit>) -> Option<(Hit, &'a ObjectSpec)> {
+/// The nearest object hit in front of the background along the unit ray `u`, and its index.
+fn foreground_hit(u: &Vector3<f64>, objects: &[ObjectSpec], bg: Option<Hit>) -> Option<(Hit, usize)> {
     objects
         .iter()
-        .filter_map(|o| hit_object(u, o).map(|h| (h, o)))
+        .enumerate()
+        .filter_map(|(j, o)| hit_object(u, o).map(|h| (h, j)))
         .filter(|(h, _)| bg.is_none_or(|bh| h.t < bh.t))
         .min_by(|a, b| a.0.t.total_cmp(&b.0.t))
 }
 
+/// A frame's frosted layers as the lobe sees them ([`ImageLayer`]): the outline the pixels
+/// any object covers (their shadow on the background), and each object's patches and normal
+/// from its true ray distances, one patch per pixel.
+struct FrostedLayers<'a> {
+    intrinsics: &'a Intrinsics,
+    emitted_light: &'a ImageBuf<f64>,
+    mask: ImageBuf<bool>,
+    patches: Vec<Vec<near_wall::Patch>>,
+    normals: Vec<Vector3<f64>>,
+    /// The sensor's radians per mm.
+    k: f64,
+}
+
+impl<'a> FrostedLayers<'a> {
+    /// The layers of a frame whose pixels' rays (`rays`) hit `hits` (ray distance, object);
+    /// `None` where the model has no diffuse transmission.
+    fn of_frame(
+        model: &ForwardModel,
+        (intrinsics, rays, emitted_light): (&'a Intrinsics, &ImageBuf<Vector3<f64>>, &'a ImageBuf<f64>),
+        hits: &[Option<(f64, usize)>],
+        objects: usize,
+    ) -> Option<Self> {
+        if !(model.options.diffuse_transmission > 0.0) || objects == 0 {
+            return None;
+        }
+        let patches: Vec<Vec<near_wall::Patch>> = (0..objects)
+            .map(|j| {
+                let df: Vec<f64> = hits
+                    .iter()
+                    .map(|h| h.filter(|&(_, o)| o == j).map_or(f64::NAN, |(t, _)| t))
+                    .collect();
+                near_wall::layer_patches(&df, rays, 1)
+            })
+            .collect();
+        Some(Self {
+            intrinsics,
+            emitted_light,
+            mask: ImageBuf {
+                width: rays.width,
+                height: rays.height,
+                data: hits.iter().map(Option::is_some).collect(),
+            },
+            normals: patches.iter().map(|p| layer_normal(p)).collect(),
+            patches,
+            k: model.sensor.phase(1.0),
+        })
+    }
+
+    /// The lobe of object `j` on the unit ray `u` at `df` before a background at `db` (ray
+    /// distances, mm): [`ImageLayer::lobe`], as recovery and the audit take it.
+    fn lobe(&self, j: usize, u: &Vector3<f64>, df: f64, db: f64) -> Option<DiffuseLobe> {
+        let layer = ImageLayer {
+            intrinsics: self.intrinsics,
+            mask: &self.mask,
+            emitted_light: self.emitted_light,
+            patches: self.patches.get(j)?,
+            normal: *self.normals.get(j)?,
+        };
+        Some(layer.lobe(u, df, db, self.k))
+    }
+}
+
 /// Appends the returns along one ray carrying `lin` of emitted light: the
-/// layer's (Eq. 1-3) in front of the background, or the background alone.
+/// layer's (Eq. 1-3) in front of the background, or the background alone; a frosted
+/// layer's lobe over the frame's `frosted` layers where the model has one.
 fn ray_returns(
-    model: &ForwardModel,
+    (model, frosted): (&ForwardModel, Option<&FrostedLayers>),
     (u, u_behind): (&Vector3<f64>, &Vector3<f64>),
     objects: &[ObjectSpec],
     (bg_center, bg_rot, bg_albedo): (Vector3<f64>, &Rotation3<f64>, f64),
@@ -195,7 +260,8 @@ fn ray_returns(
 ) {
     let bg = hit_plane(u, bg_center, bg_rot, None);
     match (foreground_hit(u, objects, bg), bg) {
-        (Some((h, o)), Some(bh)) => {
+        (Some((h, j)), Some(bh)) => {
+            let o = &objects[j];
             // Through the layer the background is the one the displaced ray meets (refraction).
             let bh = if u_behind == u {
                 bh
@@ -219,6 +285,7 @@ fn ray_returns(
                     } else {
                         0.0
                     },
+                    diffuse_lobe: frosted.and_then(|f| f.lobe(j, u, h.t, bh.t)),
                 },
                 &mut r,
             );
@@ -226,7 +293,10 @@ fn ray_returns(
         }
         (None, Some(bh)) => out.push(ForwardModel::opaque_return(bh.t, bg_albedo * bh.cos, lin)),
         // A layer with nothing behind it: its first return alone.
-        (Some((h, o)), None) => out.push(ForwardModel::opaque_return(h.t, (1.0 - o.xi) * o.albedo * h.cos, lin)),
+        (Some((h, j)), None) => {
+            let o = &objects[j];
+            out.push(ForwardModel::opaque_return(h.t, (1.0 - o.xi) * o.albedo * h.cos, lin))
+        }
         (None, None) => {}
     }
 }
@@ -285,6 +355,24 @@ fn engine_reading(model: &ForwardModel, returns: &[Return], noise: &ShotNoise, r
     (reading.distance_mm, ir + model.options.ambient_offset)
 }
 
+/// What a pixel received before the sensor's effects and noise: nothing, the single
+/// frequency's measurement (Eq. 5), or the returns a depth engine reads.
+enum Pixel {
+    Empty,
+    Measured(crate::physics::Measurement),
+    Engine(Vec<Return>),
+}
+
+impl Pixel {
+    /// The single frequency's measurement, where the pixel has one.
+    fn measurement(&self) -> Option<crate::physics::Measurement> {
+        match self {
+            Pixel::Measured(m) => Some(*m),
+            _ => None,
+        }
+    }
+}
+
 /// Renders every frame of the scene: background frames, then each stage's.
 /// `on_frame` receives each frame as it is made (for progress and writing).
 pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result<(), String>) -> Result<(), String> {
@@ -322,12 +410,23 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
     for s in &scene.stages {
         stages.extend(std::iter::repeat_n((s.objects.as_slice(), false), s.frames));
     }
+    let artefacts = &scene.camera.artefacts;
     for (index, (objects, background_only)) in stages.into_iter().enumerate() {
         let npx = k.width * k.height;
         let mut depth = Vec::with_capacity(npx);
         let mut ir = Vec::with_capacity(npx);
         let mut truth = Vec::with_capacity(npx);
         let mut phasors: Vec<Vec<[f32; 2]>> = vec![Vec::with_capacity(npx); multi.as_ref().map_or(0, |m| m.len())];
+        let frame_time_s = index as f64 / scene.camera.frame_rate_hz;
+        let mut measurements: Vec<Pixel> = Vec::with_capacity(npx);
+        // What each pixel's central ray hits before the background: the truth, and the
+        // outline and layers a frosted layer's lobes fall over.
+        let hits: Vec<Option<(f64, usize)>> = rays
+            .data
+            .iter()
+            .map(|u| foreground_hit(u, objects, hit_plane(u, bg_center, &bg_rot, None)).map(|(h, j)| (h.t, j)))
+            .collect();
+        let frosted = FrostedLayers::of_frame(&model, (&k, &rays, &lin), &hits, objects.len());
         for i in 0..npx {
             let (col, row) = ((i % k.width) as f64, (i / k.width) as f64);
             // Sub-rays on a regular grid within the pixel, each with its share of the light:
@@ -348,7 +447,7 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
                         u
                     };
                     ray_returns(
-                        &model,
+                        (&model, frosted.as_ref()),
                         (&u, &behind),
                         objects,
                         (bg_center, &bg_rot, b.albedo),
@@ -357,31 +456,45 @@ pub fn render(scene: &Scene, mut on_frame: impl FnMut(usize, SimFrame) -> Result
                     );
                 }
             }
+            artefacts.drift(&mut returns, frame_time_s);
             if let Some(mf) = &multi {
                 push_phasors(mf, &returns, &noise, &mut phasor_rng, &mut phasors);
             }
-            let engine = model.sensor.engine().is_some() && !returns.is_empty();
-            let meas = (!returns.is_empty() && !engine).then(|| model.measure(&returns));
-            let fg = foreground_hit(
-                &rays.data[i],
-                objects,
-                hit_plane(&rays.data[i], bg_center, &bg_rot, None),
-            );
+            // A depth engine reads the returns themselves (several frequencies); the single
+            // frequency's measurement is made here and read after the frame's stray light.
+            if model.sensor.engine().is_some() && !returns.is_empty() {
+                measurements.push(Pixel::Engine(returns.clone()));
+            } else {
+                measurements.push(if returns.is_empty() {
+                    Pixel::Empty
+                } else {
+                    Pixel::Measured(model.measure(&returns))
+                });
+            }
+        }
+        // The sensor's effects past the model, on the whole frame's measurements (stray light
+        // spreads the frame's light); none leaves each measurement as the model made it.
+        let single: Vec<Option<crate::physics::Measurement>> = measurements.iter().map(Pixel::measurement).collect();
+        let frame_light = crate::sim::Artefacts::frame_light(&single);
+        for (i, pixel) in measurements.into_iter().enumerate() {
             let z: [f64; 3] = [
                 rng.sample(StandardNormal),
                 rng.sample(StandardNormal),
                 rng.sample(StandardNormal),
             ];
-            let (d, v) = if engine {
-                engine_reading(&model, &returns, &noise, &mut rng)
-            } else {
-                meas.map(|m| noise.apply(&sensor, &m, z)).unwrap_or((f64::NAN, 0.0))
+            let (d, v) = match pixel {
+                Pixel::Engine(returns) => engine_reading(&model, &returns, &noise, &mut rng),
+                Pixel::Measured(m) if !artefacts.none() => {
+                    noise.apply(&sensor, &artefacts.apply(&sensor, &m, frame_light), z)
+                }
+                Pixel::Measured(m) => noise.apply(&sensor, &m, z),
+                Pixel::Empty => (f64::NAN, 0.0),
             };
             let share = scene.camera.invalid_share;
             let invalid = outside.get(i).copied().unwrap_or(false) || (share > 0.0 && invalid_rng.random_bool(share));
             depth.push(if invalid { f32::NAN } else { (d / scale.data[i]) as f32 });
             ir.push(v.max(0.0) as f32);
-            truth.push(fg.map(|(h, _)| (h.t / scale.data[i]) as f32).unwrap_or(f32::NAN));
+            truth.push(hits[i].map_or(f32::NAN, |(t, _)| (t / scale.data[i]) as f32));
         }
         let frame = SimFrame {
             stamp_ns: start_ns + (index as f64 * period_ns).round() as u64,
@@ -535,6 +648,7 @@ mod tests {
                 background_albedo_cos: 1.0 / scale,
                 emitted_light: lin,
                 wall_view_factor: 0.0,
+                diffuse_lobe: None,
             })
             .distance_mm
             / scale;
@@ -551,6 +665,65 @@ mod tests {
             strict[2].depth_z_mm.data[c]
         );
         assert!((strict[0].depth_z_mm.data[c] - 2000.0).abs() < 0.01);
+    }
+
+    /// A frosted sheet's pixels read the finite layer's lobe over the frame's outline (the
+    /// outline, patches and normal from the truth, [`ImageLayer::lobe`] as recovery and the
+    /// audit take it), not the filled view's, which lies more than 5 mm from it.
+    #[test]
+    fn a_frosted_layer_renders_its_lobe_over_its_outline() {
+        let mut s = scene(0.0);
+        s.stages[0].objects.truncate(1);
+        s.physics.diffuse_transmission = 0.8;
+        let f = &render_all(&s)[2];
+        let k = scene_intrinsics(&s);
+        let (rays, scale, lin) = (k.unit_ray_map(), k.ray_scale_map(), emitted_light_map(&s));
+        let df: Vec<f64> = f
+            .truth_z_mm
+            .data
+            .iter()
+            .zip(&scale.data)
+            .map(|(z, sc)| f64::from(*z) * sc)
+            .collect();
+        let patches = near_wall::layer_patches(&df, &rays, 1);
+        let mask = ImageBuf {
+            width: k.width,
+            height: k.height,
+            data: df.iter().map(|d| d.is_finite()).collect(),
+        };
+        let layer = ImageLayer {
+            intrinsics: &k,
+            mask: &mask,
+            emitted_light: &lin,
+            patches: &patches,
+            normal: layer_normal(&patches),
+        };
+        let model = ForwardModel {
+            sensor: scene_sensor(&s),
+            options: s.physics.clone(),
+        };
+        let (c, r) = (k.width / 2 + 20, k.height / 2 - 10);
+        let i = r * k.width + c;
+        let (sc, u) = (scale.data[i], rays.data[i]);
+        let scene_at = |lobe: Option<DiffuseLobe>| LayerScene {
+            foreground_distance_mm: df[i],
+            background_distance_mm: 2000.0 * sc,
+            translucency: 0.65,
+            foreground_albedo_cos: 0.6 / sc,
+            background_albedo_cos: 1.0 / sc,
+            emitted_light: lin.data[i],
+            wall_view_factor: 0.0,
+            diffuse_lobe: lobe,
+        };
+        let lobe = layer.lobe(&u, df[i], 2000.0 * sc, model.sensor.phase(1.0));
+        let want = model.measure_layer(&scene_at(Some(lobe))).distance_mm / sc;
+        let filled = model.measure_layer(&scene_at(None)).distance_mm / sc;
+        let got = f64::from(f.depth_z_mm.data[i]);
+        assert!((got - want).abs() < 0.5, "rendered {got}, the lobe's {want}");
+        assert!(
+            (want - filled).abs() > 5.0,
+            "the lobe's {want}, the filled view's {filled}"
+        );
     }
 
     #[test]

@@ -119,6 +119,9 @@ pub struct CameraSpec {
     /// The share of the other pixels read invalid in each frame, drawn at random (the
     /// pixels a camera invalidates for multipath or too little light); 0: none.
     pub invalid_share: f64,
+    /// Sensor effects past the model (stray light, saturation, a nonlinear amplitude
+    /// response, a drifting phase offset); all off by default.
+    pub artefacts: super::artefacts::Artefacts,
 }
 
 impl CameraSpec {
@@ -151,6 +154,7 @@ impl Default for CameraSpec {
             distortion: vec![],
             invalid_beyond_radius: 0.0,
             invalid_share: 0.0,
+            artefacts: super::artefacts::Artefacts::default(),
         }
     }
 }
@@ -314,6 +318,7 @@ impl Scene {
         if !(c.invalid_beyond_radius >= 0.0 && (0.0..1.0).contains(&c.invalid_share)) {
             return Err("camera: invalid_beyond_radius >= 0 and invalid_share in [0, 1) required".into());
         }
+        c.artefacts.validate()?;
         if !(1..=8).contains(&c.supersample) {
             return Err(format!("camera.supersample {} must be in 1..=8", c.supersample));
         }
@@ -323,6 +328,10 @@ impl Scene {
         check_frequencies(&c.modulation_frequencies_hz)?;
         if let Some(e) = &c.depth_engine {
             e.check().map_err(|e| format!("camera.depth_engine: {e}"))?;
+            let a = &c.artefacts;
+            if a.stray_light != 0.0 || a.saturation_ir != 0.0 || a.amplitude_power != 1.0 {
+                return Err("camera.depth_engine: the artefacts that act on the single frequency's buckets (stray_light, saturation_ir, amplitude_power) do not apply to a depth engine; only phase_drift_mm_per_s does".into());
+            }
         }
         if !["sinusoid", "triangle", "harmonics"].contains(&c.waveform.as_str()) {
             return Err(format!(
@@ -492,5 +501,12 @@ mod tests {
         let e = Scene::from_toml("[background]\ndistance_mm = 5\ncolour = 3\n", "x.toml").unwrap_err();
         let e = chain(&e);
         assert!(e.contains("colour"), "{e}");
+        let e = Scene::from_toml(
+            "[background]\ndistance_mm = 2000\n[camera.depth_engine]\nfrequencies_hz = [16e6, 80e6, 120e6]\n[camera.artefacts]\nstray_light = 0.01\n",
+            "x.toml",
+        )
+        .unwrap_err();
+        let e = chain(&e);
+        assert!(e.contains("depth_engine") && e.contains("stray_light"), "{e}");
     }
 }

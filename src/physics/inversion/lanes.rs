@@ -539,6 +539,7 @@ mod tests {
                     background_albedo_cos: xb,
                     emitted_light: lin,
                     wall_view_factor: 0.0,
+                    diffuse_lobe: None,
                 };
                 let m = model.measure_layer(&s);
                 let bg = model.measure(&[ForwardModel::opaque_return(db, xb, lin)]);
@@ -550,6 +551,7 @@ mod tests {
                     background_ir: bg.ir,
                     emitted_light: lin,
                     wall_view_factor: 0.0,
+                    diffuse_lobe: None,
                 }
             })
             .collect()
@@ -663,6 +665,7 @@ mod tests {
             background_ir: 200.0,
             emitted_light: 1.5e10,
             wall_view_factor: 0.0,
+            diffuse_lobe: None,
         };
         let beyond = PixelObservation {
             distance_mm: 1e12,

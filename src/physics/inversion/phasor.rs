@@ -399,6 +399,7 @@ mod tests {
             // of a millimetre for the weakest view here).
             let plain = PixelObservation {
                 wall_view_factor: 0.0,
+                diffuse_lobe: None,
                 ..o
             };
             let off = inverted(&p, &model, &plain, xi);
