@@ -365,6 +365,26 @@ type Job = (u64, Option<Effect>);
 /// What the audit named, and the draw in words.
 type Named = (Vec<Effect>, String);
 
+/// Each job with `f` of it, the jobs shared between two threads (every other one each; the
+/// machine has two cores), the first thread's results first.
+fn on_two_threads<J: Copy + Send + Sync, R: Send>(jobs: &[J], f: impl Fn(&J) -> R + Sync) -> Vec<(J, R)> {
+    let f = &f;
+    std::thread::scope(|s| {
+        let hs: Vec<_> = (0..2)
+            .map(|first| {
+                s.spawn(move || {
+                    jobs.iter()
+                        .skip(first)
+                        .step_by(2)
+                        .map(|j| (*j, f(j)))
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        hs.into_iter().flat_map(|h| h.join().expect("draw thread")).collect()
+    })
+}
+
 fn draws(per_effect: usize, controls: usize, first_seed: u64, min_hit_rate: f64) {
     let started = std::time::Instant::now();
     let mut jobs: Vec<Job> = vec![];
@@ -379,23 +399,7 @@ fn draws(per_effect: usize, controls: usize, first_seed: u64, min_hit_rate: f64)
         jobs.push((seed, None));
         seed += 1;
     }
-    let results: Vec<(Job, Named)> = std::thread::scope(|s| {
-        let halves = [
-            jobs.iter().step_by(2).collect::<Vec<_>>(),
-            jobs.iter().skip(1).step_by(2).collect(),
-        ];
-        let hs: Vec<_> = halves
-            .into_iter()
-            .map(|h| {
-                s.spawn(move || {
-                    h.into_iter()
-                        .map(|&(sd, e)| ((sd, e), audit_draw(sd, e)))
-                        .collect::<Vec<_>>()
-                })
-            })
-            .collect();
-        hs.into_iter().flat_map(|h| h.join().expect("draw thread")).collect()
-    });
+    let results: Vec<(Job, Named)> = on_two_threads(&jobs, |&(sd, e)| audit_draw(sd, e));
     let (mut misses, mut wrong, mut hits_all, mut concealed) = (vec![], vec![], 0, 0);
     for e in Effect::ALL.iter().map(|e| Some(*e)).chain([None]) {
         let mine: Vec<_> = results.iter().filter(|((_, x), _)| *x == e).collect();
@@ -703,31 +707,12 @@ fn held_out_draws(per_effect: usize, first_seed: u64, min_none: f64, min_located
         .enumerate()
         .flat_map(|(k, e)| (0..per_effect).map(move |j| (first_seed + (k * per_effect + j) as u64, *e)))
         .collect();
-    let results: Vec<((u64, HeldOut), (AuditResult, String))> = std::thread::scope(|s| {
-        let halves = [
-            jobs.iter().step_by(2).collect::<Vec<_>>(),
-            jobs.iter().skip(1).step_by(2).collect(),
-        ];
-        let hs: Vec<_> = halves
-            .into_iter()
-            .map(|h| {
-                s.spawn(move || {
-                    h.into_iter()
-                        .map(|&(sd, e)| {
-                            let scene = held_out_scene(sd, e);
-                            (
-                                (sd, e),
-                                audit_scene(
-                                    &scene,
-                                    &format!("seed {sd} held out {e:?} {:?}", scene.camera.artefacts),
-                                ),
-                            )
-                        })
-                        .collect::<Vec<_>>()
-                })
-            })
-            .collect();
-        hs.into_iter().flat_map(|h| h.join().expect("draw thread")).collect()
+    let results: Vec<((u64, HeldOut), (AuditResult, String))> = on_two_threads(&jobs, |&(sd, e)| {
+        let scene = held_out_scene(sd, e);
+        audit_scene(
+            &scene,
+            &format!("seed {sd} held out {e:?} {:?}", scene.camera.artefacts),
+        )
     });
     let (mut named, mut misplaced) = (vec![], vec![]);
     for ((_, e), (r, text)) in &results {

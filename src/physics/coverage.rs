@@ -13,7 +13,6 @@
 //! background elsewhere. Where the layer's own return is under the noise (ξ near 1) the
 //! dimming of the background still shows `c`.
 
-use super::model::MAX_BOUNCES;
 use super::{ForwardModel, IrMode, PixelObservation, Return, Waveform};
 
 /// A pixel's covered share and its standard deviation.
@@ -176,10 +175,8 @@ pub fn layer_coverage(
     if model.sensor.waveform != Waveform::Sinusoid || model.options.ir_mode != IrMode::Amplitude || engine {
         return None;
     }
-    let offset = model.options.ambient_offset;
     let at = |x: f64| {
-        let mut r = [Return::default(); MAX_BOUNCES];
-        let n = model.layer_returns(&obs.layer_scene(df, xi, x, offset), &mut r);
+        let (r, n) = super::inversion::returns_at_albedo(model, obs, df, xi, x);
         phasor(model, &r[..n])
     };
     let (p0, p_one) = (at(0.0), at(1.0));
@@ -207,6 +204,7 @@ pub fn layer_coverage(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::physics::model::MAX_BOUNCES;
     use crate::physics::{LayerScene, Sensor};
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;

@@ -171,6 +171,20 @@ fn albedo_cos_scan(model: &ForwardModel, obs: &PixelObservation, df: f64, xi: f6
     None
 }
 
+/// The pixel's returns with the layer at `df`, translucency `xi` and albedo term `x`, and
+/// how many there are.
+pub(crate) fn returns_at_albedo(
+    model: &ForwardModel,
+    obs: &PixelObservation,
+    df: f64,
+    xi: f64,
+    x: f64,
+) -> ([super::model::Return; super::model::MAX_BOUNCES], usize) {
+    let mut r = [super::model::Return::default(); super::model::MAX_BOUNCES];
+    let n = model.layer_returns(&obs.layer_scene(df, xi, x, model.options.ambient_offset), &mut r);
+    (r, n)
+}
+
 /// [`albedo_cos`] on the sensor's own frequency where the returns are affine in `X`
 /// ([`ForwardModel::returns_affine_in_albedo`]; `C` and `A + C` the returns at `X = 0` and
 /// `X = 1`): the IR is `X s + t` (the sum; `s > 0`) or `|X A + C|` (the amplitude; convex in
@@ -188,12 +202,10 @@ fn affine_albedo_cos(
         return None;
     }
     let o = &model.options;
-    let returns_at = |x: f64| {
-        let mut r = [super::model::Return::default(); super::model::MAX_BOUNCES];
-        let n = model.layer_returns(&obs.layer_scene(df, xi, x, o.ambient_offset), &mut r);
-        (r, n)
-    };
-    let ((zero, n0), (one, n1)) = (returns_at(0.0), returns_at(1.0));
+    let ((zero, n0), (one, n1)) = (
+        returns_at_albedo(model, obs, df, xi, 0.0),
+        returns_at_albedo(model, obs, df, xi, 1.0),
+    );
     let (zero, one) = (&zero[..n0], &one[..n1]);
     let ir = obs.ir - o.ambient_offset;
     let x = match o.ir_mode {
@@ -254,8 +266,7 @@ fn engine_albedo_cos(
     }
     let k = e.len();
     let phasors_at = |x: f64| {
-        let mut r = [super::model::Return::default(); super::model::MAX_BOUNCES];
-        let n = model.layer_returns(&obs.layer_scene(df, xi, x, o.ambient_offset), &mut r);
+        let (r, n) = returns_at_albedo(model, obs, df, xi, x);
         e.phasors(&model.sensor, &r[..n])
     };
     let (c, one) = (phasors_at(0.0), phasors_at(1.0));
